@@ -1,0 +1,43 @@
+"""swarmsplat's numeric core: Warp and Taichi kernels behind one typed API, their NumPy/torch twins
+(`kernels.reference`), and the geometry every layer shares (SE(3), cameras).
+
+Choose the backend and device once, at run time: `kernels.use(backend="warp"|"taichi", device="cpu"|"cuda")`.
+Nothing initialises Warp or Taichi at import time; backend modules load on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import torch
+
+from . import se3
+from .backend import Backend, active, cuda_available, use
+from .camera import PinholeCamera
+from .checks import check_tensor
+from .errors import BackendError, GraphError, InputError, RegistrationError, SwarmsplatError
+
+__all__ = [
+    "use", "active", "cuda_available", "Backend", "backend_module",
+    "PinholeCamera", "se3", "check_tensor", "axpy",
+    "SwarmsplatError", "InputError", "BackendError", "RegistrationError", "GraphError",
+]
+
+
+def backend_module(name: str):
+    """The active backend's implementation module `kernels._<backend>.<name>` (imported lazily)."""
+    b = active()
+    return importlib.import_module(f"{__name__}._{b.name}.{name}")
+
+
+def axpy(a: float, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """y <- a * x + y in place on the active backend; the probe that proves the backend plumbing works.
+
+    x, y: float32 [N] on the active device.
+    """
+    b = active()
+    check_tensor("x", x, (None,), dtypes=(torch.float32,), device=b.torch_device)
+    check_tensor("y", y, (x.shape[0],), dtypes=(torch.float32,), device=b.torch_device)
+    if not (x.is_contiguous() and y.is_contiguous()):
+        raise InputError("arguments 'x' and 'y' must be contiguous")
+    return backend_module("axpy").axpy(a, x, y, b.device)

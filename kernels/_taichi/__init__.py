@@ -1,0 +1,1 @@
+"""Taichi implementations of swarmsplat's kernels. Private: import through `kernels`, after `kernels.use()`."""

@@ -1,0 +1,1 @@
+"""Warp implementations of swarmsplat's kernels. Private: import through `kernels`, after `kernels.use()`."""

@@ -1,0 +1,33 @@
+"""The package's exception hierarchy: one base class, one subclass per failure kind.
+
+Every layer raises these; the CLI maps them to one clear line and a non-zero exit code.
+"""
+
+
+class SwarmsplatError(Exception):
+    """Base class of every error swarmsplat raises on purpose."""
+
+    exit_code = 1
+
+
+class InputError(SwarmsplatError, ValueError):
+    """Bad user input: a file, field, argument or array that is not what was expected.
+
+    The message names the file (with line number where there is one) or the argument, and what was expected.
+    """
+
+    exit_code = 2
+
+
+class BackendError(SwarmsplatError, RuntimeError):
+    """A kernel backend or device that cannot be used here (no CUDA, unknown backend, not initialised)."""
+
+    exit_code = 3
+
+
+class RegistrationError(SwarmsplatError, RuntimeError):
+    """A registration that cannot even be attempted (as opposed to one that ran and failed its gates)."""
+
+
+class GraphError(SwarmsplatError, RuntimeError):
+    """A pose graph that cannot be built or solved."""

@@ -1,0 +1,79 @@
+"""`python -m perf SUBJECT [--kernels warp|taichi] [--device cpu|cuda] [--quick] [--json OUT] [--md OUT]`.
+
+Runs one benchmark subject (or `all`), prints a Markdown table and writes JSON with the machine's description.
+Runs unchanged on a GPU machine with `--device cuda`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+
+from perf.common import machine_info, markdown_table
+
+# subject name -> module; modules that do not exist (yet) are skipped by `all` and reported by name.
+SUBJECTS = {
+    "generator": "perf.generator",
+    "raster": "perf.raster",
+    "icp": "perf.icp",
+    "graph": "perf.graph",
+    "frontend": "perf.frontend",
+    "slam": "perf.slam",
+}
+
+
+def _load(name: str):
+    try:
+        return importlib.import_module(SUBJECTS[name])
+    except ModuleNotFoundError as e:
+        if e.name == SUBJECTS[name]:
+            return None
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m perf", description=__doc__.splitlines()[0])
+    p.add_argument("subject", choices=sorted(SUBJECTS) + ["all"])
+    p.add_argument("--kernels", choices=["warp", "taichi", "both"], default="both")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--quick", action="store_true", help="smaller sizes and fewer repeats")
+    p.add_argument("--json", dest="json_out", help="write results as JSON here")
+    p.add_argument("--md", dest="md_out", help="write the Markdown tables here")
+    args = p.parse_args(argv)
+
+    from kernels.errors import SwarmsplatError
+    from kernels.fileio import atomic_write_text
+
+    names = sorted(SUBJECTS) if args.subject == "all" else [args.subject]
+    backends = ["warp", "taichi"] if args.kernels == "both" else [args.kernels]
+    report = {"machine": machine_info(), "device": args.device, "quick": args.quick,
+              "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "subjects": {}}
+    md = []
+    for name in names:
+        mod = _load(name)
+        if mod is None:
+            print(f"[perf] subject {name!r} is not available in this checkout; skipped", file=sys.stderr)
+            continue
+        print(f"[perf] {name}: {mod.DESCRIPTION}", file=sys.stderr)
+        try:
+            res = mod.run(backends=backends, device=args.device, quick=args.quick)
+        except SwarmsplatError as e:
+            print(f"[perf] {name}: error: {e}", file=sys.stderr)
+            return e.exit_code
+        report["subjects"][name] = res
+        table = markdown_table(res["rows"], res["columns"])
+        md.append(f"### {name}\n\n{mod.DESCRIPTION}\n\n{table}\n" + "".join(f"\n- {n}" for n in res.get("notes", [])))
+        print(md[-1])
+    if args.json_out:
+        atomic_write_text(args.json_out, json.dumps(report, indent=2, default=float))
+        print(f"[perf] wrote {args.json_out}", file=sys.stderr)
+    if args.md_out:
+        atomic_write_text(args.md_out, "\n\n".join(md) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

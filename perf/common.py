@@ -1,0 +1,78 @@
+"""Timing and reporting helpers shared by every benchmark subject.
+
+A subject module `perf/<name>.py` defines
+    DESCRIPTION: str
+    def run(*, backends: list[str], device: str, quick: bool) -> dict   # backends ⊆ ["warp", "taichi"]
+returning {"rows": [dict, ...], "columns": [str, ...], "notes": [str, ...]} — each row one measurement, the
+peer's numbers in the same row or its own row, ratios computed from medians in the same process.
+"""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import time
+from typing import Callable
+
+
+def sync(device: str) -> None:
+    """Wait for queued GPU work so a timer measures it."""
+    if device == "cuda":
+        import torch
+
+        torch.cuda.synchronize()
+
+
+def time_fn(fn: Callable[[], object], *, repeat: int = 5, warmup: int = 1, device: str = "cpu",
+            max_seconds: float | None = None) -> dict:
+    """Run `fn` `warmup` times untimed, then up to `repeat` times timed; report the median and spread in seconds.
+
+    `max_seconds` stops repeating early (after at least one timed run) so slow peers do not stall a run.
+    """
+    for _ in range(warmup):
+        fn()
+        sync(device)
+    times = []
+    start = time.perf_counter()
+    for _ in range(max(1, repeat)):
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+        if max_seconds is not None and time.perf_counter() - start > max_seconds:
+            break
+    return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times), "runs": len(times)}
+
+
+def machine_info() -> dict:
+    import os
+
+    info = {"platform": platform.platform(), "python": platform.python_version(), "cpu_count": os.cpu_count(),
+            "processor": platform.processor() or platform.machine()}
+    try:
+        import torch
+
+        info["torch"] = torch.__version__
+        info["torch_threads"] = torch.get_num_threads()
+        if torch.cuda.is_available():
+            info["gpu"] = torch.cuda.get_device_name(0)
+    except Exception:  # noqa: BLE001
+        pass
+    return info
+
+
+def fmt(v) -> str:
+    if isinstance(v, float):
+        if v == 0:
+            return "0"
+        if abs(v) >= 1000 or abs(v) < 0.01:
+            return f"{v:.3g}"
+        return f"{v:.3f}".rstrip("0").rstrip(".")
+    return str(v)
+
+
+def markdown_table(rows: list[dict], columns: list[str]) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |")
+    return "\n".join(lines)

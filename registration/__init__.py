@@ -1,0 +1,1 @@
+"""Place recognition, image-pair relative pose and RGB-D / point-cloud registration (ICP). Uses `kernels` only."""
