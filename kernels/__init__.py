@@ -24,6 +24,23 @@ __all__ = [
 ]
 
 
+# Public names that live in their own modules, imported on first access (keeps `import kernels` light and
+# lets each kernel family own its file). name -> module under kernels/.
+_LAZY = {
+    "rasterize": "rasterize",
+    "RenderOutput": "rasterize",
+    "icp": "icp",
+    "reference": "reference",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        mod = importlib.import_module(f"{__name__}.{_LAZY[name]}")
+        return mod if _LAZY[name] == name and not hasattr(mod, name) else getattr(mod, name, mod)
+    raise AttributeError(f"module 'kernels' has no attribute {name!r}")
+
+
 def backend_module(name: str):
     """The active backend's implementation module `kernels._<backend>.<name>` (imported lazily)."""
     b = active()
