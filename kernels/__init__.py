@@ -25,19 +25,17 @@ __all__ = [
 
 
 # Public names that live in their own modules, imported on first access (keeps `import kernels` light and
-# lets each kernel family own its file). name -> module under kernels/.
+# lets each kernel family own its file). name -> module under kernels/. The module names differ from the
+# function names on purpose: importing a submodule sets it as a package attribute and would shadow the function.
 _LAZY = {
-    "rasterize": "rasterize",
-    "RenderOutput": "rasterize",
-    "icp": "icp",
-    "reference": "reference",
+    "rasterize": "raster",
+    "RenderOutput": "raster",
 }
 
 
 def __getattr__(name: str):
     if name in _LAZY:
-        mod = importlib.import_module(f"{__name__}.{_LAZY[name]}")
-        return mod if _LAZY[name] == name and not hasattr(mod, name) else getattr(mod, name, mod)
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
     raise AttributeError(f"module 'kernels' has no attribute {name!r}")
 
 
