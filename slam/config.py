@@ -1,0 +1,175 @@
+"""Typed configuration of one GRAND-SLAM agent: nested pydantic models, YAML overrides, validated on load,
+written next to the results (`to_yaml`). No global config: every component receives its own section.
+
+Defaults work on the generated 320x240 sequences and on TUM-like real data at 640x480 (which the agent works on
+at `image.max_width`, 320 by default, to suit a CPU).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from kernels.errors import InputError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ImageConfig(_Section):
+    max_width: int = Field(320, ge=16, description="frames wider than this are downsampled (area) for the whole "
+                                                   "pipeline; 0 keeps the input size")
+    min_depth: float = Field(0.1, gt=0, description="depth below this (metres) is treated as invalid")
+    max_depth: float = Field(10.0, gt=0, description="depth beyond this (metres) is treated as invalid")
+    min_valid_fraction: float = Field(0.05, ge=0, le=1, description="frames with fewer valid depth pixels are "
+                                                                    "skipped with a warning")
+
+
+class TrackingConfig(_Section):
+    coarse: Literal["rgbd_odometry", "none"] = "rgbd_odometry"
+    coarse_max_width: int = Field(160, ge=16, description="resolution of the coarse frame-to-frame odometry")
+    refine: bool = True
+    refine_max_width: int = Field(160, ge=16, description="resolution of the frame-to-model refinement "
+                                                          "(coarsest pyramid level is half of it)")
+    pyramid_levels: int = Field(2, ge=1, le=4)
+    iterations: int = Field(40, ge=0, description="maximum refinement iterations at the finest level")
+    lr_rotation: float = Field(2e-3, gt=0, description="Adam step on the rotation (rad)")
+    lr_translation: float = Field(2e-3, gt=0, description="Adam step on the translation (m)")
+    lambda_color: float = Field(0.5, ge=0, le=1, description="λ_c: weight of colour vs depth L1 (eq. 3/5)")
+    alpha_power: float = Field(4.0, ge=0, description="soft alpha mask M_α = alpha^p")
+    alpha_min: float = Field(0.9, ge=0, le=1, description="pixels rendered with alpha below this are ignored")
+    inlier_k: float = Field(20.0, gt=0, description="M_in: drop pixels whose error exceeds k x median error")
+    converge_rot: float = Field(2e-5, gt=0, description="stop when an Adam step rotates less than this (rad) ...")
+    converge_trans: float = Field(2e-5, gt=0, description="... and translates less than this (m) for `patience` steps")
+    patience: int = Field(3, ge=1)
+
+
+class KeyframeConfig(_Section):
+    every: int = Field(5, ge=1, description="a keyframe at least every N frames")
+    max_translation: float = Field(0.15, gt=0, description="... or when it moved this far from the last keyframe (m)")
+    max_rotation_deg: float = Field(10.0, gt=0, description="... or rotated this much (degrees)")
+
+
+class MappingConfig(_Section):
+    max_width: int = Field(320, ge=16, description="resolution of the mapping renders")
+    iterations: int = Field(40, ge=0, description="optimisation iterations per new keyframe")
+    first_iterations: int = Field(100, ge=0, description="iterations for a submap's first keyframe")
+    current_keyframe_fraction: float = Field(0.4, ge=0, le=1, description="share of iterations on the newest keyframe")
+    alpha_seed: float = Field(0.6, ge=0, le=1, description="α_min: seed Gaussians where rendered alpha is below this")
+    seed_stride: int = Field(2, ge=1, description="one seed per stride x stride pixels in sparse regions")
+    max_new_gaussians: int = Field(30000, ge=1)
+    init_opacity: float = Field(0.5, gt=0, lt=1)
+    init_scale_factor: float = Field(1.0, gt=0, description="initial radius = factor x stride x pixel footprint")
+    lambda_color: float = Field(0.5, ge=0, le=1, description="λ_c of eq. 3")
+    alpha_power: float = Field(0.0, ge=0, description="soft alpha mask M_α = alpha^p (0 = no mask)")
+    inlier_k: float = Field(50.0, gt=0, description="M_in: drop pixels whose error exceeds k x median error")
+    lr_means: float = Field(5e-4, gt=0, description="metres per step (scaled by the scene depth)")
+    lr_log_scales: float = Field(5e-3, gt=0)
+    lr_quats: float = Field(1e-3, gt=0)
+    lr_opacities: float = Field(5e-2, gt=0)
+    lr_colors: float = Field(5e-3, gt=0)
+    prune_min_opacity: float = Field(0.05, ge=0, lt=1)
+    prune_max_scale: float = Field(0.5, gt=0, description="metres")
+    isotropic_regulariser: float = Field(10.0, ge=0, description="penalty on scales far from their mean")
+    seed: int = 0
+
+
+class SubmapConfig(_Section):
+    d_max: float = Field(0.5, gt=0, description="new submap when the keyframe is this far from the submap's first (m)")
+    theta_max_deg: float = Field(30.0, gt=0, description="... or rotated this much (degrees)")
+    max_keyframes: int = Field(40, ge=1, description="... or the submap has this many keyframes (bounds memory)")
+    keep_keyframe_width: int = Field(160, ge=16, description="stored keyframes (for loop closure) kept at this width")
+
+
+class LoopClosureConfig(_Section):
+    enabled: bool = True
+    descriptor: Literal["auto", "colour_histogram"] = "auto"
+    top_k: int = Field(3, ge=1)
+    tau_sim: float = Field(0.9, ge=-1, le=1, description="cosine similarity gate")
+    min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
+    min_baseline: float = Field(0.0, ge=0, description="optional spatial gap between keyframe poses (m)")
+    fitness_min: float = Field(0.5, ge=0, le=1, description="τ_f: accept when ICP fitness is above")
+    rmse_max: float = Field(0.03, gt=0, description="τ_ρ: accept when ICP inlier RMSE is below (m)")
+    icp_max_distance: float = Field(0.05, gt=0, description="ICP correspondence distance (m)")
+    max_correction: float = Field(0.5, gt=0, description="reject loops that move the pose by more than this (m)")
+    odometry_sigma_rot: float = Field(0.01, gt=0, description="keyframe odometry edge std (rad)")
+    odometry_sigma_trans: float = Field(0.01, gt=0, description="keyframe odometry edge std (m)")
+
+
+class KernelsConfig(_Section):
+    backend: Literal["warp", "taichi"] = "warp"
+    device: Literal["cpu", "cuda"] = "cpu"
+
+
+class SlamConfig(_Section):
+    image: ImageConfig = ImageConfig()
+    tracking: TrackingConfig = TrackingConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    mapping: MappingConfig = MappingConfig()
+    submaps: SubmapConfig = SubmapConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
+    kernels: KernelsConfig = KernelsConfig()
+    max_frames: int = Field(0, ge=0, description="process at most this many frames (0 = all)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.image.min_depth >= self.image.max_depth:
+            raise ValueError("image.min_depth must be below image.max_depth")
+        return self
+
+    # ---- YAML -------------------------------------------------------------------------------------------------
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+    def override(self, updates: dict[str, Any]) -> "SlamConfig":
+        """A new config with nested `updates` merged in (validated)."""
+        return _validate(_deep_merge(self.model_dump(mode="json"), updates), "override")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> "SlamConfig":
+        """Defaults, then the YAML file (if given), then `overrides`; raises InputError naming the bad field."""
+        data: dict[str, Any] = {}
+        if path is not None:
+            path = Path(path)
+            if not path.is_file():
+                raise InputError(f"config file not found: {path}")
+            try:
+                loaded = yaml.safe_load(path.read_text())
+            except yaml.YAMLError as e:
+                mark = getattr(e, "problem_mark", None)
+                where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+                raise InputError(f"{where}: invalid YAML ({getattr(e, 'problem', e)})") from None
+            if loaded is None:
+                loaded = {}
+            if not isinstance(loaded, dict):
+                raise InputError(f"{path}: expected a mapping of config sections at the top level")
+            data = loaded
+        if overrides:
+            data = _deep_merge(data, overrides)
+        return _validate(data, str(path) if path else "config")
+
+
+def _deep_merge(base: dict, upd: dict) -> dict:
+    out = dict(base)
+    for k, v in upd.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _validate(data: dict, where: str) -> SlamConfig:
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        raise InputError(f"{where}: field '{field}': {err['msg']}") from None
+
+
+def deg(x: float) -> float:
+    return math.radians(x)
