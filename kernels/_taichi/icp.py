@@ -1,0 +1,302 @@
+"""Taichi implementation of the ICP kernels (contract in `kernels/icp.py`, twins in `kernels/_ref_icp.py`).
+
+Neighbour search uses a uniform grid of cubic cells hashed into a power-of-two table; the table is built with
+torch (counting sort of points by cell hash) and queried here. Points keep their own cell coordinates so hash
+collisions between cells never mix neighbour sets. Reductions write one float64 row per block; Taichi runs the
+outermost loop over blocks in parallel on every core.
+"""
+
+
+import math
+
+import taichi as ti
+import torch
+
+from ..icp import N_SLOTS, n_blocks
+
+_P1, _P2, _P3 = 73856093, 19349663, 83492791
+_DUMMY: dict = {}
+
+f32_2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+f32_3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
+
+
+@ti.func
+def _xform(T: ti.template(), x, y, z):
+    return ti.Vector([T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3],
+                      T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3],
+                      T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]])
+
+
+@ti.func
+def _bp(d, u, v, fx, fy, cx, cy):
+    return ti.Vector([(ti.cast(u, ti.f32) - cx) / fx * d, (ti.cast(v, ti.f32) - cy) / fy * d, d])
+
+
+@ti.kernel
+def _vertices_normals(depth: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, jump: ti.f32,
+                      verts: f32_3, normals: f32_3):
+    H, W = depth.shape[0], depth.shape[1]
+    for v, u in ti.ndrange(H, W):
+        d = depth[v, u]
+        p = ti.Vector([0.0, 0.0, 0.0])
+        if d > 0.0:
+            p = _bp(d, u, v, fx, fy, cx, cy)
+        n = ti.Vector([0.0, 0.0, 0.0])
+        if d > 0.0 and u > 0 and v > 0 and u < W - 1 and v < H - 1:
+            dr, dl, dd, du = depth[v, u + 1], depth[v, u - 1], depth[v + 1, u], depth[v - 1, u]
+            lim = jump * d
+            ok = dr > 0.0 and dl > 0.0 and dd > 0.0 and du > 0.0
+            ok = ok and ti.abs(dr - d) <= lim and ti.abs(dl - d) <= lim and ti.abs(dd - d) <= lim and ti.abs(du - d) <= lim
+            if ok:
+                dx = _bp(dr, u + 1, v, fx, fy, cx, cy) - _bp(dl, u - 1, v, fx, fy, cx, cy)
+                dy = _bp(dd, u, v + 1, fx, fy, cx, cy) - _bp(du, u, v - 1, fx, fy, cx, cy)
+                c = dx.cross(dy)
+                ln = c.norm()
+                if ln > 1.0e-12:
+                    n = c / ln
+                    if n.dot(p) > 0.0:
+                        n = -n
+        for k in ti.static(range(3)):
+            verts[v, u, k] = p[k]
+            normals[v, u, k] = n[k]
+
+
+@ti.func
+def _hash(cx, cy, cz, mask):
+    return ((ti.cast(cx, ti.i64) * _P1) ^ (ti.cast(cy, ti.i64) * _P2) ^ (ti.cast(cz, ti.i64) * _P3)) & mask
+
+
+@ti.kernel
+def _moments(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), start: ti.types.ndarray(dtype=ti.i32, ndim=1),
+             cnt: ti.types.ndarray(dtype=ti.i32, ndim=1), h: ti.f32, mask: ti.i64, reach: ti.i32,
+             queries: f32_2, radius: ti.f32, out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    for i in range(queries.shape[0]):
+        q = ti.Vector([queries[i, 0], queries[i, 1], queries[i, 2]])
+        c0 = ti.floor(q / h, ti.i32)
+        r2 = radius * radius
+        acc = ti.Vector.zero(ti.f64, 10)
+        for dx, dy, dz in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
+            cx, cy, cz = c0[0] + dx, c0[1] + dy, c0[2] + dz
+            hb = _hash(cx, cy, cz, mask)
+            for k in range(start[hb], start[hb] + cnt[hb]):
+                if scell[k, 0] == cx and scell[k, 1] == cy and scell[k, 2] == cz:
+                    p = ti.Vector([spts[k, 0], spts[k, 1], spts[k, 2]])
+                    if (p - q).norm_sqr() <= r2:
+                        x, y, z = ti.cast(p[0], ti.f64), ti.cast(p[1], ti.f64), ti.cast(p[2], ti.f64)
+                        acc += ti.Vector([1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], dt=ti.f64)
+        for k in ti.static(range(10)):
+            out[i, k] = acc[k]
+
+
+@ti.kernel
+def _assoc_nearest(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), sidx: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                   start: ti.types.ndarray(dtype=ti.i32, ndim=1), cnt: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                   h: ti.f32, mask: ti.i64, reach: ti.i32, src: f32_2, T: f32_2, max_d: ti.f32,
+                   out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    for i in range(src.shape[0]):
+        q = _xform(T, src[i, 0], src[i, 1], src[i, 2])
+        c0 = ti.floor(q / h, ti.i32)
+        best = max_d * max_d
+        best_j = -1
+        for dx, dy, dz in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
+            cx, cy, cz = c0[0] + dx, c0[1] + dy, c0[2] + dz
+            hb = _hash(cx, cy, cz, mask)
+            for k in range(start[hb], start[hb] + cnt[hb]):
+                if scell[k, 0] == cx and scell[k, 1] == cy and scell[k, 2] == cz:
+                    d2 = (ti.Vector([spts[k, 0], spts[k, 1], spts[k, 2]]) - q).norm_sqr()
+                    j = sidx[k]
+                    if d2 < best or (d2 == best and (best_j < 0 or j < best_j)):
+                        best = d2
+                        best_j = j
+        out[i] = best_j
+
+
+@ti.kernel
+def _assoc_projective(src: f32_2, T: f32_2, tv: f32_3, tn: f32_3, sn: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32,
+                      cy: ti.f32, max_d: ti.f32, cos_min: ti.f32, out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    H, W = tv.shape[0], tv.shape[1]
+    for i in range(src.shape[0]):
+        res = -1
+        if src[i, 2] > 0.0:
+            q = _xform(T, src[i, 0], src[i, 1], src[i, 2])
+            if q[2] > 0.0:
+                u = ti.cast(ti.floor(fx * q[0] / q[2] + cx + 0.5), ti.i32)
+                v = ti.cast(ti.floor(fy * q[1] / q[2] + cy + 0.5), ti.i32)
+                if u >= 0 and v >= 0 and u < W and v < H:
+                    n = ti.Vector([tn[v, u, 0], tn[v, u, 1], tn[v, u, 2]])
+                    t = ti.Vector([tv[v, u, 0], tv[v, u, 1], tv[v, u, 2]])
+                    ok = not (n[0] == 0.0 and n[1] == 0.0 and n[2] == 0.0)
+                    ok = ok and (q - t).norm_sqr() <= max_d * max_d
+                    if ok and cos_min >= -1.0:
+                        rn = _xform(T, sn[i, 0], sn[i, 1], sn[i, 2]) - ti.Vector([T[0, 3], T[1, 3], T[2, 3]])
+                        ok = rn.dot(n) >= cos_min
+                    if ok:
+                        res = v * W + u
+        out[i] = res
+
+
+@ti.func
+def _bilinear1(img: ti.template(), u, v):
+    x0 = ti.cast(ti.floor(u), ti.i32)
+    y0 = ti.cast(ti.floor(v), ti.i32)
+    a = u - ti.cast(x0, ti.f32)
+    b = v - ti.cast(y0, ti.f32)
+    return (img[y0, x0] * (1.0 - a) * (1.0 - b) + img[y0, x0 + 1] * a * (1.0 - b)
+            + img[y0 + 1, x0] * (1.0 - a) * b + img[y0 + 1, x0 + 1] * a * b)
+
+
+@ti.func
+def _robust_w(r, kind, k):
+    a = ti.abs(r)
+    w = 1.0
+    if kind == 1:
+        if a > k:
+            w = k / a
+    elif kind == 2:
+        w = 0.0
+        if a <= k:
+            t = 1.0 - (r / k) * (r / k)
+            w = t * t
+    return w
+
+
+@ti.kernel
+def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dtype=ti.i32, ndim=1), kind: ti.i32,
+            k: ti.f32, has_photo: ti.i32, s_int: ti.types.ndarray(dtype=ti.f32, ndim=1), t_int: f32_2, t_gu: f32_2,
+            t_gv: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, lam: ti.f32, blocks: ti.i32,
+            start_stride: ti.i32, item_stride: ti.i32, count: ti.i32, out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    n_pts = src.shape[0]
+    for b in range(blocks):
+        H = ti.Matrix.zero(ti.f64, 6, 6)
+        g = ti.Vector.zero(ti.f64, 6)
+        s = ti.Vector.zero(ti.f64, 6)  # cost, dist, count, photo cost, photo count, |r|
+        for jj in range(count):
+            i = b * start_stride + jj * item_stride
+            if i < n_pts and idx[i] >= 0:
+                t = idx[i]
+                p = _xform(T, src[i, 0], src[i, 1], src[i, 2])
+                q = ti.Vector([tp[t, 0], tp[t, 1], tp[t, 2]])
+                nq = ti.Vector([tn[t, 0], tn[t, 1], tn[t, 2]])
+                r = nq.dot(p - q)
+                c = p.cross(nq)
+                J = ti.Vector([c[0], c[1], c[2], nq[0], nq[1], nq[2]], dt=ti.f64)
+                w = ti.cast(_robust_w(r, kind, k), ti.f64)
+                rd = ti.cast(r, ti.f64)
+                H += w * J.outer_product(J)
+                g += (w * rd) * J
+                s += ti.Vector([w * rd * rd, ti.cast((p - q).norm_sqr(), ti.f64), 1.0, 0.0, 0.0, ti.abs(rd)], dt=ti.f64)
+                if has_photo != 0:
+                    hh, ww = t_int.shape[0], t_int.shape[1]
+                    u = fx * p[0] / p[2] + cx
+                    v = fy * p[1] / p[2] + cy
+                    fu, fv = ti.floor(u), ti.floor(v)
+                    if fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= ti.cast(ww - 1, ti.f32) and fv + 1.0 <= ti.cast(hh - 1, ti.f32):
+                        ri = lam * (_bilinear1(t_int, u, v) - s_int[i])
+                        gu = _bilinear1(t_gu, u, v)
+                        gv = _bilinear1(t_gv, u, v)
+                        z = p[2]
+                        dp = ti.Vector([gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z)])
+                        cp = p.cross(dp)
+                        JI = ti.cast(lam, ti.f64) * ti.Vector([cp[0], cp[1], cp[2], dp[0], dp[1], dp[2]], dt=ti.f64)
+                        rid = ti.cast(ri, ti.f64)
+                        H += JI.outer_product(JI)
+                        g += rid * JI
+                        s += ti.Vector([0.0, 0.0, 0.0, rid * rid, 1.0, 0.0], dt=ti.f64)
+        for a in ti.static(range(6)):
+            for c2 in ti.static(range(6)):
+                out[b, a * 6 + c2] = H[a, c2]
+        for a in ti.static(range(6)):
+            out[b, 36 + a] = g[a]
+            out[b, 42 + a] = s[a]
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        ti.sync()
+
+
+def vertices_normals(depth: torch.Tensor, camera, jump: float, device: str):
+    H, W = depth.shape
+    verts = torch.empty(H, W, 3, dtype=torch.float32, device=depth.device)
+    normals = torch.empty_like(verts)
+    _vertices_normals(depth, camera.fx, camera.fy, camera.cx, camera.cy, jump, verts, normals)
+    _sync(device)
+    return verts, normals
+
+
+class _Grid:
+    """Points sorted by cell hash with per-bucket start/count; `reach` neighbour cells per side for a radius."""
+
+    def __init__(self, points: torch.Tensor, cell: float):
+        m = points.shape[0]
+        size = 1 << max(4, math.ceil(math.log2(max(2 * m, 1))))
+        self.mask = size - 1
+        self.cell = cell
+        cells = torch.floor(points / torch.tensor(cell, dtype=torch.float32, device=points.device)).to(torch.int64)
+        h = ((cells[:, 0] * _P1) ^ (cells[:, 1] * _P2) ^ (cells[:, 2] * _P3)) & self.mask
+        order = torch.argsort(h, stable=True)
+        self.sorted_points = points[order].contiguous()
+        self.sorted_cells = cells[order].to(torch.int32).contiguous()
+        self.sorted_index = order.to(torch.int32).contiguous()
+        count = torch.bincount(h, minlength=size)
+        self.count = count.to(torch.int32).contiguous()
+        self.start = (torch.cumsum(count, 0) - count).to(torch.int32).contiguous()
+
+    def reach(self, radius: float) -> int:
+        return max(1, math.ceil(radius / self.cell))
+
+
+def build_grid(points: torch.Tensor, cell: float, device: str):
+    return _Grid(points, cell)
+
+
+def cloud_moments(grid: _Grid, points, queries, radius: float, device: str):
+    out = torch.zeros(queries.shape[0], 10, dtype=torch.float64, device=queries.device)
+    if queries.shape[0] and grid.sorted_points.shape[0]:
+        _moments(grid.sorted_points, grid.sorted_cells, grid.start, grid.count, grid.cell, grid.mask,
+                 grid.reach(radius), queries, radius, out)
+        _sync(device)
+    return out
+
+
+def associate_nearest(grid: _Grid, points, src, T, max_d: float, device: str):
+    out = torch.full((src.shape[0],), -1, dtype=torch.int32, device=src.device)
+    if src.shape[0] and grid.sorted_points.shape[0]:
+        _assoc_nearest(grid.sorted_points, grid.sorted_cells, grid.sorted_index, grid.start, grid.count, grid.cell,
+                       grid.mask, grid.reach(max_d), src, T, max_d, out)
+        _sync(device)
+    return out
+
+
+def associate_projective(src, T, tv, tn, sn, camera, max_d: float, cos_min: float, device: str):
+    out = torch.empty(src.shape[0], dtype=torch.int32, device=src.device)
+    if src.shape[0]:
+        _assoc_projective(src, T, tv, tn, sn, camera.fx, camera.fy, camera.cx, camera.cy, max_d, cos_min, out)
+        _sync(device)
+    return out
+
+
+def _dummies(dev: torch.device):
+    key = str(dev)
+    if key not in _DUMMY:
+        _DUMMY[key] = (torch.zeros(1, dtype=torch.float32, device=dev), torch.zeros(2, 2, dtype=torch.float32, device=dev))
+    return _DUMMY[key]
+
+
+def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str):
+    n = src.shape[0]
+    blocks, start_stride, item_stride, count = n_blocks(n, device)
+    out = torch.zeros(blocks, N_SLOTS, dtype=torch.float64, device=src.device)
+    if photo is None:
+        s1, i2 = _dummies(src.device)
+        s_int, t_int, gu, gv, fx, fy, cx, cy, lam, has = s1, i2, i2, i2, 1.0, 1.0, 0.0, 0.0, 0.0, 0
+    else:
+        s_int, t_int, grad, cam, lam = photo
+        gu, gv = grad[..., 0].contiguous(), grad[..., 1].contiguous()
+        fx, fy, cx, cy, has = cam.fx, cam.fy, cam.cx, cam.cy, 1
+    if n:
+        _reduce(src, T, tp, tn, idx, kind, k, has, s_int, t_int, gu, gv, fx, fy, cx, cy, lam, blocks, start_stride,
+                item_stride, count, out)
+        _sync(device)
+    return out.sum(0)
