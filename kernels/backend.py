@@ -44,7 +44,8 @@ def _init_warp(device: str) -> None:
     import warp as wp
 
     if not _warp_ready:
-        wp.config.quiet = True
+        # Keep start-up banners and per-module compile timings off the user's terminal.
+        wp.config.log_level = getattr(wp, "LOG_WARNING", 30)
         wp.init()
         _warp_ready = True
     if device == "cuda" and not wp.is_cuda_available():
