@@ -1,0 +1,140 @@
+"""VLAD over RootSIFT: the default place-recognition descriptor, needing no downloaded weights.
+
+The vocabulary (K centroids of RootSIFT descriptors) is trained from the data by k-means with a fixed seed, so
+the same images always give the same vocabulary, and it is saved/loaded as a small `.npz`. The descriptor is
+the classic VLAD (Jégou et al. 2010) with the usual fixes: residual sums per centroid, signed square-root
+(power) normalisation, intra-normalisation per centroid, then a global L2 norm. Dimension K * 128.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from kernels.errors import InputError
+from kernels.fileio import atomic_path
+
+from .base import PlaceRecognizer
+
+
+def rootsift(rgb: np.ndarray, n_features: int, max_side: int) -> np.ndarray:
+    """RGB uint8 [H, W, 3] -> RootSIFT descriptors float32 [M, 128] (M may be 0 on a blank image)."""
+    import cv2
+
+    from registration.images import resize_max_side, to_grey
+
+    small, _ = resize_max_side(rgb, max_side)
+    grey = to_grey(small)
+    _, desc = cv2.SIFT_create(nfeatures=n_features).detectAndCompute(grey, None)
+    if desc is None or not len(desc):
+        return np.zeros((0, 128), np.float32)
+    desc = desc.astype(np.float32)
+    desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)  # L1, then sqrt: Hellinger kernel (RootSIFT)
+    return np.sqrt(desc)
+
+
+def kmeans(x: np.ndarray, k: int, *, seed: int = 0, iters: int = 25) -> np.ndarray:
+    """Deterministic k-means++ / Lloyd on x [N, D] float32 -> centroids [k, D]."""
+    rng = np.random.default_rng(seed)
+    x = np.asarray(x, dtype=np.float32)
+    n = len(x)
+    centres = np.empty((k, x.shape[1]), np.float32)
+    centres[0] = x[rng.integers(n)]
+    d2 = ((x - centres[0]) ** 2).sum(1)
+    for c in range(1, k):  # k-means++ seeding
+        p = d2 / d2.sum() if d2.sum() > 0 else np.full(n, 1.0 / n)
+        centres[c] = x[rng.choice(n, p=p)]
+        d2 = np.minimum(d2, ((x - centres[c]) ** 2).sum(1))
+    for _ in range(iters):
+        assign = _assign(x, centres)
+        moved = 0.0
+        for c in range(k):
+            members = x[assign == c]
+            new = members.mean(0) if len(members) else x[rng.integers(n)]  # re-seed an empty cluster
+            moved = max(moved, float(np.abs(new - centres[c]).max()))
+            centres[c] = new
+        if moved < 1e-6:
+            break
+    return centres
+
+
+def _assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    # ||x - c||^2 = |x|^2 - 2 x.c + |c|^2; |x|^2 is constant per row
+    d = -2.0 * x @ centres.T + (centres**2).sum(1)[None]
+    return np.argmin(d, axis=1)
+
+
+class VLADRecognizer(PlaceRecognizer):
+    """VLAD of RootSIFT with a vocabulary trained by `fit` or loaded by `load`."""
+
+    name = "vlad"
+
+    def __init__(self, centroids: np.ndarray | None = None, *, n_clusters: int = 32, n_features: int = 1000,
+                 max_side: int = 640):
+        self.n_features = int(n_features)
+        self.max_side = int(max_side)
+        self.n_clusters = int(n_clusters)
+        self.centroids: np.ndarray | None = None
+        if centroids is not None:
+            self._set_centroids(centroids)
+        self.dim = self.n_clusters * 128
+
+    def _set_centroids(self, centroids: np.ndarray) -> None:
+        c = np.asarray(centroids, dtype=np.float32)
+        if c.ndim != 2 or c.shape[1] != 128 or len(c) < 1:
+            raise InputError(f"VLAD vocabulary must be [K, 128] float, got {list(c.shape)}")
+        self.centroids = c
+        self.n_clusters = len(c)
+        self.dim = self.n_clusters * 128
+
+    @property
+    def trained(self) -> bool:
+        return self.centroids is not None
+
+    def fit(self, images, *, seed: int = 0, max_descriptors: int = 50_000) -> "VLADRecognizer":
+        """Train the vocabulary from an iterable of RGB images (deterministic for a given seed and input)."""
+        from registration.images import as_rgb8
+
+        parts = [rootsift(as_rgb8(im, f"images[{i}]"), self.n_features, self.max_side) for i, im in enumerate(images)]
+        x = np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
+        if len(x) < self.n_clusters:
+            raise InputError(f"VLAD.fit: the training images gave {len(x)} features, need at least "
+                             f"{self.n_clusters} (more or more textured images)")
+        if len(x) > max_descriptors:
+            x = x[np.random.default_rng(seed).choice(len(x), max_descriptors, replace=False)]
+        self._set_centroids(kmeans(x, self.n_clusters, seed=seed))
+        return self
+
+    def save(self, path: str | Path) -> Path:
+        """Write the vocabulary and settings as `.npz` (atomically)."""
+        if not self.trained:
+            raise InputError("VLAD.save: the vocabulary is not trained")
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, centroids=self.centroids, n_features=self.n_features, max_side=self.max_side)
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "VLADRecognizer":
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"VLAD vocabulary file not found: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return cls(z["centroids"], n_features=int(z["n_features"]), max_side=int(z["max_side"]))
+        except (KeyError, ValueError, OSError) as e:
+            raise InputError(f"{path}: not a VLAD vocabulary (.npz with 'centroids'): {e}") from None
+
+    def _describe(self, rgb: np.ndarray) -> np.ndarray:
+        if not self.trained:
+            raise InputError("VLAD vocabulary is not trained: call fit(images) or VLADRecognizer.load(path)")
+        x = rootsift(rgb, self.n_features, self.max_side)
+        v = np.zeros((self.n_clusters, 128), np.float32)
+        if len(x):
+            a = _assign(x, self.centroids)
+            np.add.at(v, a, x - self.centroids[a])
+        v = np.sign(v) * np.sqrt(np.abs(v))
+        n = np.linalg.norm(v, axis=1, keepdims=True)
+        v = np.where(n > 1e-12, v / np.maximum(n, 1e-12), 0.0)
+        return v.reshape(-1)
