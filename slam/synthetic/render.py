@@ -1,0 +1,110 @@
+"""Colour and depth of the world from any camera pose, by ray casting (Open3D RaycastingScene, vectorised).
+
+One ray per pixel through the pixel centre (u, v integer, as kernels.camera): its camera-frame direction is
+K^-1 [u, v, 1], whose z component is 1, so the ray parameter at the hit *is* the depth (z in the camera frame).
+Rays that hit nothing (impossible inside the closed world, possible from outside) give depth 0 and black.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from kernels import se3
+from kernels.camera import PinholeCamera
+from kernels.errors import InputError
+
+from .world import World
+
+
+@dataclass
+class Hits:
+    """Noise-free render of a batch of frames."""
+
+    depth: np.ndarray  # [N, H, W] float32 metres along the optical axis, 0 where nothing was hit
+    color: np.ndarray  # [N, H, W, 3] float32 RGB in [0, 1]
+    cos_incidence: np.ndarray  # [N, H, W] float32 |cos| of the angle between ray and surface normal
+    material: np.ndarray  # [N, H, W] int64 material id, -1 where nothing was hit
+
+
+@lru_cache(maxsize=8)
+def _camera_rays(camera: PinholeCamera) -> np.ndarray:
+    """[H*W, 3] float32 camera-frame ray directions with z = 1, row-major pixels."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
+    d = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], axis=-1)
+    return d.reshape(-1, 3).astype(np.float32)
+
+
+def camera_for(width: int, height: int, hfov_deg: float) -> PinholeCamera:
+    """A square-pixel pinhole camera with the principal point at the image centre."""
+    fx = (width / 2.0) / np.tan(np.deg2rad(hfov_deg) / 2.0)
+    return PinholeCamera(float(fx), float(fx), (width - 1) / 2.0, (height - 1) / 2.0, int(width), int(height))
+
+
+def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
+    """Ray-cast and texture a batch of poses: T_world_cam [N, 4, 4] (or [4, 4]) camera-to-world."""
+    import open3d as o3d
+
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.shape == (4, 4):
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"T_world_cam must be finite [4, 4] or [N, 4, 4], got shape {list(T.shape)}")
+    n, h, w = len(T), camera.height, camera.width
+    d_cam = _camera_rays(camera)  # [P, 3]
+    # Open3D puts pixel centres at u + 0.5; shift the principal point so its rays pass through integer u, v.
+    K = o3d.core.Tensor(camera.K + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]))
+    rays = np.empty((n, h * w, 6), dtype=np.float32)
+    for k in range(n):  # C++ ray generation: directions R_world_cam K^-1 [u, v, 1], z = 1 in the camera
+        r = o3d.t.geometry.RaycastingScene.create_rays_pinhole(K, o3d.core.Tensor(se3.inverse(T[k])), w, h)
+        rays[k] = r.numpy().reshape(-1, 6)
+    rays = rays.reshape(-1, 6)
+    ans = world.scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit = ans["t_hit"].numpy()
+    prim = ans["primitive_ids"].numpy()
+    hit = np.isfinite(t_hit) & (t_hit > 0)
+    all_hit = bool(hit.all())  # always, from inside the closed world: skip the gathers
+    idx = slice(None) if all_hit else np.nonzero(hit)[0]
+    t = t_hit[idx]
+    tri = prim[idx].astype(np.int64)
+    dirs = rays[idx, 3:]
+    normals = world.tri_normal[tri]
+    # |d| of a z = 1 ray is the same for every frame: look it up per pixel instead of a norm per ray.
+    ray_len = np.tile(np.linalg.norm(d_cam, axis=1), n)[idx]
+    points = rays[idx, :3] + dirs * t[:, None]
+    mat_hit = world.tri_material[tri]
+    footprint = t * (ray_len / np.float32(camera.fx))  # metres per pixel at the hit, along the ray
+    shaded = world.texture.shade(points, world.tri_axis[tri], normals, mat_hit, footprint)
+    cos_hit = np.abs(np.einsum("ij,ij->i", normals, dirs)) / ray_len
+    if all_hit:
+        depth, color, cos_inc, material = t_hit, shaded, cos_hit, mat_hit
+    else:
+        depth = np.where(hit, t_hit, 0.0).astype(np.float32)
+        color = np.zeros((len(t_hit), 3), dtype=np.float32)
+        color[idx] = shaded
+        cos_inc = np.zeros(len(t_hit), dtype=np.float32)
+        cos_inc[idx] = cos_hit
+        material = np.full(len(t_hit), -1, dtype=np.int64)
+        material[idx] = mat_hit
+    return Hits(depth.reshape(n, h, w), color.reshape(n, h, w, 3), cos_inc.reshape(n, h, w),
+                material.reshape(n, h, w))
+
+
+def render(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free colour and depth of the world seen from one pose.
+
+    T_world_cam: [4, 4] camera-to-world (OpenCV camera axes). Returns (color [H, W, 3] uint8 RGB,
+    depth [H, W] float32 metres along the optical axis, 0 where no surface was hit).
+    """
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"render: T_world_cam must be [4, 4], got {list(T.shape)}")
+    hits = cast(world, T, camera)
+    return to_uint8(hits.color[0]), hits.depth[0]
+
+
+def to_uint8(color: np.ndarray) -> np.ndarray:
+    """[..., 3] float RGB in [0, 1] -> uint8 (rounded)."""
+    return np.clip(np.rint(color * 255.0), 0, 255).astype(np.uint8)
