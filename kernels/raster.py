@@ -96,7 +96,7 @@ def _project(means, quats, scales, viewmat, K, width: int, height: int, near: fl
         x1 = (torch.floor((m[:, 0] + radius) / TILE) + 1).clamp(0, ntx)
         y0 = torch.floor((m[:, 1] - radius) / TILE).clamp(0, nty)
         y1 = (torch.floor((m[:, 1] + radius) / TILE) + 1).clamp(0, nty)
-        visible &= (x1 > x0) & (y1 > y0)
+        visible = visible & (x1 > x0) & (y1 > y0)
         rect = torch.stack([x0, y0, x1, y1], -1).to(torch.int32)
         radius = torch.where(visible, radius.clamp(max=2**30), torch.zeros_like(radius)).to(torch.int32)
     return mean2d, conic, z, radius, rect, visible
