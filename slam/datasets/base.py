@@ -2,6 +2,8 @@
 
 Frames: colour is RGB uint8 [H, W, 3]; depth is float32 metres [H, W] with 0 where invalid (None for a
 monocular sequence); poses are `T_world_cam` 4x4 float64 (camera-to-world, OpenCV camera axes).
+A sequence's pose arrays hold a row of NaN for a frame whose pose is unknown (e.g. EuRoC images recorded before
+motion capture starts); that frame's `Frame.T_world_cam_gt` / `T_world_cam_odom` is then None.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ class Sequence(Protocol):
     def timestamps(self) -> np.ndarray: ...  # [N] seconds
 
     @property
-    def gt_poses(self) -> np.ndarray | None: ...  # [N, 4, 4] T_world_cam, or None
+    def gt_poses(self) -> np.ndarray | None: ...  # [N, 4, 4] T_world_cam (NaN rows where unknown), or None
 
     @property
     def odometry(self) -> np.ndarray | None: ...  # [N, 4, 4] T_world_cam from metric odometry, or None

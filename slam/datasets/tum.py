@@ -12,8 +12,6 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import numpy as np
-
 from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 from slam.trajectory import read_tum
