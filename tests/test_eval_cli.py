@@ -129,3 +129,41 @@ def test_eval_subprocess_console_entry(tmp_path):
     r = subprocess.run([sys.executable, "-m", "slam", "eval", "--gt", str(tmp_path / "none.txt"), "--est", str(est)],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def _team(tmp_path, second_frame_differs: bool):
+    gt_root, est_root = tmp_path / "data", tmp_path / "results"
+    rng = np.random.default_rng(4)
+    R, t = se3.so3_exp(rng.normal(0, 1, 3)), rng.normal(0, 1, 3)
+    R2, t2 = se3.so3_exp(rng.normal(0, 1, 3)), rng.normal(0, 1, 3)
+    for k, name in enumerate(["robot_a", "robot_b"]):
+        T = _traj(30, seed=10 + k)
+        stamps = 5.0 + np.arange(30) / 10
+        write_tum(gt_root / name / "groundtruth.txt", stamps, T)
+        RR, tt = (R2, t2) if (k == 1 and second_frame_differs) else (R, t)
+        write_tum(est_root / f"{name}.txt", stamps, se3.make(RR, tt)[None] @ T)
+    (gt_root / "dataset.yaml").write_text("name: two\nkind: rgbd\nagents: [robot_a, robot_b]\nseed: 3\n")
+    return gt_root, est_root
+
+
+@pytest.mark.parametrize("differs", [False, True])
+def test_eval_team_folders(tmp_path, capsys, differs):
+    gt_root, est_root = _team(tmp_path, differs)
+    out = tmp_path / "team.json"
+    assert main(["eval", "--gt", str(gt_root), "--est", str(est_root), "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "ATE team (one frame)" in text and "ATE robot_a" in text
+    data = json.loads(out.read_text())
+    assert set(data["per_agent"]) == {"robot_a", "robot_b"} and data["matched"] == 60
+    assert max(v["ate_rmse"] for v in data["per_agent"].values()) < 1e-6  # each agent alone aligns exactly
+    if differs:
+        assert data["ate_rmse"] > 0.05  # one alignment cannot fit two frames
+    else:
+        assert data["ate_rmse"] < 1e-6
+    assert out.with_suffix(".png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_eval_team_needs_two_folders(tmp_path, capsys):
+    gt_root, est_root = _team(tmp_path, False)
+    rc = main(["eval", "--gt", str(gt_root), "--est", str(est_root / "robot_a.txt")])
+    assert rc == 2 and "both folders" in _one_error_line(capsys)

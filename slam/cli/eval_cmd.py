@@ -14,8 +14,10 @@ def register(sub) -> None:
         description="Compute ATE RMSE (after SE(3)/Sim(3) Umeyama alignment) and RPE of an estimated trajectory "
                     "against ground truth. Numbers equal evo's evo_ape/evo_rpe with the same settings.",
     )
-    p.add_argument("--gt", required=True, metavar="FILE", help="ground-truth trajectory file")
-    p.add_argument("--est", required=True, metavar="FILE", help="estimated trajectory file")
+    p.add_argument("--gt", required=True, metavar="FILE",
+                   help="ground-truth trajectory file, or a dataset / folder of <agent>.txt files for a team")
+    p.add_argument("--est", required=True, metavar="FILE",
+                   help="estimated trajectory file, or a results folder of <agent>.txt files for a team")
     # Formats and alignment are validated by the library (one-line InputError) rather than argparse choices.
     p.add_argument("--format", default="auto", metavar="FMT",
                    help="trajectory format of both files: tum, kitti, euroc, log or auto (default: auto)")
@@ -31,25 +33,50 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kernels.fileio import atomic_write_text
-    from slam.metrics.evaluate import evaluate_trajectories
-    from slam.plots import plot_trajectories
-    from slam.trajectory import read_trajectory
+    import numpy as np
 
-    gt = read_trajectory(args.gt, args.gt_format or args.format)
-    est = read_trajectory(args.est, args.est_format or args.format)
-    ev = evaluate_trajectories(gt, est, align=args.align, max_diff=args.max_diff, delta=args.delta)
+    from kernels.errors import InputError
+    from kernels.fileio import atomic_write_text
+    from slam.plots import plot_trajectories
+
+    team = Path(args.gt).is_dir() or Path(args.est).is_dir()
+    if team and not (Path(args.gt).is_dir() and Path(args.est).is_dir()):
+        raise InputError("--gt and --est must both be files (one trajectory) or both folders (a team)")
+    ev = _evaluate_team(args) if team else _evaluate_one(args)
     print(ev.table())
     plot = Path(args.plot) if args.plot else (Path(args.json).with_suffix(".png") if args.json else None)
     report = ev.to_dict()
     if plot is not None:
-        a = ev.ate
-        plot_trajectories(plot, {"agent": gt.T_world_cam[:, :3, 3]}, {"agent": a.T_est_aligned[:, :3, 3]},
-                          errors={"agent": a.errors},
-                          title=f"{Path(args.est).name}: ATE RMSE {a.rmse:.4f} m ({a.align})")
+        if team:
+            j = ev.joint  # team plot: every agent moved by the ONE team alignment
+            est = {k: j.transform.apply_to_poses(v.ate.pairs.T_est)[:, :3, 3] for k, v in ev.per_agent.items()}
+            gt = {k: v.gt.T_world_cam[:, :3, 3] for k, v in ev.per_agent.items()}
+            errs = {k: np.linalg.norm(est[k] - v.ate.pairs.T_gt[:, :3, 3], axis=1) for k, v in ev.per_agent.items()}
+            title = f"team: ATE RMSE {j.rmse:.4f} m ({j.align}, one frame)"
+        else:
+            a = ev.ate
+            gt, est, errs = {"agent": ev.gt.T_world_cam[:, :3, 3]}, {"agent": a.T_est_aligned[:, :3, 3]}, {"agent": a.errors}
+            title = f"{Path(args.est).name}: ATE RMSE {a.rmse:.4f} m ({a.align})"
+        plot_trajectories(plot, gt, est, errors=errs, title=title)
         report["plot"] = str(plot)
         print(f"plot: {plot}")
     if args.json:
         atomic_write_text(args.json, json.dumps(report, indent=2) + "\n")
         print(f"metrics: {args.json}")
     return 0
+
+
+def _evaluate_one(args):
+    from slam.metrics.evaluate import evaluate_trajectories
+    from slam.trajectory import read_trajectory
+
+    gt = read_trajectory(args.gt, args.gt_format or args.format)
+    est = read_trajectory(args.est, args.est_format or args.format)
+    return evaluate_trajectories(gt, est, align=args.align, max_diff=args.max_diff, delta=args.delta)
+
+
+def _evaluate_team(args):
+    from slam.metrics.team import evaluate_team, find_team_trajectories
+
+    gt, est = find_team_trajectories(args.gt, args.est, args.est_format or args.format)
+    return evaluate_team(gt, est, align=args.align, max_diff=args.max_diff, delta=args.delta)
