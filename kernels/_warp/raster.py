@@ -164,6 +164,11 @@ def _backward(packed: wp.array2d(dtype=float), tile_start: wp.array(dtype=wp.int
                                 g_entry[e, 4] = g_entry[e, 4] - 0.5 * g_p * dy * dy
 
 
+def _wp(t: torch.Tensor, dtype=None):
+    # detached and without Warp-side grads: the hand-written backward owns the gradients
+    return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)
+
+
 _pool: ThreadPoolExecutor | None = None
 _pool_lock = threading.Lock()
 _loaded: set = set()
@@ -207,17 +212,17 @@ _OFFSET_POS = 7  # index of `tile_offset` in both tile kernels' argument lists
 def bin_tiles(rect: torch.Tensor, tiles_x: int, tiles_y: int, tile_start: torch.Tensor, entries: torch.Tensor,
               device: str) -> None:
     """rect [M, 4] int32 tile ranges of depth-sorted Gaussians -> tile_start [T+1], entries [E] (filled here)."""
-    rect_w = wp.from_torch(rect.reshape(-1, 4), dtype=wp.int32) if rect.shape[0] else wp.zeros((0, 4), dtype=wp.int32, device=device)
-    wp.launch(_bin, dim=1, inputs=[rect_w, tiles_x, tiles_x * tiles_y, wp.from_torch(tile_start), wp.from_torch(entries)],
+    rect_w = _wp(rect.reshape(-1, 4), dtype=wp.int32) if rect.shape[0] else wp.zeros((0, 4), dtype=wp.int32, device=device)
+    wp.launch(_bin, dim=1, inputs=[rect_w, tiles_x, tiles_x * tiles_y, _wp(tile_start), _wp(entries)],
               device=device)
 
 
 def render_forward(packed, tile_start, entries, bg, width, height, color, depth, t_final, last, hits, device) -> None:
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    packed_w = wp.from_torch(packed) if packed.shape[0] else wp.zeros((0, 10), dtype=float, device=device)
-    inputs = [packed_w, wp.from_torch(tile_start), wp.from_torch(entries), wp.from_torch(bg), width, height, tiles_x,
-              0, wp.from_torch(color), wp.from_torch(depth), wp.from_torch(t_final), wp.from_torch(last),
-              wp.from_torch(hits)]
+    packed_w = _wp(packed) if packed.shape[0] else wp.zeros((0, 10), dtype=float, device=device)
+    inputs = [packed_w, _wp(tile_start), _wp(entries), _wp(bg), width, height, tiles_x,
+              0, _wp(color), _wp(depth), _wp(t_final), _wp(last),
+              _wp(hits)]
     _launch_tiles(_forward, tiles_x * tiles_y, inputs, device)
     if device == "cuda":
         wp.synchronize_device(device)
@@ -226,9 +231,9 @@ def render_forward(packed, tile_start, entries, bg, width, height, color, depth,
 def render_backward(packed, tile_start, entries, bg, width, height, t_final, last, g_color, g_depth, g_alpha, g_entry,
                     device) -> None:
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    inputs = [wp.from_torch(packed), wp.from_torch(tile_start), wp.from_torch(entries), wp.from_torch(bg), width, height,
-              tiles_x, 0, wp.from_torch(t_final), wp.from_torch(last), wp.from_torch(g_color), wp.from_torch(g_depth),
-              wp.from_torch(g_alpha), wp.from_torch(g_entry)]
+    inputs = [_wp(packed), _wp(tile_start), _wp(entries), _wp(bg), width, height,
+              tiles_x, 0, _wp(t_final), _wp(last), _wp(g_color), _wp(g_depth),
+              _wp(g_alpha), _wp(g_entry)]
     _launch_tiles(_backward, tiles_x * tiles_y, inputs, device)
     if device == "cuda":
         wp.synchronize_device(device)
