@@ -25,7 +25,7 @@ class WorldConfig(_Strict):
 
     rooms_x: int = Field(2, ge=1, le=4)
     rooms_y: int = Field(2, ge=1, le=4)
-    room_size_m: tuple[float, float] = (3.8, 5.2)  # range of each room's width and depth
+    room_size_m: tuple[float, float] = (3.6, 4.8)  # range of each room's width and depth
     height_m: tuple[float, float] = (2.6, 3.0)  # range of the ceiling height (one per world)
     furniture_per_room: tuple[int, int] = (4, 7)
 
@@ -48,7 +48,7 @@ class MotionConfig(_Strict):
 
     max_step_m: float = Field(0.045, gt=0.0, le=1.0)  # translation per frame, at most
     max_rot_deg: float = Field(2.8, gt=0.0, le=30.0)  # rotation per frame, at most
-    loop_turns: float = Field(1.15, gt=0.0, le=5.0)  # > 1 means the start of the loop is seen again
+    loop_turns: float = Field(1.3, gt=0.0, le=5.0)  # > 1 means the start of the loop is seen again
 
 
 class DepthNoiseConfig(_Strict):
@@ -59,7 +59,7 @@ class DepthNoiseConfig(_Strict):
     disparity_fb: float = Field(40.0, gt=0.0)  # focal length x baseline, pixel*metre (Kinect-like)
     disparity_step: float = Field(1.0 / 16.0, ge=0.0)  # disparity quantisation in pixels, 0 = none
     min_m: float = Field(0.3, ge=0.0)
-    max_m: float = Field(6.0, gt=0.0)
+    max_m: float = Field(7.0, gt=0.0)
     grazing_cos: float = Field(0.12, ge=0.0, lt=1.0)  # holes where |cos(incidence)| is below this
     edge_dropout: float = Field(0.5, ge=0.0, le=1.0)  # probability of a hole on a depth discontinuity
     blob_holes: float = Field(0.01, ge=0.0, le=0.5)  # fraction of the image lost to clustered holes

@@ -99,7 +99,7 @@ def plan_loops(rooms, main_opening, rng: np.random.Generator, n: int = MAX_AGENT
                and abs(np.dot(_unit(_centre(r) - _centre(ra)), v)) > 0.9), None)
     if rc is not None:
         v = _unit(_centre(rc) - _centre(ra))
-    slots = [(ra, -0.2, 0.05, u), (rb, 0.2, -0.05, -u), (ra, 0.12, -0.12, -u), (rb, -0.12, 0.12, u)]
+    slots = [(ra, 0.0, 0.08, u), (rb, 0.0, -0.08, -u), (ra, 0.12, -0.12, -u), (rb, -0.12, 0.12, u)]
     slots += [(rc, 0.0, 0.2, -v) if rc is not None else (rb, 0.0, -0.15, v), (ra, 0.0, -0.2, v)]
     loops = []
     for agent, (room, fu, fv, heading) in enumerate(slots[:n]):
