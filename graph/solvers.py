@@ -1,0 +1,295 @@
+"""Levenberg–Marquardt and GNC (truncated least squares) for `graph.formulations.Problem`s.
+
+Where the time goes, and the design that follows from it. GTSAM's python `CustomFactor` calls back into Python
+with `(const CustomFactor&, const Values&, JacobianVector*)`; pybind11 converts a `const T&` argument of a
+callback with the `copy` policy, so every callback copies the whole `Values` (one heap allocation per
+variable): 0.7 ms per call at 3,600 poses, times 2,000 loops, times 2 calls per LM iteration (linearize + error).
+Batching loops into fewer CustomFactors does not help (a factor's keys become one dense clique). So:
+
+  * graphs of built-in factors only (base formulation, metric loops, g2o files) run GTSAM's own C++
+    LevenbergMarquardtOptimizer;
+  * graphs with scale variables (IS / SS / shared) run `_hybrid_lm`: the built-in part is linearised by GTSAM in
+    C++ (`NonlinearFactorGraph.linearize`), all up-to-scale loops are linearised at once in NumPy
+    (`scale_factors.is_residuals`, the same maths as the CustomFactor, tested equal) and appended as
+    JacobianFactors, and GTSAM's multifrontal Cholesky solves each step (COLAMD ordering computed once). No
+    Python callback runs inside GTSAM. The LM loop (trust region on lambda, GTSAM's relative/absolute
+    decrease tests) is ours; lambda starts at 0 (a Gauss–Newton step: anchors and the weak scale priors make
+    the system positive definite) and damping factors are only built when a step fails.
+  * GNC (TLS, Yang et al. 2020, the schedule of GTSAM's GncOptimizer) is our own outer loop over either LM,
+    since GTSAM's GncLMOptimizer refuses CustomFactors; it warm-starts every inner solve from the previous
+    result (GTSAM restarts from the initial values each time, most of its run time) and initialises mu from the
+    residuals of the least-squares solution as the GNC paper does (GTSAM uses the initial values).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2
+
+from kernels.errors import GraphError, InputError
+
+from .formulations import Problem
+from .scale_factors import is_residuals
+
+SCALE_MIN = 1e-3  # scales are projected back above this after each step (a negative scale flips a loop)
+
+
+@dataclass
+class SolveResult:
+    values: gtsam.Values
+    poses: dict[int, np.ndarray]  # key -> T_world_kf [4, 4]
+    scales: dict[int, float]  # up-to-scale loop edge index -> optimised scale
+    iterations: int  # LM iterations (GNC: summed over its inner solves)
+    initial_error: float
+    final_error: float  # GTSAM's 0.5 * sum of squared whitened residuals (GNC: of the final weighted graph)
+    time_s: float
+    solver: str
+    weights: dict[int, float] = field(default_factory=dict)  # loop edge index -> GNC weight
+    rejected: list[int] = field(default_factory=list)  # loop edge indices GNC rejected (weight < 0.5)
+    gnc_iterations: int = 0
+
+
+# ------------------------------------------------------------------------------------------- scale term
+class _ScaleTerm:
+    """Up-to-scale loops of a problem evaluated against gtsam.Values, all at once."""
+
+    def __init__(self, problem: Problem, weights: dict[int, float] | None):
+        sl = problem.scale_loops
+        self.sl = sl
+        self.pose_keys = np.array(problem.graph.keys(), dtype=np.uint64)  # Values' Pose3 order (sorted)
+        self.ii = np.searchsorted(self.pose_keys, sl.key_i)
+        self.jj = np.searchsorted(self.pose_keys, sl.key_j)
+        self.scale_keys = sorted(set(int(k) for k in sl.key_s))
+        pos = {k: n for n, k in enumerate(self.scale_keys)}
+        self.ss = np.array([pos[int(k)] for k in sl.key_s])
+        w = np.ones(len(sl.edge)) if weights is None else np.array([weights.get(int(n), 1.0) for n in sl.edge])
+        self.sqrt_w = np.sqrt(w)
+        self.active = w > 0
+
+    def state(self, values: gtsam.Values):
+        X = gtsam.utilities.extractPose3(values)  # [N, 12]: row-major R, then t
+        T = np.zeros((len(X), 4, 4))
+        T[:, :3, :3] = X[:, :9].reshape(-1, 3, 3)
+        T[:, :3, 3] = X[:, 9:]
+        T[:, 3, 3] = 1.0
+        s = np.array([values.atDouble(k) for k in self.scale_keys])
+        return T, s
+
+    def costs(self, values: gtsam.Values) -> np.ndarray:
+        """Unweighted 0.5 ||R e||² per loop [L]."""
+        T, s = self.state(values)
+        e = is_residuals(T[self.ii], T[self.jj], s[self.ss], self.sl.R_meas, self.sl.t_meas, jacobians=False)
+        r = np.einsum("lab,lb->la", self.sl.sqrt_info, e)
+        return 0.5 * np.einsum("la,la->l", r, r)
+
+    def error(self, values: gtsam.Values) -> float:
+        return float(np.sum(self.sqrt_w**2 * self.costs(values)))
+
+    def linear_factors(self, values: gtsam.Values) -> list[gtsam.JacobianFactor]:
+        T, s = self.state(values)
+        e, Hi, Hj, Hs = is_residuals(T[self.ii], T[self.jj], s[self.ss], self.sl.R_meas, self.sl.t_meas)
+        W = self.sl.sqrt_info * self.sqrt_w[:, None, None]
+        Ai, Aj = W @ Hi, W @ Hj
+        As = np.einsum("lab,lb->la", W, Hs)[:, :, None]
+        b = -np.einsum("lab,lb->la", W, e)
+        unit = gtsam.noiseModel.Unit.Create(6)
+        sl = self.sl
+        return [gtsam.JacobianFactor(int(sl.key_i[n]), Ai[n], int(sl.key_j[n]), Aj[n], int(sl.key_s[n]), As[n],
+                                     b[n], unit) for n in np.flatnonzero(self.active)]
+
+
+# ------------------------------------------------------------------------------------------- LM
+def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = None,
+                        initial: gtsam.Values | None = None, max_iterations: int = 100,
+                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5) -> SolveResult:
+    """Solve `problem` (loops weighted by `weights`, edge index -> w, default 1) from `initial` (default: the
+    problem's). GTSAM's C++ LM when every factor is built-in, `_hybrid_lm` otherwise."""
+    t0 = time.perf_counter()
+    values = problem.initial if initial is None else initial
+    graph = problem.builtin_graph(weights)
+    if problem.scale_loops is None:
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(relative_tol)
+        params.setAbsoluteErrorTol(absolute_tol)
+        e0 = graph.error(values)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        result = opt.optimize()
+        return _result(problem, result, opt.iterations(), e0, graph.error(result), t0, "lm")
+    term = _ScaleTerm(problem, weights)
+    result, iters, e0, e1 = _hybrid_lm(graph, term, values, max_iterations, relative_tol, absolute_tol)
+    return _result(problem, result, iters, e0, e1, t0, "lm")
+
+
+def _hybrid_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm, values: gtsam.Values, max_iterations: int,
+               relative_tol: float, absolute_tol: float):
+    err = graph.error(values) + term.error(values)
+    e0 = err
+    ordering = None
+    lam = 0.0
+    dims = [(k, 1) for k in term.scale_keys] + [(int(k), 6) for k in term.pose_keys]
+    it = 0
+    for it in range(1, max_iterations + 1):
+        gfg = graph.linearize(values)
+        for f in term.linear_factors(values):
+            gfg.push_back(f)
+        if ordering is None:
+            ordering = gtsam.Ordering.ColamdGaussianFactorGraph(gfg)
+        while True:
+            if lam > 0:
+                damped = gtsam.GaussianFactorGraph()
+                damped.push_back(gfg)
+                sq = np.sqrt(lam)
+                eye = {1: sq * np.eye(1), 6: sq * np.eye(6)}
+                zero = {1: np.zeros(1), 6: np.zeros(6)}
+                unit = {1: gtsam.noiseModel.Unit.Create(1), 6: gtsam.noiseModel.Unit.Create(6)}
+                for k, d in dims:
+                    damped.push_back(gtsam.JacobianFactor(k, eye[d], zero[d], unit[d]))
+            else:
+                damped = gfg
+            try:
+                delta = damped.optimize(ordering)
+            except RuntimeError as e:  # indeterminate system: damp and retry
+                if lam > 1e10:
+                    raise GraphError(f"LM: linear system cannot be solved ({e})") from None
+                lam = max(lam * 10.0, 1e-5)
+                continue
+            new = values.retract(delta)
+            _clamp_scales(new, term.scale_keys)
+            new_err = graph.error(new) + term.error(new)
+            if np.isfinite(new_err) and new_err <= err:
+                lam = 0.0 if lam < 1e-8 else lam / 10.0
+                break
+            lam = max(lam * 10.0, 1e-5)
+            if lam > 1e10:
+                return values, it, e0, err
+        decrease = err - new_err
+        values, err = new, new_err
+        if decrease < absolute_tol or decrease < relative_tol * max(err + decrease, 1e-300) or err < 1e-12:
+            break
+    return values, it, e0, err
+
+
+def _clamp_scales(values: gtsam.Values, keys: list[int]) -> None:
+    for k in keys:
+        if values.atDouble(k) < SCALE_MIN:
+            values.update(k, SCALE_MIN)
+
+
+def _result(problem: Problem, values: gtsam.Values, iters: int, e0: float, e1: float, t0: float, solver: str):
+    if problem.is_2d:
+        X = gtsam.utilities.extractPose2(values)
+        poses = {}
+        for k, (x, y, th) in zip(problem.graph.keys(), X):
+            T = np.eye(4)
+            T[:2, :2] = [[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]
+            T[:2, 3] = [x, y]
+            poses[k] = T
+    else:
+        X = gtsam.utilities.extractPose3(values)
+        poses = {}
+        for k, row in zip(problem.graph.keys(), X):
+            T = np.eye(4)
+            T[:3, :3] = row[:9].reshape(3, 3)
+            T[:3, 3] = row[9:]
+            poses[k] = T
+    scales = {}
+    if problem.scale_loops is not None:
+        for n, k in zip(problem.scale_loops.edge, problem.scale_loops.key_s):
+            scales[int(n)] = values.atDouble(int(k))
+    return SolveResult(values, poses, scales, iters, float(e0), float(e1), time.perf_counter() - t0, solver)
+
+
+# ------------------------------------------------------------------------------------------- GNC
+def loop_costs(problem: Problem, values: gtsam.Values) -> dict[int, float]:
+    """Unweighted 0.5 ||whitened residual||² of every loop (edge index -> cost)."""
+    out = {}
+    for lf in problem.loops:
+        g = gtsam.NonlinearFactorGraph()
+        g.add(_single(problem, lf))
+        out[lf.edge] = g.error(values)
+    if problem.scale_loops is not None:
+        c = _ScaleTerm(problem, None).costs(values)
+        out.update({int(n): float(v) for n, v in zip(problem.scale_loops.edge, c)})
+    return out
+
+
+def _single(problem: Problem, lf):
+    from .formulations import _between
+
+    return _between(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d)
+
+
+def gnc(problem: Problem, *, inlier_cost: float | None = None, probability: float = 0.99, mu_step: float = 1.4,
+        max_iterations: int = 100, relative_cost_tol: float = 1e-5, weights_tol: float = 1e-4,
+        lm_max_iterations: int = 100, gtsam_schedule: bool = False) -> SolveResult:
+    """Graduated non-convexity with the truncated-least-squares loss over the loop closures (odometry, anchors
+    and scale factors are known inliers).
+
+    inlier_cost: the largest 0.5 ||r||²_Omega of an inlier (GTSAM's barcSq); default 0.5 * chi2inv(probability,
+    dim) as GTSAM's `setInlierCostThresholdsAtProbability`. Schedule, weight update and stopping tests as in
+    GTSAM's GncOptimizer (Linear scheduler). `gtsam_schedule=True` also copies GTSAM's two choices this module
+    otherwise changes (mu from the residuals at the initial values; every inner solve from the initial values),
+    which reproduces Kimera-RPGO's expected outcomes exactly; it is much slower on large graphs.
+    """
+    if not 0.0 < probability < 1.0:
+        raise InputError(f"gnc: probability must be in (0, 1), got {probability}")
+    t0 = time.perf_counter()
+    dim = 3 if problem.is_2d else 6
+    barc = float(inlier_cost) if inlier_cost is not None else 0.5 * float(chi2.ppf(probability, dim))
+    res = levenberg_marquardt(problem, max_iterations=lm_max_iterations)
+    iters, e0 = res.iterations, res.initial_error
+    costs = loop_costs(problem, res.values)
+    ids = sorted(costs)
+    weights = {n: 1.0 for n in ids}
+    if not ids:
+        res.time_s = time.perf_counter() - t0
+        res.solver = "gnc"
+        return res
+    mu_costs = loop_costs(problem, problem.initial) if gtsam_schedule else costs
+    c = np.array([mu_costs[n] for n in ids])
+    pos = 2 * c - barc > 0
+    mu = float(np.min(barc / (2 * c[pos] - barc))) if pos.any() else -1.0
+    if 0 <= mu < 1e-6:
+        mu = 1e-6
+    prev_cost = res.final_error
+    k = 0
+    if mu > 0:
+        for k in range(1, max_iterations + 1):
+            c = np.array([costs[n] for n in ids])
+            upper, lower = (mu + 1) / mu * barc, mu / (mu + 1) * barc
+            with np.errstate(divide="ignore"):
+                w = np.sqrt(barc * mu * (mu + 1) / np.maximum(c, 1e-300)) - mu
+            w = np.where(c >= upper, 0.0, np.where(c <= lower, 1.0, np.clip(w, 0.0, 1.0)))
+            weights = dict(zip(ids, w.tolist()))
+            start = problem.initial if gtsam_schedule else res.values
+            res = levenberg_marquardt(problem, weights=weights, initial=start, max_iterations=lm_max_iterations)
+            iters += res.iterations
+            cost = res.final_error
+            costs = loop_costs(problem, res.values)
+            binary = np.all(np.abs(w - np.round(w)) <= weights_tol)
+            if abs(cost - prev_cost) / max(prev_cost, 1e-7) < relative_cost_tol or binary:
+                break
+            mu *= mu_step
+            prev_cost = cost
+    res.weights = weights
+    res.rejected = [n for n in ids if weights[n] < 0.5]
+    res.iterations = iters
+    res.initial_error = e0
+    res.gnc_iterations = k
+    res.solver = "gnc"
+    res.time_s = time.perf_counter() - t0
+    return res
+
+
+def solve(problem: Problem, solver: str = "lm", **kwargs) -> SolveResult:
+    """`solver` 'lm' or 'gnc' with that function's keyword arguments."""
+    if solver == "lm":
+        return levenberg_marquardt(problem, **kwargs)
+    if solver == "gnc":
+        return gnc(problem, **kwargs)
+    raise InputError(f"solver must be 'lm' or 'gnc', got {solver!r}")
