@@ -12,6 +12,15 @@ from registration.place_recognition.vlad import VLADRecognizer
 from registration.synthetic_views import TexturedRoom, default_camera, look_pose
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Tiny networks: thread start-up and contention on a shared 2-core box cost more than the work itself."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def views():
     """Two rooms; in room A three places, each seen twice with a small motion."""

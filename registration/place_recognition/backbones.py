@@ -131,8 +131,8 @@ def load_state_dict_file(path, what: str) -> dict:
     return {k.replace("module.", ""): v for k, v in ckpt.items()}
 
 
-def load_into(model: nn.Module, state: dict, what: str, path) -> None:
-    """load_state_dict(strict) with one clear line when keys or shapes do not fit."""
+def load_into(model: nn.Module, state: dict, what: str, path, *, assign: bool = False) -> None:
+    """load_state_dict(strict) with one clear line when keys or shapes do not fit (`assign` for meta models)."""
     own = model.state_dict()
     missing = [k for k in own if k not in state]
     unexpected = [k for k in state if k not in own]
@@ -146,4 +146,4 @@ def load_into(model: nn.Module, state: dict, what: str, path) -> None:
         if bad:
             parts.append(f"shape mismatch at {bad[0]}: {list(state[bad[0]].shape)} vs {list(own[bad[0]].shape)}")
         raise InputError(f"{what}: checkpoint {path} does not fit this architecture: " + "; ".join(parts))
-    model.load_state_dict(state, strict=True)
+    model.load_state_dict(state, strict=True, assign=assign)
