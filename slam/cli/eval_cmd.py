@@ -33,11 +33,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from kernels.errors import InputError
     from kernels.fileio import atomic_write_text
-    from slam.plots import plot_trajectories
 
     team = Path(args.gt).is_dir() or Path(args.est).is_dir()
     if team and not (Path(args.gt).is_dir() and Path(args.est).is_dir()):
@@ -47,17 +44,7 @@ def run(args: argparse.Namespace) -> int:
     plot = Path(args.plot) if args.plot else (Path(args.json).with_suffix(".png") if args.json else None)
     report = ev.to_dict()
     if plot is not None:
-        if team:
-            j = ev.joint  # team plot: every agent moved by the ONE team alignment
-            est = {k: j.transform.apply_to_poses(v.ate.pairs.T_est)[:, :3, 3] for k, v in ev.per_agent.items()}
-            gt = {k: v.gt.T_world_cam[:, :3, 3] for k, v in ev.per_agent.items()}
-            errs = {k: np.linalg.norm(est[k] - v.ate.pairs.T_gt[:, :3, 3], axis=1) for k, v in ev.per_agent.items()}
-            title = f"team: ATE RMSE {j.rmse:.4f} m ({j.align}, one frame)"
-        else:
-            a = ev.ate
-            gt, est, errs = {"agent": ev.gt.T_world_cam[:, :3, 3]}, {"agent": a.T_est_aligned[:, :3, 3]}, {"agent": a.errors}
-            title = f"{Path(args.est).name}: ATE RMSE {a.rmse:.4f} m ({a.align})"
-        plot_trajectories(plot, gt, est, errors=errs, title=title)
+        ev.plot(plot)
         report["plot"] = str(plot)
         print(f"plot: {plot}")
     if args.json:

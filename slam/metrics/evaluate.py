@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -41,6 +42,15 @@ class TrajectoryEvaluation:
             "gt": {"path": str(self.gt.path), "format": self.gt.fmt},
             "est": {"path": str(self.est.path), "format": self.est.fmt},
         }
+
+    def plot(self, path) -> Path:
+        """PNG of the aligned estimate over the ground truth, with the per-pose ATE."""
+        from slam.plots import plot_trajectories
+
+        a = self.ate
+        return plot_trajectories(path, {"agent": self.gt.T_world_cam[:, :3, 3]}, {"agent": a.T_est_aligned[:, :3, 3]},
+                                 errors={"agent": a.errors},
+                                 title=f"{self.est.path.name}: ATE RMSE {a.rmse:.4f} m ({a.align})")
 
     def table(self) -> str:
         """A plain-text table: one row per metric with RMSE, mean, median and max, and the unit."""

@@ -46,6 +46,17 @@ class TeamEvaluation:
             "missing_agents": self.missing,
         }
 
+    def plot(self, path) -> Path:
+        """PNG of every agent moved by the ONE team alignment over its ground truth, with per-pose errors."""
+        from slam.plots import plot_trajectories
+
+        S = self.joint.transform
+        est = {k: S.apply_to_poses(v.ate.pairs.T_est)[:, :3, 3] for k, v in self.per_agent.items()}
+        gt = {k: v.gt.T_world_cam[:, :3, 3] for k, v in self.per_agent.items()}
+        errs = {k: np.linalg.norm(est[k] - v.ate.pairs.T_gt[:, :3, 3], axis=1) for k, v in self.per_agent.items()}
+        return plot_trajectories(path, gt, est, errors=errs,
+                                 title=f"team: ATE RMSE {self.joint.rmse:.4f} m ({self.joint.align}, one frame)")
+
     def table(self) -> str:
         rows = [(f"ATE {k}", v.ate.stats, "m") for k, v in self.per_agent.items()]
         rows.append(("ATE team (one frame)", self.joint.stats, "m"))
