@@ -37,6 +37,12 @@ def _camera_rays(camera: PinholeCamera) -> np.ndarray:
     return d.reshape(-1, 3).astype(np.float32)
 
 
+@lru_cache(maxsize=8)
+def _ray_lengths(camera: PinholeCamera) -> np.ndarray:
+    """[H*W] float32 |K^-1 [u, v, 1]| per pixel."""
+    return np.linalg.norm(_camera_rays(camera), axis=1).astype(np.float32)
+
+
 def camera_for(width: int, height: int, hfov_deg: float) -> PinholeCamera:
     """A square-pixel pinhole camera with the principal point at the image centre."""
     fx = (width / 2.0) / np.tan(np.deg2rad(hfov_deg) / 2.0)
@@ -69,15 +75,19 @@ def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
     idx = slice(None) if all_hit else np.nonzero(hit)[0]
     t = t_hit[idx]
     tri = prim[idx].astype(np.int64)
-    dirs = rays[idx, 3:]
-    normals = world.tri_normal[tri]
-    # |d| of a z = 1 ray is the same for every frame: look it up per pixel instead of a norm per ray.
-    ray_len = np.tile(np.linalg.norm(d_cam, axis=1), n)[idx]
-    points = rays[idx, :3] + dirs * t[:, None]
+    r = rays[idx]
+    # Surface coordinates of the hit: the two world axes in the face's plane, offset per face.
+    sa, ta = world.tri_surface_axes[tri, 0], world.tri_surface_axes[tri, 1]
+    s = np.take_along_axis(r, sa[:, None], 1)[:, 0] + np.take_along_axis(r, sa[:, None] + 3, 1)[:, 0] * t
+    s += world.tri_surface_offset[tri, 0]
+    tt = np.take_along_axis(r, ta[:, None], 1)[:, 0] + np.take_along_axis(r, ta[:, None] + 3, 1)[:, 0] * t
+    tt += world.tri_surface_offset[tri, 1]
+    ray_len = np.tile(_ray_lengths(camera), n)[idx]
     mat_hit = world.tri_material[tri]
     footprint = t * (ray_len / np.float32(camera.fx))  # metres per pixel at the hit, along the ray
-    shaded = world.texture.shade(points, world.tri_axis[tri], normals, mat_hit, footprint)
-    cos_hit = np.abs(np.einsum("ij,ij->i", normals, dirs)) / ray_len
+    shaded = world.texture.shade(s, tt, mat_hit, footprint, world.tri_light[tri])
+    # The faces are axis-aligned: |cos(incidence)| = |ray component along the normal's axis| / |ray|.
+    cos_hit = np.abs(np.take_along_axis(r, world.tri_axis[tri][:, None] + 3, 1)[:, 0]) / ray_len
     if all_hit:
         depth, color, cos_inc, material = t_hit, shaded, cos_hit, mat_hit
     else:

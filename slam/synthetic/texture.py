@@ -78,18 +78,27 @@ def _band_noise(rng: np.random.Generator, size: int, texel_m: float, lo_m: float
     return out.astype(np.float32)
 
 
-def _bilinear(img: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Sample a tileable [H, W] image (H, W powers of two) at continuous texel coordinates, wrapping."""
-    h, w = img.shape
-    s0, t0 = np.floor(s), np.floor(t)
-    fs, ft = s - s0, t - t0
-    i0 = s0.astype(np.int32) & (h - 1)
-    j0 = t0.astype(np.int32) & (w - 1)
-    i1, j1 = (i0 + 1) & (h - 1), (j0 + 1) & (w - 1)
-    flat = img.ravel()
-    top = flat[i0 * w + j0] * (1 - ft) + flat[i0 * w + j1] * ft
-    bot = flat[i1 * w + j0] * (1 - ft) + flat[i1 * w + j1] * ft
-    return top * (1 - fs) + bot * fs
+def _padded(img: np.ndarray) -> np.ndarray:
+    """[H, W] tileable -> [H + 1, W + 1] with the first row and column repeated, so lookups never wrap."""
+    return np.ascontiguousarray(np.pad(img, ((0, 1), (0, 1)), mode="wrap"))
+
+
+def _bilinear(padded: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Sample a tileable image at non-negative texel coordinates s (rows), t (columns), wrapping.
+
+    padded: the image from `_padded` (H, W powers of two). Coordinates must be >= 0 (truncation is floor).
+    """
+    h, w = padded.shape[0] - 1, padded.shape[1] - 1
+    i, j = s.astype(np.int32), t.astype(np.int32)
+    fs, ft = s - i, t - j
+    idx = (i & (h - 1)) * (w + 1) + (j & (w - 1))
+    flat = padded.ravel()
+    p00, p01 = flat[idx], flat[idx + 1]
+    idx += w + 1
+    p10, p11 = flat[idx], flat[idx + 1]
+    top = p00 + ft * (p01 - p00)
+    bot = p10 + ft * (p11 - p10)
+    return top + fs * (bot - top)
 
 
 def _soft_step(x: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -108,50 +117,58 @@ class TextureField:
 
     def __init__(self, seed: int, materials: MaterialTable):
         rng = np.random.default_rng([seed, 7])
-        self.coarse = _band_noise(rng, 256, COARSE_TEXEL_M, 0.12, 1.5)
-        self.fine = _band_noise(rng, 1024, FINE_TEXEL_M, 0.025, 0.12)
+        self.coarse = _padded(_band_noise(rng, 256, COARSE_TEXEL_M, 0.12, 1.5))
+        self.fine = _padded(_band_noise(rng, 1024, FINE_TEXEL_M, 0.025, 0.12))
         self.materials = materials
+        self._b_minus_a = materials.color_b - materials.color_a
 
-    def shade(self, points: np.ndarray, axis: np.ndarray, normals: np.ndarray, material: np.ndarray,
-              footprint: np.ndarray) -> np.ndarray:
+    def shade(self, s: np.ndarray, t: np.ndarray, material: np.ndarray, footprint: np.ndarray,
+              light: np.ndarray) -> np.ndarray:
         """Colour of N surface points.
 
-        points: [N, 3] world metres; axis: [N] int world axis of the face normal (faces are axis-aligned);
-        normals: [N, 3] unit face normals; material: [N] int ids; footprint: [N] metres covered by one pixel
-        at the hit (depth / fx along the ray). Returns [N, 3] float32 RGB in [0, 1].
+        s, t: [N] float32 surface coordinates in metres, >= 0 (the two world axes in the face's plane plus a
+        per-material offset, see `surface_offset`); material: [N] int ids; footprint: [N] metres covered by
+        one pixel at the hit; light: [N] Lambertian factor of the face (`lambert`). Returns [N, 3] float32 RGB
+        in [0, 1].
         """
         mt = self.materials
-        points = np.asarray(points, dtype=np.float32)
-        # Surface coordinates: the two world axes in the face's plane (walls: horizontal, then height).
-        s = np.where(axis == 0, points[:, 1], points[:, 0])
-        t = np.where(axis == 2, points[:, 1], points[:, 2])
-        off = mt.offset[material]
-        shift = axis.astype(np.float32)
-        s += off[:, 0] + 3.1 * shift
-        t += off[:, 1] + 1.7 * shift
-        fp = np.maximum(np.asarray(footprint, dtype=np.float32), np.float32(1e-3))
-
+        fp = footprint
         coarse = _bilinear(self.coarse, s * np.float32(1 / COARSE_TEXEL_M), t * np.float32(1 / COARSE_TEXEL_M))
-        fade = np.clip(2.0 - fp * np.float32(1 / FINE_TEXEL_M), 0.0, 1.0)
-        fine = _bilinear(self.fine, s * np.float32(1 / FINE_TEXEL_M), t * np.float32(1 / FINE_TEXEL_M)) * fade
+        fade = np.clip(np.float32(2.0) - fp * np.float32(1 / FINE_TEXEL_M), 0.0, 1.0)
+        fine = _bilinear(self.fine, s * np.float32(1 / FINE_TEXEL_M), t * np.float32(1 / FINE_TEXEL_M))
+        fine *= fade
 
-        a, b, c = mt.color_a[material], mt.color_b[material], mt.color_c[material]
         period = mt.period[material]
         mix = np.empty_like(s)  # weight of colour b
-        accent = np.zeros_like(s)  # weight of colour c
+        accent = np.empty_like(s)  # weight of colour c
         pat = mt.pattern[material]
+        kinds = np.bincount(pat, minlength=len(PATTERNS))
         for k, name in enumerate(PATTERNS):
-            sel = np.nonzero(pat == k)[0]
-            if len(sel):
+            if kinds[k] == len(pat):  # one pattern in view: no gathers
+                mix[:], accent[:] = _PATTERN_FNS[name](s, t, coarse, fine, period, fp, material)
+            elif kinds[k]:
+                sel = np.nonzero(pat == k)[0]
                 mix[sel], accent[sel] = _PATTERN_FNS[name](s[sel], t[sel], coarse[sel], fine[sel], period[sel],
                                                           fp[sel], material[sel])
-        mix = np.clip(mix, 0.0, 1.0)[:, None]
-        accent = np.clip(accent, 0.0, 1.0)[:, None]
-        rgb = (a * (1 - mix) + b * mix) * (1 - accent) + c * accent
-        rgb *= (1.0 + 0.12 * fine)[:, None]
-        light = 0.6 + 0.4 * np.abs(normals @ _LIGHT.astype(np.float32))
-        rgb *= light[:, None]
+        np.clip(mix, 0.0, 1.0, out=mix)
+        np.clip(accent, 0.0, 1.0, out=accent)
+        rgb = mt.color_a[material]
+        rgb += mix[:, None] * self._b_minus_a[material]
+        rgb += accent[:, None] * (mt.color_c[material] - rgb)
+        rgb *= (light * (np.float32(1.0) + np.float32(0.12) * fine))[:, None]
         return np.clip(rgb, 0.0, 1.0, out=rgb)
+
+
+def lambert(normals: np.ndarray) -> np.ndarray:
+    """[N, 3] unit normals -> [N] float32 brightness under the fixed distant light (view-independent)."""
+    return (0.6 + 0.4 * np.abs(np.asarray(normals, dtype=np.float64) @ _LIGHT)).astype(np.float32)
+
+
+def surface_offset(materials: MaterialTable, material: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """[N, 2] float32 offsets added to a face's surface coordinates: per material (so materials do not share
+    a pattern phase) and per face orientation, plus 100 m so that coordinates are positive."""
+    shift = np.asarray(axis, dtype=np.float32)[:, None] * np.array([3.1, 1.7], dtype=np.float32)
+    return materials.offset[material] + shift + np.float32(100.0)
 
 
 # Each pattern maps surface coordinates to (weight of colour b, weight of accent colour c), both [n] in [0, 1].

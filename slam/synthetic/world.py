@@ -14,7 +14,8 @@ from functools import cached_property
 import numpy as np
 
 from .config import MAX_AGENTS, WorldConfig
-from .texture import PATTERNS, MaterialTable, TextureField, material_table, random_material
+from .texture import (PATTERNS, MaterialTable, TextureField, lambert, material_table, random_material,
+                      surface_offset)
 from .trajectories import LoopSpec, plan_loops
 
 WALL_T = 0.12  # wall thickness, metres
@@ -65,6 +66,17 @@ class World:
     tri_material: np.ndarray = field(repr=False)  # [T] int64 material id per triangle
     tri_normal: np.ndarray = field(repr=False)  # [T, 3] float32 outward unit normal per triangle
     tri_axis: np.ndarray = field(repr=False)  # [T] int64 world axis of that normal (0 x, 1 y, 2 z)
+
+    # Per-triangle shading constants, derived from the above in __post_init__.
+    tri_surface_axes: np.ndarray = field(init=False, repr=False)  # [T, 2] int64 world axes spanning the face
+    tri_surface_offset: np.ndarray = field(init=False, repr=False)  # [T, 2] float32 texture coordinate offset
+    tri_light: np.ndarray = field(init=False, repr=False)  # [T] float32 Lambertian brightness
+
+    def __post_init__(self):
+        # Walls: (horizontal axis, z); floors and ceilings: (x, y).
+        self.tri_surface_axes = np.stack([np.where(self.tri_axis == 0, 1, 0), np.where(self.tri_axis == 2, 1, 2)], 1)
+        self.tri_surface_offset = surface_offset(self.materials, self.tri_material, self.tri_axis)
+        self.tri_light = lambert(self.tri_normal)
 
     @cached_property
     def texture(self) -> TextureField:
