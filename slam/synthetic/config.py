@@ -73,9 +73,9 @@ class ColorNoiseConfig(_Strict):
 class MonoConfig(_Strict):
     """Metric odometry of the monocular variant: noisy increments, a yaw bias and an optional scale error."""
 
-    trans_noise: float = Field(0.01, ge=0.0, le=1.0)  # sigma of translation error per metre travelled, as a fraction
-    rot_noise_deg_per_m: float = Field(0.5, ge=0.0, le=90.0)  # sigma of rotation error per metre travelled
-    yaw_bias_deg_per_m: float = Field(0.5, ge=-90.0, le=90.0)  # systematic heading drift (gyro bias)
+    trans_noise: float = Field(0.02, ge=0.0, le=1.0)  # sigma of translation error per metre travelled, as a fraction
+    rot_noise_deg_per_m: float = Field(1.0, ge=0.0, le=90.0)  # sigma of rotation error per metre travelled
+    yaw_bias_deg_per_m: float = Field(1.0, ge=-90.0, le=90.0)  # systematic heading drift (gyro bias)
     scale: float = Field(1.0, gt=0.0, le=10.0)  # odometry translation = scale * true translation
 
 

@@ -208,7 +208,8 @@ def _planks(s, t, coarse, fine, period, fp, m):
 def _blotches(s, t, coarse, fine, period, fp, m):
     edge = 0.02 + fp  # sharp-edged patches: strong gradients at every distance
     second = np.sin(3.0 * coarse + s * 1.3) * np.cos(2.0 * coarse - t * 1.1)
-    return _soft_step(coarse + 0.2 * fine, edge / 0.1), _soft_step(second - 0.55, edge)
+    # The coarse layer changes by roughly 8 units per metre, so `8 * edge` is an edge about `edge` metres wide.
+    return _soft_step(coarse + 0.2 * fine, 8.0 * edge), _soft_step(second - 0.55, 8.0 * edge)
 
 
 _PATTERN_FNS = {"noise": _noise, "stripes": _stripes, "tiles": _tiles, "planks": _planks, "blotches": _blotches}
