@@ -51,13 +51,13 @@ def _finite(name: str, x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-def _check(name: str, x, shape, dtypes=(torch.float32,), device=None) -> torch.Tensor:
+def _check(name: str, x, shape, dtypes=(torch.float32,), device=None, validate: bool = True) -> torch.Tensor:
     check_tensor(name, x, shape, dtypes=dtypes, device=device, finite=False)
-    return _finite(name, x) if x.is_floating_point() else x
+    return _finite(name, x) if validate and x.is_floating_point() else x
 
 
-def _points(name: str, x: torch.Tensor, device) -> torch.Tensor:
-    return _check(name, x, (None, 3), device=device).contiguous()
+def _points(name: str, x: torch.Tensor, device, validate: bool = True) -> torch.Tensor:
+    return _check(name, x, (None, 3), device=device, validate=validate).contiguous()
 
 
 @dataclass(frozen=True)
@@ -170,7 +170,8 @@ def cloud_normals(points: torch.Tensor, radius: float, *, viewpoint=None, min_ne
 def associate_projective(source_points: torch.Tensor, T_target_source,  # [N, 3], [4, 4]
                          target_vertices: torch.Tensor, target_normals: torch.Tensor,  # [H, W, 3] each
                          camera: PinholeCamera, *, max_distance: float,
-                         source_normals: torch.Tensor | None = None, max_angle_deg: float | None = None) -> torch.Tensor:
+                         source_normals: torch.Tensor | None = None, max_angle_deg: float | None = None,
+                         validate: bool = True) -> torch.Tensor:
     """Projective association for organised frames -> int32 [N] flat target pixel index or -1.
 
     p' = T p projects to the nearest target pixel; kept when inside the image, the target normal is valid,
@@ -179,67 +180,114 @@ def associate_projective(source_points: torch.Tensor, T_target_source,  # [N, 3]
     """
     b, mod = _be()
     dev = b.torch_device
-    source_points = _points("source_points", source_points, dev)
+    source_points = _points("source_points", source_points, dev, validate)
     H, W = camera.height, camera.width
-    _check("target_vertices", target_vertices, (H, W, 3), dtypes=(torch.float32,), device=dev)
-    _check("target_normals", target_normals, (H, W, 3), dtypes=(torch.float32,), device=dev)
-    cos_min = -2.0
-    if source_normals is not None and max_angle_deg is not None:
-        _check("source_normals", source_normals, (source_points.shape[0], 3), dtypes=(torch.float32,), device=dev)
-        cos_min = float(torch.cos(torch.deg2rad(torch.tensor(float(max_angle_deg)))))
-    else:
-        source_normals = source_points  # unused by the kernel when cos_min < -1
+    _check("target_vertices", target_vertices, (H, W, 3), device=dev, validate=validate)
+    _check("target_normals", target_normals, (H, W, 3), device=dev, validate=validate)
+    sn, cos_min = _angle_gate(source_normals, max_angle_deg, source_points, dev, validate)
     return mod.associate_projective(source_points, _pose("T_target_source", T_target_source, dev),
-                                    target_vertices.contiguous(), target_normals.contiguous(), source_normals.contiguous(),
+                                    target_vertices.contiguous(), target_normals.contiguous(), sn,
                                     camera, float(max_distance), cos_min, b.device)
 
 
 def associate_nearest(source_points: torch.Tensor, T_target_source, grid: PointGrid, *,  # [N, 3], [4, 4]
-                      max_distance: float) -> torch.Tensor:
+                      max_distance: float, validate: bool = True) -> torch.Tensor:
     """Nearest grid point within `max_distance` (metres, inclusive) of each T p -> int32 [N] index or -1."""
     b, mod = _be()
     dev = b.torch_device
-    source_points = _points("source_points", source_points, dev)
+    source_points = _points("source_points", source_points, dev, validate)
     if not max_distance > 0:
         raise InputError(f"argument 'max_distance': expected > 0, got {max_distance}")
     return mod.associate_nearest(grid._impl, grid.points, source_points, _pose("T_target_source", T_target_source, dev),
                                  float(max_distance), b.device)
 
 
-def reduce_point_to_plane(source_points: torch.Tensor, T_target_source,  # [N, 3], [4, 4]
-                          target_points: torch.Tensor, target_normals: torch.Tensor,  # [M, 3] each
-                          idx: torch.Tensor, *, robust: str = "none", robust_scale: float = 0.0,  # [N] int32
-                          photometric: PhotometricTerm | None = None) -> NormalEquations:
-    """One pass over the associated points: JᵀWJ, JᵀWr, cost, squared distances and counts.
+def _photo(photometric: PhotometricTerm | None, N: int, dev, validate: bool):
+    if photometric is None:
+        return None
+    cam = photometric.camera
+    _check("photometric.source_intensity", photometric.source_intensity, (N,), device=dev, validate=validate)
+    _check("photometric.target_intensity", photometric.target_intensity, (cam.height, cam.width), device=dev,
+           validate=validate)
+    _check("photometric.target_gradient", photometric.target_gradient, (cam.height, cam.width, 2), device=dev,
+           validate=validate)
+    return (photometric.source_intensity.contiguous(), photometric.target_intensity.contiguous(),
+            photometric.target_gradient.contiguous(), cam, float(photometric.weight))
 
-    robust: "none", "huber" or "tukey" with scale `robust_scale` (metres, > 0 unless "none").
-    """
-    b, mod = _be()
-    dev = b.torch_device
-    source_points = _points("source_points", source_points, dev)
-    N = source_points.shape[0]
-    target_points = _points("target_points", target_points.reshape(-1, 3) if target_points.dim() == 3 else target_points, dev)
-    tn = target_normals.reshape(-1, 3) if target_normals.dim() == 3 else target_normals
-    _check("target_normals", tn, (target_points.shape[0], 3), dtypes=(torch.float32,), device=dev)
-    _check("idx", idx, (N,), dtypes=(torch.int32,), device=dev)
+
+def _robust(robust: str, robust_scale: float) -> int:
     if robust not in ROBUST_KINDS:
         raise InputError(f"argument 'robust': expected one of {sorted(ROBUST_KINDS)}, got {robust!r}")
     if robust != "none" and not robust_scale > 0:
         raise InputError(f"argument 'robust_scale': expected > 0 for robust={robust!r}, got {robust_scale}")
-    photo = None
-    if photometric is not None:
-        cam = photometric.camera
-        _check("photometric.source_intensity", photometric.source_intensity, (N,), dtypes=(torch.float32,), device=dev)
-        _check("photometric.target_intensity", photometric.target_intensity, (cam.height, cam.width),
-                     dtypes=(torch.float32,), device=dev)
-        _check("photometric.target_gradient", photometric.target_gradient, (cam.height, cam.width, 2),
-                     dtypes=(torch.float32,), device=dev)
-        photo = (photometric.source_intensity.contiguous(), photometric.target_intensity.contiguous(),
-                 photometric.target_gradient.contiguous(), cam, float(photometric.weight))
-    sums = mod.reduce_point_to_plane(source_points, _pose("T_target_source", T_target_source, dev), target_points,
-                                     tn.contiguous(), idx.contiguous(), ROBUST_KINDS[robust], float(robust_scale),
-                                     photo, b.device)
+    return ROBUST_KINDS[robust]
+
+
+def reduce_point_to_plane(source_points: torch.Tensor, T_target_source,  # [N, 3], [4, 4]
+                          target_points: torch.Tensor, target_normals: torch.Tensor,  # [M, 3] (or [H, W, 3]) each
+                          idx: torch.Tensor, *, robust: str = "none", robust_scale: float = 0.0,  # [N] int32
+                          photometric: PhotometricTerm | None = None, validate: bool = True) -> NormalEquations:
+    """One pass over the associated points: JᵀWJ, JᵀWr, cost, squared distances and counts.
+
+    robust: "none", "huber" or "tukey" with scale `robust_scale` (metres, > 0 unless "none"). The photometric
+    term needs `target_points` to be the vertex map of `photometric.camera`. validate=False skips the O(N)
+    NaN scans (shapes, dtypes and devices are always checked) for callers that validated their inputs once.
+    """
+    b, mod = _be()
+    dev = b.torch_device
+    source_points = _points("source_points", source_points, dev, validate)
+    N = source_points.shape[0]
+    tp = _points("target_points", target_points.reshape(-1, 3), dev, validate)
+    tn = _check("target_normals", target_normals.reshape(-1, 3), (tp.shape[0], 3), device=dev, validate=validate)
+    _check("idx", idx, (N,), dtypes=(torch.int32,), device=dev)
+    kind = _robust(robust, robust_scale)
+    sums = mod.reduce_point_to_plane(source_points, _pose("T_target_source", T_target_source, dev), tp,
+                                     tn.contiguous(), idx.contiguous(), kind, float(robust_scale),
+                                     _photo(photometric, N, dev, validate), b.device)
     return NormalEquations.from_sums(sums)
+
+
+def projective_normal_equations(source_points: torch.Tensor, T_target_source,  # [N, 3], [4, 4]
+                                target_vertices: torch.Tensor, target_normals: torch.Tensor,  # [H, W, 3] each
+                                camera: PinholeCamera, *, max_distance: float,
+                                source_normals: torch.Tensor | None = None, max_angle_deg: float | None = None,
+                                robust: str = "none", robust_scale: float = 0.0,
+                                photometric: PhotometricTerm | None = None, validate: bool = True) -> NormalEquations:
+    """`associate_projective` and `reduce_point_to_plane` fused into one pass (no index array is written):
+    the per-iteration step of projective ICP. Same gates, same sums; the photometric camera must be `camera`."""
+    b, mod = _be()
+    dev = b.torch_device
+    source_points = _points("source_points", source_points, dev, validate)
+    N = source_points.shape[0]
+    H, W = camera.height, camera.width
+    _check("target_vertices", target_vertices, (H, W, 3), device=dev, validate=validate)
+    _check("target_normals", target_normals, (H, W, 3), device=dev, validate=validate)
+    if photometric is not None and photometric.camera != camera:
+        raise InputError("argument 'photometric': its camera must be the target camera of the projective association")
+    sn, cos_min = _angle_gate(source_normals, max_angle_deg, source_points, dev, validate)
+    kind = _robust(robust, robust_scale)
+    sums = mod.reduce_point_to_plane(source_points, _pose("T_target_source", T_target_source, dev),
+                                     target_vertices.reshape(-1, 3).contiguous(), target_normals.reshape(-1, 3).contiguous(),
+                                     _dummy_idx(dev), kind, float(robust_scale), _photo(photometric, N, dev, validate),
+                                     b.device, proj=(sn, camera, H, W, float(max_distance), cos_min))
+    return NormalEquations.from_sums(sums)
+
+
+def _angle_gate(source_normals, max_angle_deg, source_points, dev, validate) -> tuple[torch.Tensor, float]:
+    if source_normals is None or max_angle_deg is None:
+        return source_points, -2.0  # the kernels skip the gate when cos_min < -1
+    _check("source_normals", source_normals, (source_points.shape[0], 3), device=dev, validate=validate)
+    return source_normals.contiguous(), float(torch.cos(torch.deg2rad(torch.tensor(float(max_angle_deg)))))
+
+
+_DUMMY_IDX: dict = {}
+
+
+def _dummy_idx(dev) -> torch.Tensor:
+    key = str(dev)
+    if key not in _DUMMY_IDX:
+        _DUMMY_IDX[key] = torch.zeros(1, dtype=torch.int32, device=dev)
+    return _DUMMY_IDX[key]
 
 
 def n_blocks(n: int, device: str) -> tuple[int, int, int, int]:

@@ -42,13 +42,13 @@ def geometry_check(p: torch.Tensor, q: torch.Tensor, n: torch.Tensor) -> tuple[n
     """
     p, q, n = p.double(), q.double(), n.double()
     Kc = p.shape[0]
-    z = torch.zeros_like(q[:, 0])
-    # G = [-[q]x, I] per correspondence, rows as Open3D's get_information_matrix_from_point_clouds.
-    Gr = torch.stack([z, q[:, 2], -q[:, 1], -q[:, 2], z, q[:, 0], q[:, 1], -q[:, 0], z], 1).reshape(Kc, 3, 3)
+    # G = [-[q]x, I] per correspondence (the rows of Open3D's get_information_matrix_from_point_clouds), so
+    # sum G^T G = [[sum(|q|^2 I - q q^T), [sum q]x], [-[sum q]x, K I]].
+    qs = q.sum(0).numpy()
     info = np.zeros((6, 6))
-    info[:3, :3] = torch.einsum("kij,kil->jl", Gr, Gr).numpy()
-    info[:3, 3:] = Gr.sum(0).T.numpy()
-    info[3:, :3] = info[:3, 3:].T
+    info[:3, :3] = float((q * q).sum()) * np.eye(3) - (q.T @ q).numpy()
+    info[:3, 3:] = se3.hat(qs)
+    info[3:, :3] = -se3.hat(qs)
     info[3:, 3:] = Kc * np.eye(3)
     c = p.mean(0, keepdim=True)
     lever = float(torch.sqrt(((p - c) ** 2).sum(1).mean()).clamp_min(1e-9))
@@ -96,7 +96,7 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
              max_angle_deg: float = 45.0, max_depth_jump: float = 0.05, depth_max: float | None = None,
              robust: str = "huber", robust_scale: float | None = None, photometric_weight: float = 0.0,
              min_points: int = 100, min_correspondences: int = 100, degenerate_ratio: float = 1e-3,
-             tolerance: tuple[float, float] = (1e-6, 1e-6)) -> RegistrationResult:
+             tolerance: tuple[float, float] = (1e-5, 1e-5)) -> RegistrationResult:
     """Coarse-to-fine projective point-to-plane ICP between two organised depth frames.
 
     Levels take every s-th pixel for s in `strides`, with `iterations[k]` Gauss-Newton steps each and a distance
@@ -130,17 +130,16 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
 
     T = T0.copy()
     total_iters, converged = 0, False
-    cos_args = dict(max_angle_deg=max_angle_deg)
     for li, (stride, n_it) in enumerate(zip(strides, iterations)):
         lv = _level(sd, td, si, ti, camera, int(stride), max_depth_jump, depth_max, photometric_weight, dev)
         gate = max_distance * stride
         k = robust_scale if robust_scale is not None else 0.5 * gate
         converged = False
         for _ in range(int(n_it)):
-            idx = K.associate_projective(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=gate,
-                                         source_normals=lv.src_n, **cos_args)
-            ne = K.reduce_point_to_plane(lv.src, _t(T, dev), lv.tv, lv.tn, idx, robust=robust,
-                                         robust_scale=k if robust != "none" else 0.0, photometric=lv.photo)
+            ne = K.projective_normal_equations(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=gate,
+                                               source_normals=lv.src_n, max_angle_deg=max_angle_deg, robust=robust,
+                                               robust_scale=k if robust != "none" else 0.0, photometric=lv.photo,
+                                               validate=False)
             if ne.count < min(min_correspondences, max(6, lv.src.shape[0] // 10)):
                 if li == len(strides) - 1 or ne.count < 6:
                     return RegistrationResult.failure(T0, TOO_FEW_POINTS, method, iterations=total_iters,
@@ -156,7 +155,7 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
 
     # Final evaluation at full resolution: Open3D's fitness / RMSE, information matrix, degeneracy.
     lv = _level(sd, td, None, None, camera, 1, max_depth_jump, depth_max, 0.0, dev)
-    idx = K.associate_projective(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=max_distance)
+    idx = K.associate_projective(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=max_distance, validate=False)
     return _finish(T, T0, lv.src, lv.tv.reshape(-1, 3), lv.tn.reshape(-1, 3), idx, n_src, total_iters,
                    converged or np.linalg.norm(last_step[:3]) < 1e-4 and np.linalg.norm(last_step[3:]) < 1e-4,
                    min_correspondences, degenerate_ratio, method)
@@ -217,8 +216,9 @@ def icp_clouds(source_points: np.ndarray, target_points: np.ndarray, init: np.nd
         tn = K.cloud_normals(tgt, r, viewpoint=(0.0, 0.0, 0.0), grid=ngrid)
 
     def step(T):
-        idx = K.associate_nearest(src, _t(T, dev), grid, max_distance=max_distance)
-        ne = K.reduce_point_to_plane(src, _t(T, dev), tgt, tn, idx, robust=robust, robust_scale=robust_scale)
+        idx = K.associate_nearest(src, _t(T, dev), grid, max_distance=max_distance, validate=False)
+        ne = K.reduce_point_to_plane(src, _t(T, dev), tgt, tn, idx, robust=robust, robust_scale=robust_scale,
+                                     validate=False)
         rmse = np.sqrt(ne.dist_sq / ne.count) if ne.count else 0.0
         return idx, ne, ne.count / len(src_np), rmse
 

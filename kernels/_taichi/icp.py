@@ -112,28 +112,34 @@ def _assoc_nearest(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), s
         out[i] = best_j
 
 
+@ti.func
+def _project_assoc(p, q, T: ti.template(), tv: ti.template(), tn: ti.template(), sn: ti.template(), i, H, W,
+                   fx, fy, cx, cy, max_d, cos_min):
+    # p: source point, q = T p; flat target index or -1 (gates in kernels.icp).
+    res = -1
+    if p[2] > 0.0 and q[2] > 0.0:
+        u = ti.cast(ti.floor(fx * q[0] / q[2] + cx + 0.5), ti.i32)
+        v = ti.cast(ti.floor(fy * q[1] / q[2] + cy + 0.5), ti.i32)
+        if u >= 0 and v >= 0 and u < W and v < H:
+            t = v * W + u
+            n = ti.Vector([tn[t, 0], tn[t, 1], tn[t, 2]])
+            ok = not (n[0] == 0.0 and n[1] == 0.0 and n[2] == 0.0)
+            ok = ok and (q - ti.Vector([tv[t, 0], tv[t, 1], tv[t, 2]])).norm_sqr() <= max_d * max_d
+            if ok and cos_min >= -1.0:
+                rn = _xform(T, sn[i, 0], sn[i, 1], sn[i, 2]) - ti.Vector([T[0, 3], T[1, 3], T[2, 3]])
+                ok = rn.dot(n) >= cos_min
+            if ok:
+                res = t
+    return res
+
+
 @ti.kernel
-def _assoc_projective(src: f32_2, T: f32_2, tv: f32_3, tn: f32_3, sn: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32,
-                      cy: ti.f32, max_d: ti.f32, cos_min: ti.f32, out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-    H, W = tv.shape[0], tv.shape[1]
+def _assoc_projective(src: f32_2, T: f32_2, tv: f32_2, tn: f32_2, sn: f32_2, H: ti.i32, W: ti.i32, fx: ti.f32,
+                      fy: ti.f32, cx: ti.f32, cy: ti.f32, max_d: ti.f32, cos_min: ti.f32,
+                      out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
     for i in range(src.shape[0]):
-        res = -1
-        if src[i, 2] > 0.0:
-            q = _xform(T, src[i, 0], src[i, 1], src[i, 2])
-            if q[2] > 0.0:
-                u = ti.cast(ti.floor(fx * q[0] / q[2] + cx + 0.5), ti.i32)
-                v = ti.cast(ti.floor(fy * q[1] / q[2] + cy + 0.5), ti.i32)
-                if u >= 0 and v >= 0 and u < W and v < H:
-                    n = ti.Vector([tn[v, u, 0], tn[v, u, 1], tn[v, u, 2]])
-                    t = ti.Vector([tv[v, u, 0], tv[v, u, 1], tv[v, u, 2]])
-                    ok = not (n[0] == 0.0 and n[1] == 0.0 and n[2] == 0.0)
-                    ok = ok and (q - t).norm_sqr() <= max_d * max_d
-                    if ok and cos_min >= -1.0:
-                        rn = _xform(T, sn[i, 0], sn[i, 1], sn[i, 2]) - ti.Vector([T[0, 3], T[1, 3], T[2, 3]])
-                        ok = rn.dot(n) >= cos_min
-                    if ok:
-                        res = v * W + u
-        out[i] = res
+        p = ti.Vector([src[i, 0], src[i, 1], src[i, 2]])
+        out[i] = _project_assoc(p, _xform(T, p[0], p[1], p[2]), T, tv, tn, sn, i, H, W, fx, fy, cx, cy, max_d, cos_min)
 
 
 @ti.func
@@ -164,7 +170,8 @@ def _robust_w(r, kind, k):
 @ti.kernel
 def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dtype=ti.i32, ndim=1), kind: ti.i32,
             k: ti.f32, has_photo: ti.i32, s_int: ti.types.ndarray(dtype=ti.f32, ndim=1), t_int: f32_2, t_gu: f32_2,
-            t_gv: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, lam: ti.f32, blocks: ti.i32,
+            t_gv: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, lam: ti.f32, projective: ti.i32, sn: f32_2,
+            th: ti.i32, tw: ti.i32, max_d: ti.f32, cos_min: ti.f32, blocks: ti.i32,
             start_stride: ti.i32, item_stride: ti.i32, count: ti.i32, out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
     n_pts = src.shape[0]
     for b in range(blocks):
@@ -173,9 +180,16 @@ def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dt
         s = ti.Vector.zero(ti.f64, 6)  # cost, dist, count, photo cost, photo count, |r|
         for jj in range(count):
             i = b * start_stride + jj * item_stride
-            if i < n_pts and idx[i] >= 0:
-                t = idx[i]
+            t = -1
+            p = ti.Vector([0.0, 0.0, 0.0])
+            if i < n_pts:
                 p = _xform(T, src[i, 0], src[i, 1], src[i, 2])
+                if projective != 0:
+                    t = _project_assoc(ti.Vector([src[i, 0], src[i, 1], src[i, 2]]), p, T, tp, tn, sn, i, th, tw,
+                                       fx, fy, cx, cy, max_d, cos_min)
+                else:
+                    t = idx[i]
+            if t >= 0:
                 q = ti.Vector([tp[t, 0], tp[t, 1], tp[t, 2]])
                 nq = ti.Vector([tn[t, 0], tn[t, 1], tn[t, 2]])
                 r = nq.dot(p - q)
@@ -272,7 +286,9 @@ def associate_nearest(grid: _Grid, points, src, T, max_d: float, device: str):
 def associate_projective(src, T, tv, tn, sn, camera, max_d: float, cos_min: float, device: str):
     out = torch.empty(src.shape[0], dtype=torch.int32, device=src.device)
     if src.shape[0]:
-        _assoc_projective(src, T, tv, tn, sn, camera.fx, camera.fy, camera.cx, camera.cy, max_d, cos_min, out)
+        H, W = tv.shape[:2]
+        _assoc_projective(src, T, tv.reshape(-1, 3), tn.reshape(-1, 3), sn, H, W, camera.fx, camera.fy, camera.cx,
+                          camera.cy, max_d, cos_min, out)
         _sync(device)
     return out
 
@@ -284,19 +300,24 @@ def _dummies(dev: torch.device):
     return _DUMMY[key]
 
 
-def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str):
+def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str, proj=None):
+    """proj = (source_normals, camera, H, W, max_d, cos_min) fuses projective association into the pass (idx unused)."""
     n = src.shape[0]
     blocks, start_stride, item_stride, count = n_blocks(n, device)
     out = torch.zeros(blocks, N_SLOTS, dtype=torch.float64, device=src.device)
-    if photo is None:
-        s1, i2 = _dummies(src.device)
-        s_int, t_int, gu, gv, fx, fy, cx, cy, lam, has = s1, i2, i2, i2, 1.0, 1.0, 0.0, 0.0, 0.0, 0
-    else:
+    s1, i2 = _dummies(src.device)
+    s_int, t_int, gu, gv, lam, has = s1, i2, i2, i2, 0.0, 0
+    cam = None
+    if photo is not None:
         s_int, t_int, grad, cam, lam = photo
-        gu, gv = grad[..., 0].contiguous(), grad[..., 1].contiguous()
-        fx, fy, cx, cy, has = cam.fx, cam.fy, cam.cx, cam.cy, 1
+        gu, gv, has = grad[..., 0].contiguous(), grad[..., 1].contiguous(), 1
+    projective, sn, th, tw, max_d, cos_min = 0, src, 0, 0, 0.0, -2.0
+    if proj is not None:
+        sn, cam, th, tw, max_d, cos_min = proj
+        projective = 1
+    fx, fy, cx, cy = (cam.fx, cam.fy, cam.cx, cam.cy) if cam is not None else (1.0, 1.0, 0.0, 0.0)
     if n:
-        _reduce(src, T, tp, tn, idx, kind, k, has, s_int, t_int, gu, gv, fx, fy, cx, cy, lam, blocks, start_stride,
-                item_stride, count, out)
+        _reduce(src, T, tp, tn, idx, kind, k, has, s_int, t_int, gu, gv, fx, fy, cx, cy, lam, projective, sn, th, tw,
+                max_d, cos_min, blocks, start_stride, item_stride, count, out)
         _sync(device)
     return out.sum(0)

@@ -10,6 +10,9 @@ from ..icp import N_SLOTS, n_blocks
 
 _DUMMY: dict = {}
 
+# Forward-only kernels: no adjoint code to compile (ICP never differentiates through these).
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.func
 def _backproject(d: float, u: int, v: int, fx: float, fy: float, cx: float, cy: float):
@@ -91,52 +94,51 @@ def _moments(grid: wp.uint64, points: wp.array(dtype=wp.vec3), queries: wp.array
 
 
 @wp.func
-def _xform(T: wp.array2d(dtype=wp.float32), p: wp.vec3):
-    return wp.vec3(T[0, 0] * p[0] + T[0, 1] * p[1] + T[0, 2] * p[2] + T[0, 3],
-                   T[1, 0] * p[0] + T[1, 1] * p[1] + T[1, 2] * p[2] + T[1, 3],
-                   T[2, 0] * p[0] + T[2, 1] * p[1] + T[2, 2] * p[2] + T[2, 3])
+def _xform(T: wp.mat44, p: wp.vec3):
+    return wp.transform_point(T, p)
 
 
 @wp.func
-def _rotate(T: wp.array2d(dtype=wp.float32), p: wp.vec3):
-    return wp.vec3(T[0, 0] * p[0] + T[0, 1] * p[1] + T[0, 2] * p[2],
-                   T[1, 0] * p[0] + T[1, 1] * p[1] + T[1, 2] * p[2],
-                   T[2, 0] * p[0] + T[2, 1] * p[1] + T[2, 2] * p[2])
+def _rotate(T: wp.mat44, p: wp.vec3):
+    return wp.transform_vector(T, p)
+
+
+@wp.func
+def _project_assoc(p: wp.vec3, q: wp.vec3, sn_i: wp.vec3, T: wp.mat44,
+                   tv: wp.array(dtype=wp.vec3), tn: wp.array(dtype=wp.vec3), H: int, W: int,
+                   fx: float, fy: float, cx: float, cy: float, max_d: float, cos_min: float):
+    # p: source point, q = T p. Returns the flat target pixel index or -1 (gates in kernels.icp).
+    if p[2] <= 0.0 or q[2] <= 0.0:
+        return -1
+    u = int(wp.floor(fx * q[0] / q[2] + cx + 0.5))
+    v = int(wp.floor(fy * q[1] / q[2] + cy + 0.5))
+    if u < 0 or v < 0 or u >= W or v >= H:
+        return -1
+    t = v * W + u
+    n = tn[t]
+    if n[0] == 0.0 and n[1] == 0.0 and n[2] == 0.0:
+        return -1
+    if wp.length_sq(q - tv[t]) > max_d * max_d:
+        return -1
+    if cos_min >= -1.0:
+        if wp.dot(_rotate(T, sn_i), n) < cos_min:
+            return -1
+    return t
 
 
 @wp.kernel
-def _assoc_projective(src: wp.array(dtype=wp.vec3), T: wp.array2d(dtype=wp.float32),
-                      tv: wp.array2d(dtype=wp.vec3), tn: wp.array2d(dtype=wp.vec3), sn: wp.array(dtype=wp.vec3),
-                      fx: float, fy: float, cx: float, cy: float, max_d: float, cos_min: float,
+def _assoc_projective(src: wp.array(dtype=wp.vec3), T: wp.mat44,
+                      tv: wp.array(dtype=wp.vec3), tn: wp.array(dtype=wp.vec3), sn: wp.array(dtype=wp.vec3),
+                      H: int, W: int, fx: float, fy: float, cx: float, cy: float, max_d: float, cos_min: float,
                       out: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    out[i] = -1
     p = src[i]
-    if p[2] <= 0.0:
-        return
-    q = _xform(T, p)
-    if q[2] <= 0.0:
-        return
-    u = int(wp.floor(fx * q[0] / q[2] + cx + 0.5))
-    v = int(wp.floor(fy * q[1] / q[2] + cy + 0.5))
-    H = tv.shape[0]
-    W = tv.shape[1]
-    if u < 0 or v < 0 or u >= W or v >= H:
-        return
-    n = tn[v, u]
-    if n[0] == 0.0 and n[1] == 0.0 and n[2] == 0.0:
-        return
-    if wp.length_sq(q - tv[v, u]) > max_d * max_d:
-        return
-    if cos_min >= -1.0:
-        if wp.dot(_rotate(T, sn[i]), n) < cos_min:
-            return
-    out[i] = v * W + u
+    out[i] = _project_assoc(p, _xform(T, p), sn[i], T, tv, tn, H, W, fx, fy, cx, cy, max_d, cos_min)
 
 
 @wp.kernel
 def _assoc_nearest(grid: wp.uint64, points: wp.array(dtype=wp.vec3), src: wp.array(dtype=wp.vec3),
-                   T: wp.array2d(dtype=wp.float32), max_d: float, out: wp.array(dtype=wp.int32)):
+                   T: wp.mat44, max_d: float, out: wp.array(dtype=wp.int32)):
     i = wp.tid()
     q = _xform(T, src[i])
     best = max_d * max_d
@@ -176,74 +178,100 @@ def _robust_w(r: float, kind: int, k: float):
     return 1.0
 
 
-@wp.kernel
-def _reduce(src: wp.array(dtype=wp.vec3), T: wp.array2d(dtype=wp.float32), tp: wp.array(dtype=wp.vec3),
-            tn: wp.array(dtype=wp.vec3), idx: wp.array(dtype=wp.int32), kind: int, k: float,
-            has_photo: int, s_int: wp.array(dtype=wp.float32), t_int: wp.array2d(dtype=wp.float32),
-            t_gu: wp.array2d(dtype=wp.float32), t_gv: wp.array2d(dtype=wp.float32),
-            fx: float, fy: float, cx: float, cy: float, lam: float,
-            start_stride: int, item_stride: int, count: int, out: wp.array2d(dtype=wp.float64)):
-    b = wp.tid()
-    n_pts = src.shape[0]
-    H = wp.spatial_matrixd()
-    g = wp.spatial_vectord()
-    cost = wp.float64(0.0)
-    dist = wp.float64(0.0)
-    cnt = wp.float64(0.0)
-    pcost = wp.float64(0.0)
-    pcnt = wp.float64(0.0)
-    absr = wp.float64(0.0)
-    for jj in range(count):
-        i = b * start_stride + jj * item_stride
-        if i < n_pts:
-            t = idx[i]
-            if t >= 0:
-                p = _xform(T, src[i])
-                q = tp[t]
-                nq = tn[t]
-                r = wp.dot(nq, p - q)
-                c = wp.cross(p, nq)
-                J = wp.spatial_vectord(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2]),
-                                       wp.float64(nq[0]), wp.float64(nq[1]), wp.float64(nq[2]))
-                w = wp.float64(_robust_w(r, kind, k))
-                rd = wp.float64(r)
-                H += wp.outer(J, J * w)
-                g += J * (w * rd)
-                cost += w * rd * rd
-                dist += wp.float64(wp.length_sq(p - q))
-                cnt += wp.float64(1.0)
-                absr += wp.abs(rd)
-                if has_photo != 0:
-                    hh = t_int.shape[0]
-                    ww = t_int.shape[1]
-                    u = fx * p[0] / p[2] + cx
-                    v = fy * p[1] / p[2] + cy
-                    fu = wp.floor(u)
-                    fv = wp.floor(v)
-                    if fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= float(ww - 1) and fv + 1.0 <= float(hh - 1):
-                        ri = lam * (_bilinear1(t_int, u, v) - s_int[i])
+def _make_reduce(projective: bool, photo: bool):
+    """The reduction kernel specialised at compile time (wp.static) for the association mode and the photometric
+    term: Warp copies every local assigned under a run-time branch, and copying the 6x6 accumulator per point
+    would cost more than the arithmetic."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def _reduce(src: wp.array(dtype=wp.vec3), T: wp.mat44, tp: wp.array(dtype=wp.vec3),
+                tn: wp.array(dtype=wp.vec3), idx: wp.array(dtype=wp.int32), kind: int, k: float,
+                s_int: wp.array(dtype=wp.float32), t_int: wp.array2d(dtype=wp.float32),
+                t_gu: wp.array2d(dtype=wp.float32), t_gv: wp.array2d(dtype=wp.float32),
+                fx: float, fy: float, cx: float, cy: float, lam: float,
+                sn: wp.array(dtype=wp.vec3), th: int, tw: int, max_d: float, cos_min: float,
+                start_stride: int, item_stride: int, count: int, out: wp.array2d(dtype=wp.float64)):
+        b = wp.tid()
+        n_pts = src.shape[0]
+        H = wp.spatial_matrixd()
+        g = wp.spatial_vectord()
+        acc = wp.vec4d()  # cost, squared distance, count, |r|
+        pacc = wp.vec2d()  # photometric cost, count
+        for jj in range(count):
+            i = b * start_stride + jj * item_stride
+            ii = wp.min(i, n_pts - 1)
+            p = _xform(T, src[ii])
+            t = int(-1)
+            if i < n_pts:
+                if wp.static(projective):
+                    t = _project_assoc(src[ii], p, sn[ii], T, tp, tn, th, tw, fx, fy, cx, cy, max_d, cos_min)
+                else:
+                    t = idx[ii]
+            # Invalid points contribute zeros, so the accumulation below needs no branch.
+            m = wp.where(t >= 0, 1.0, 0.0)
+            tt = wp.max(t, 0)
+            nq = tn[tt] * m
+            d = (p - tp[tt]) * m
+            r = wp.dot(nq, d)
+            c = wp.cross(p, nq)
+            J = wp.spatial_vectord(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2]),
+                                   wp.float64(nq[0]), wp.float64(nq[1]), wp.float64(nq[2]))
+            w = wp.float64(_robust_w(r, kind, k) * m)
+            rd = wp.float64(r)
+            H += wp.outer(J, J * w)
+            g += J * (w * rd)
+            acc += wp.vec4d(w * rd * rd, wp.float64(wp.length_sq(d)), wp.float64(m), wp.abs(rd))
+            if wp.static(photo):
+                ri = float(0.0)
+                gu = float(0.0)
+                gv = float(0.0)
+                mi = float(0.0)
+                z = wp.where(p[2] > 0.0, p[2], 1.0)
+                u = fx * p[0] / z + cx
+                v = fy * p[1] / z + cy
+                fu = wp.floor(u)
+                fv = wp.floor(v)
+                if t >= 0 and fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= float(t_int.shape[1] - 1):
+                    if fv + 1.0 <= float(t_int.shape[0] - 1):
+                        mi = 1.0
+                        ri = lam * (_bilinear1(t_int, u, v) - s_int[ii])
                         gu = _bilinear1(t_gu, u, v)
                         gv = _bilinear1(t_gv, u, v)
-                        z = p[2]
-                        dp = wp.vec3(gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z))
-                        cp = wp.cross(p, dp)
-                        JI = wp.spatial_vectord(wp.float64(cp[0]), wp.float64(cp[1]), wp.float64(cp[2]),
-                                                wp.float64(dp[0]), wp.float64(dp[1]), wp.float64(dp[2])) * wp.float64(lam)
-                        rid = wp.float64(ri)
-                        H += wp.outer(JI, JI)
-                        g += JI * rid
-                        pcost += rid * rid
-                        pcnt += wp.float64(1.0)
-    for a in range(6):
-        for c2 in range(6):
-            out[b, a * 6 + c2] = H[a, c2]
-        out[b, 36 + a] = g[a]
-    out[b, 42] = cost
-    out[b, 43] = dist
-    out[b, 44] = cnt
-    out[b, 45] = pcost
-    out[b, 46] = pcnt
-    out[b, 47] = absr
+                dp = wp.vec3(gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z))
+                cp = wp.cross(p, dp)
+                JI = wp.spatial_vectord(wp.float64(cp[0]), wp.float64(cp[1]), wp.float64(cp[2]),
+                                        wp.float64(dp[0]), wp.float64(dp[1]), wp.float64(dp[2])) * wp.float64(lam)
+                rid = wp.float64(ri)
+                H += wp.outer(JI, JI)
+                g += JI * rid
+                pacc += wp.vec2d(rid * rid, wp.float64(mi))
+        for a in range(6):
+            for c2 in range(6):
+                out[b, a * 6 + c2] = H[a, c2]
+            out[b, 36 + a] = g[a]
+        out[b, 42] = acc[0]
+        out[b, 43] = acc[1]
+        out[b, 44] = acc[2]
+        out[b, 45] = pacc[0]
+        out[b, 46] = pacc[1]
+        out[b, 47] = acc[3]
+
+    return _reduce
+
+
+_REDUCE: dict = {}
+
+
+def _reduce_kernel(projective: bool, photo: bool):
+    key = (projective, photo)
+    if key not in _REDUCE:
+        _REDUCE[key] = _make_reduce(projective, photo)
+    return _REDUCE[key]
+
+
+def _mat(T: torch.Tensor) -> wp.mat44:
+    """A [4, 4] pose as a kernel argument by value (kept in registers instead of re-read per point)."""
+    return wp.mat44(*T.detach().cpu().reshape(-1).tolist())
 
 
 def _sync(device: str) -> None:
@@ -285,9 +313,10 @@ def cloud_moments(grid: _Grid, points: torch.Tensor, queries: torch.Tensor, radi
 def associate_projective(src, T, tv, tn, sn, camera, max_d: float, cos_min: float, device: str):
     out = torch.empty(src.shape[0], dtype=torch.int32, device=src.device)
     if src.shape[0]:
+        H, W = tv.shape[:2]
         wp.launch(_assoc_projective, dim=src.shape[0], device=device,
-                  inputs=[wp.from_torch(src, dtype=wp.vec3), wp.from_torch(T), wp.from_torch(tv, dtype=wp.vec3),
-                          wp.from_torch(tn, dtype=wp.vec3), wp.from_torch(sn, dtype=wp.vec3),
+                  inputs=[wp.from_torch(src, dtype=wp.vec3), _mat(T), wp.from_torch(tv.reshape(-1, 3), dtype=wp.vec3),
+                          wp.from_torch(tn.reshape(-1, 3), dtype=wp.vec3), wp.from_torch(sn, dtype=wp.vec3), H, W,
                           camera.fx, camera.fy, camera.cx, camera.cy, max_d, cos_min, wp.from_torch(out)])
         _sync(device)
     return out
@@ -297,7 +326,7 @@ def associate_nearest(grid: _Grid, points, src, T, max_d: float, device: str):
     out = torch.empty(src.shape[0], dtype=torch.int32, device=src.device)
     if src.shape[0]:
         wp.launch(_assoc_nearest, dim=src.shape[0], device=device,
-                  inputs=[grid.grid.id, grid.wp_points, wp.from_torch(src, dtype=wp.vec3), wp.from_torch(T), max_d,
+                  inputs=[grid.grid.id, grid.wp_points, wp.from_torch(src, dtype=wp.vec3), _mat(T), max_d,
                           wp.from_torch(out)])
         _sync(device)
     return out
@@ -310,22 +339,28 @@ def _dummies(dev: torch.device):
     return _DUMMY[key]
 
 
-def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str):
+def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str, proj=None):
+    """proj = (source_normals, camera, H, W, max_d, cos_min) fuses projective association into the pass (idx unused)."""
     n = src.shape[0]
     blocks, start_stride, item_stride, count = n_blocks(n, device)
     out = torch.zeros(blocks, N_SLOTS, dtype=torch.float64, device=src.device)
-    if photo is None:
-        s1, i2 = _dummies(src.device)
-        s_int, t_int, gu, gv, fx, fy, cx, cy, lam, has = s1, i2, i2, i2, 1.0, 1.0, 0.0, 0.0, 0.0, 0
-    else:
+    s1, i2 = _dummies(src.device)
+    s_int, t_int, gu, gv, lam, has = s1, i2, i2, i2, 0.0, 0
+    cam = None
+    if photo is not None:
         s_int, t_int, grad, cam, lam = photo
-        gu, gv = grad[..., 0].contiguous(), grad[..., 1].contiguous()
-        fx, fy, cx, cy, has = cam.fx, cam.fy, cam.cx, cam.cy, 1
+        gu, gv, has = grad[..., 0].contiguous(), grad[..., 1].contiguous(), 1
+    projective, sn, th, tw, max_d, cos_min = 0, src, 0, 0, 0.0, -2.0
+    if proj is not None:
+        sn, cam, th, tw, max_d, cos_min = proj
+        projective = 1
+    fx, fy, cx, cy = (cam.fx, cam.fy, cam.cx, cam.cy) if cam is not None else (1.0, 1.0, 0.0, 0.0)
     if n:
-        wp.launch(_reduce, dim=blocks, device=device,
-                  inputs=[wp.from_torch(src, dtype=wp.vec3), wp.from_torch(T), wp.from_torch(tp, dtype=wp.vec3),
-                          wp.from_torch(tn, dtype=wp.vec3), wp.from_torch(idx), kind, k, has, wp.from_torch(s_int),
+        wp.launch(_reduce_kernel(bool(projective), bool(has)), dim=blocks, device=device,
+                  inputs=[wp.from_torch(src, dtype=wp.vec3), _mat(T), wp.from_torch(tp, dtype=wp.vec3),
+                          wp.from_torch(tn, dtype=wp.vec3), wp.from_torch(idx), kind, k, wp.from_torch(s_int),
                           wp.from_torch(t_int), wp.from_torch(gu), wp.from_torch(gv), fx, fy, cx, cy, lam,
+                          wp.from_torch(sn, dtype=wp.vec3), th, tw, max_d, cos_min,
                           start_stride, item_stride, count, wp.from_torch(out)])
         _sync(device)
     return out.sum(0)
