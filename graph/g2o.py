@@ -7,7 +7,9 @@ Format (as SE-Sync, GTSAM's readG2o, Kimera-RPGO and DGS use it):
     EDGE_SE2 i j dx dy dtheta  I11 I12 I13 I22 I23 I33
 Ids are GTSAM keys (Symbol keys for multi-robot files). The information matrix is reordered to GTSAM's
 (rotation, translation) order on read and back on write. Consecutive keys of one robot are odometry, every other
-edge a loop closure. A file without any VERTEX line (CSAIL.g2o) gets its poses by composing edges along a
+edge a loop closure. An edge to a keyframe of a robot the file has no vertex of (DGS writes each robot's
+inter-robot edges into its own file) is kept in `PoseGraph.pending` until the graphs are merged; an edge to a
+missing vertex of the file's own robot is an error. A file without any VERTEX line (CSAIL.g2o) gets its poses by composing edges along a
 spanning tree. Every malformed line raises InputError naming file:line.
 """
 
@@ -21,7 +23,7 @@ from kernels import se3
 from kernels.errors import InputError
 from kernels.fileio import atomic_path
 
-from .pose_graph import LOOP, ODOMETRY, Edge, PoseGraph, check_information, is_odometry_pair
+from .pose_graph import LOOP, ODOMETRY, Edge, PoseGraph, check_information, is_odometry_pair, key_robot
 
 _FIELDS = {"VERTEX_SE3:QUAT": 9, "EDGE_SE3:QUAT": 31, "VERTEX_SE2": 5, "EDGE_SE2": 12}
 _IGNORED = {"FIX"}  # g2o's gauge hint; we anchor every connected component ourselves
@@ -157,18 +159,23 @@ def _add_edges(graph: PoseGraph, path: Path, edge_lines: list, have_vertices: bo
     if len(bad):
         check_information(info[bad[0]], wheres[bad[0]])  # raises with the eigenvalues
         raise InputError(f"{wheres[bad[0]]}: information matrix is not positive definite")
+    own = {key_robot(k) for k in graph.poses}
     for e in range(E):
         if not have_vertices:
             graph.poses.setdefault(ki[e], np.eye(4))
             graph.poses.setdefault(kj[e], np.eye(4))
-        for k in (ki[e], kj[e]):
-            if k not in graph.poses:
-                raise InputError(f"{wheres[e]}: edge {ki[e]}-{kj[e]} refers to vertex {k}, which the file does "
-                                 f"not define")
         if ki[e] == kj[e]:
             raise InputError(f"{wheres[e]}: edge from vertex {ki[e]} to itself")
         kind = ODOMETRY if is_odometry_pair(ki[e], kj[e]) else LOOP
-        graph.edges.append(Edge(ki[e], kj[e], T[e], info[e], kind, source=wheres[e]))
+        edge = Edge(ki[e], kj[e], T[e], info[e], kind, source=wheres[e])
+        missing = [k for k in (ki[e], kj[e]) if k not in graph.poses]
+        if not missing:
+            graph.edges.append(edge)
+        elif all(key_robot(k) is not None and key_robot(k) not in own for k in missing):
+            graph.pending.append(edge)  # to another robot's keyframe (DGS per-robot files): kept for merge
+        else:
+            raise InputError(f"{wheres[e]}: edge {ki[e]}-{kj[e]} refers to vertex {missing[0]}, which the file "
+                             f"does not define")
 
 
 def _quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:

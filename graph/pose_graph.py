@@ -72,6 +72,7 @@ class PoseGraph:
     poses: dict[int, np.ndarray] = field(default_factory=dict)  # key -> T_world_kf [4, 4]
     edges: list[Edge] = field(default_factory=list)
     is_2d: bool = False
+    pending: list[Edge] = field(default_factory=list)  # edges to poses of robots not (yet) in this graph
 
     # ----------------------------------------------------------------------------------------- building
     def add_pose(self, key: int, T_world_kf: np.ndarray | None = None) -> int:
@@ -143,20 +144,26 @@ class PoseGraph:
 
     def merged(self, other: "PoseGraph") -> "PoseGraph":
         """Union of two graphs (e.g. two robots' files). Poses present in both keep this graph's value; an edge
-        present in both (same keys, as DGS writes inter-robot edges into both robots' files) is kept once."""
-        out = PoseGraph(dict(self.poses), list(self.edges), self.is_2d and other.is_2d)
-        seen = {(e.key_i, e.key_j) for e in self.edges} | {(e.key_j, e.key_i) for e in self.edges}
+        present in both (same keys, as DGS writes inter-robot edges into both robots' files) is kept once;
+        pending edges whose two poses now exist become edges."""
+        out = PoseGraph(dict(self.poses), [], self.is_2d and other.is_2d)
         for k, T in other.poses.items():
             out.poses.setdefault(k, T)
-        for e in other.edges:
-            if (e.key_i, e.key_j) not in seen:
+        seen = set()
+        for e in self.edges + other.edges + self.pending + other.pending:
+            if (e.key_i, e.key_j) in seen or (e.key_j, e.key_i) in seen:
+                continue
+            if e.key_i in out.poses and e.key_j in out.poses:
                 out.edges.append(e)
                 seen.add((e.key_i, e.key_j))
+            else:
+                out.pending.append(e)
         return out
 
     def with_poses(self, poses: dict[int, np.ndarray]) -> "PoseGraph":
         """Same edges, poses replaced (e.g. by an optimised estimate)."""
-        return PoseGraph({k: np.asarray(poses[k], float) for k in self.poses}, list(self.edges), self.is_2d)
+        return PoseGraph({k: np.asarray(poses[k], float) for k in self.poses}, list(self.edges), self.is_2d,
+                         list(self.pending))
 
 
 def is_odometry_pair(key_i: int, key_j: int) -> bool:
