@@ -164,3 +164,21 @@ def test_netvlad_keys_and_wrapped_checkpoint(tmp_path):
     d = rec.describe(img)
     assert d.shape == (4 * 512,) and abs(np.linalg.norm(d) - 1) < 1e-5
     np.testing.assert_allclose(d, NetVLADRecognizer(net, resize=(64, 48)).describe(img), atol=1e-6)
+
+
+def test_bow_scores_are_nonnegative_and_rank_revisits_first(views, tmp_path):
+    from registration.place_recognition.vlad import BoWRecognizer
+
+    a, a2, b = views
+    bow = BoWRecognizer(n_clusters=64).fit(a + b, seed=0)
+    assert bow.dim == 64 and bow.descriptor_bytes == 256
+    da, da2, db = bow.describe_many(a), bow.describe_many(a2), bow.describe_many(b)
+    sim = da @ da2.T
+    assert (sim >= 0).all() and (da @ db.T >= 0).all()
+    for i in range(len(a)):
+        assert sim[i, i] > np.delete(sim[i], i).max() and sim[i, i] > (da[i] @ db.T).max()
+        assert sim[i, i] > PAPER_THRESHOLD
+    path = bow.save(tmp_path / "bow.npz")
+    np.testing.assert_array_equal(make_recognizer("bow", checkpoint=str(path)).describe(a[0]), da[0])
+    with pytest.raises(InputError, match="is a bow vocabulary"):
+        make_recognizer("vlad", checkpoint=str(path))

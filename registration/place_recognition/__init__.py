@@ -1,21 +1,27 @@
-"""Place recognition: global descriptors (VLAD default, CosPlace, NetVLAD) and cosine matching (`PlaceDatabase`)."""
+"""Place recognition: global descriptors (BoW default, VLAD, CosPlace, NetVLAD) and cosine matching (`PlaceDatabase`)."""
 
 from __future__ import annotations
 
 from .base import PAPER_THRESHOLD, PlaceDatabase, PlaceMatch, PlaceRecognizer, l2_normalise
 
-BACKENDS = ("vlad", "cosplace", "netvlad")
+BACKENDS = ("bow", "vlad", "cosplace", "netvlad")
 
 
 def make_recognizer(name: str, *, checkpoint: str | None = None, device: str = "cpu", **options) -> PlaceRecognizer:
-    """Build a recogniser by name. 'vlad' with a checkpoint loads that vocabulary (.npz); without, it is untrained
-    (call `.fit(images)`). 'cosplace' / 'netvlad' need their published checkpoint."""
+    """Build a recogniser by name. 'bow' / 'vlad' with a checkpoint load that vocabulary (.npz); without, they are
+    untrained (call `.fit(images)`). 'cosplace' / 'netvlad' need their published checkpoint."""
     from kernels.errors import InputError
 
-    if name == "vlad":
-        from .vlad import VLADRecognizer
+    if name in ("bow", "vlad"):
+        from .vlad import BoWRecognizer, VLADRecognizer
 
-        return VLADRecognizer.load(checkpoint) if checkpoint else VLADRecognizer(**options)
+        klass = BoWRecognizer if name == "bow" else VLADRecognizer
+        if not checkpoint:
+            return klass(**options)
+        rec = klass.load(checkpoint)
+        if rec.name != name:
+            raise InputError(f"{checkpoint}: is a {rec.name} vocabulary, not {name}")
+        return rec
     if name == "cosplace":
         from .cosplace import CosPlaceRecognizer
 

@@ -1,9 +1,13 @@
-"""VLAD over RootSIFT: the default place-recognition descriptor, needing no downloaded weights.
+"""Place-recognition descriptors aggregated from RootSIFT local features: no downloaded weights needed.
 
 The vocabulary (K centroids of RootSIFT descriptors) is trained from the data by k-means with a fixed seed, so
-the same images always give the same vocabulary, and it is saved/loaded as a small `.npz`. The descriptor is
-the classic VLAD (Jégou et al. 2010) with the usual fixes: residual sums per centroid, signed square-root
-(power) normalisation, intra-normalisation per centroid, then a global L2 norm. Dimension K * 128.
+the same images always give the same vocabulary, and it is saved/loaded as a small `.npz`. Two aggregations:
+
+- `BoWRecognizer` ("bow", the default): bag of visual words, sqrt(tf) * idf weights, L2 norm. Dimension K (256
+  -> 1 KiB). Similarities are >= 0 and grow with the share of common words, which suits a cosine threshold.
+- `VLADRecognizer` ("vlad"): VLAD (Jégou et al. 2010) with signed square-root (power) and intra-normalisation.
+  Dimension K * 128. With a vocabulary trained on the same few images it searches, residuals are centred on
+  them and unrelated images score below zero; rankings stay useful, absolute thresholds less so.
 """
 
 from __future__ import annotations
@@ -65,28 +69,33 @@ def _assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return np.argmin(d, axis=1)
 
 
-class VLADRecognizer(PlaceRecognizer):
-    """VLAD of RootSIFT with a vocabulary trained by `fit` or loaded by `load`."""
+class _VocabularyRecognizer(PlaceRecognizer):
+    """Shared vocabulary handling: training by k-means, `.npz` save/load."""
 
-    name = "vlad"
+    name = "vocabulary"
+    default_clusters = 32
+    per_cluster_dim = 128
 
-    def __init__(self, centroids: np.ndarray | None = None, *, n_clusters: int = 32, n_features: int = 1000,
-                 max_side: int = 640):
+    def __init__(self, centroids: np.ndarray | None = None, *, n_clusters: int | None = None, n_features: int = 1000,
+                 max_side: int = 640, idf: np.ndarray | None = None):
         self.n_features = int(n_features)
         self.max_side = int(max_side)
-        self.n_clusters = int(n_clusters)
+        self.n_clusters = int(n_clusters or self.default_clusters)
         self.centroids: np.ndarray | None = None
+        self.idf = None if idf is None else np.asarray(idf, np.float32)
         if centroids is not None:
             self._set_centroids(centroids)
-        self.dim = self.n_clusters * 128
+        self.dim = self.n_clusters * self.per_cluster_dim
 
     def _set_centroids(self, centroids: np.ndarray) -> None:
         c = np.asarray(centroids, dtype=np.float32)
         if c.ndim != 2 or c.shape[1] != 128 or len(c) < 1:
-            raise InputError(f"VLAD vocabulary must be [K, 128] float, got {list(c.shape)}")
+            raise InputError(f"{self.name} vocabulary must be [K, 128] float, got {list(c.shape)}")
         self.centroids = c
         self.n_clusters = len(c)
-        self.dim = self.n_clusters * 128
+        self.dim = self.n_clusters * self.per_cluster_dim
+        if self.idf is not None and self.idf.shape != (len(c),):
+            raise InputError(f"{self.name} vocabulary: idf has shape {list(self.idf.shape)}, expected [{len(c)}]")
 
     @property
     def trained(self) -> bool:
@@ -99,36 +108,53 @@ class VLADRecognizer(PlaceRecognizer):
         parts = [rootsift(as_rgb8(im, f"images[{i}]"), self.n_features, self.max_side) for i, im in enumerate(images)]
         x = np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
         if len(x) < self.n_clusters:
-            raise InputError(f"VLAD.fit: the training images gave {len(x)} features, need at least "
+            raise InputError(f"{self.name}.fit: the training images gave {len(x)} features, need at least "
                              f"{self.n_clusters} (more or more textured images)")
         if len(x) > max_descriptors:
             x = x[np.random.default_rng(seed).choice(len(x), max_descriptors, replace=False)]
+        self.idf = None
         self._set_centroids(kmeans(x, self.n_clusters, seed=seed))
+        self._fit_weights(parts)
         return self
+
+    def _fit_weights(self, parts: list[np.ndarray]) -> None:
+        """Hook for weights learnt from the training images (BoW's idf)."""
 
     def save(self, path: str | Path) -> Path:
         """Write the vocabulary and settings as `.npz` (atomically)."""
         if not self.trained:
-            raise InputError("VLAD.save: the vocabulary is not trained")
+            raise InputError(f"{self.name}.save: the vocabulary is not trained")
+        extra = {} if self.idf is None else {"idf": self.idf}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, centroids=self.centroids, n_features=self.n_features, max_side=self.max_side)
+                np.savez(f, kind=self.name, centroids=self.centroids, n_features=self.n_features,
+                         max_side=self.max_side, **extra)
         return Path(path)
 
     @classmethod
-    def load(cls, path: str | Path) -> "VLADRecognizer":
+    def load(cls, path: str | Path) -> "_VocabularyRecognizer":
+        """Load a vocabulary saved by `save`; the file says whether it is for BoW or VLAD."""
         path = Path(path)
         if not path.is_file():
-            raise InputError(f"VLAD vocabulary file not found: {path}")
+            raise InputError(f"vocabulary file not found: {path}")
         try:
             with np.load(path, allow_pickle=False) as z:
-                return cls(z["centroids"], n_features=int(z["n_features"]), max_side=int(z["max_side"]))
+                kind = str(z["kind"]) if "kind" in z else "vlad"
+                klass = {"bow": BoWRecognizer, "vlad": VLADRecognizer}[kind]
+                return klass(z["centroids"], n_features=int(z["n_features"]), max_side=int(z["max_side"]),
+                             idf=z["idf"] if "idf" in z else None)
         except (KeyError, ValueError, OSError) as e:
-            raise InputError(f"{path}: not a VLAD vocabulary (.npz with 'centroids'): {e}") from None
+            raise InputError(f"{path}: not a vocabulary file (.npz with 'centroids'): {e}") from None
+
+
+class VLADRecognizer(_VocabularyRecognizer):
+    """VLAD of RootSIFT with a vocabulary trained by `fit` or loaded by `load`."""
+
+    name = "vlad"
 
     def _describe(self, rgb: np.ndarray) -> np.ndarray:
         if not self.trained:
-            raise InputError("VLAD vocabulary is not trained: call fit(images) or VLADRecognizer.load(path)")
+            raise InputError("VLAD vocabulary is not trained: call fit(images) or load(path)")
         x = rootsift(rgb, self.n_features, self.max_side)
         v = np.zeros((self.n_clusters, 128), np.float32)
         if len(x):
@@ -138,3 +164,26 @@ class VLADRecognizer(PlaceRecognizer):
         n = np.linalg.norm(v, axis=1, keepdims=True)
         v = np.where(n > 1e-12, v / np.maximum(n, 1e-12), 0.0)
         return v.reshape(-1)
+
+
+class BoWRecognizer(_VocabularyRecognizer):
+    """Bag of visual words over RootSIFT: sqrt(tf) * idf, L2-normalised; dimension = vocabulary size."""
+
+    name = "bow"
+    default_clusters = 256
+    per_cluster_dim = 1
+
+    def _fit_weights(self, parts: list[np.ndarray]) -> None:
+        df = np.zeros(self.n_clusters)
+        for x in parts:
+            if len(x):
+                df[np.unique(_assign(x, self.centroids))] += 1
+        self.idf = np.log((len(parts) + 1) / (df + 1)).astype(np.float32) + 1e-3  # smoothed; never exactly 0
+
+    def _describe(self, rgb: np.ndarray) -> np.ndarray:
+        if not self.trained:
+            raise InputError("BoW vocabulary is not trained: call fit(images) or load(path)")
+        x = rootsift(rgb, self.n_features, self.max_side)
+        tf = np.bincount(_assign(x, self.centroids), minlength=self.n_clusters) if len(x) else np.zeros(self.n_clusters)
+        idf = self.idf if self.idf is not None else np.ones(self.n_clusters, np.float32)
+        return np.sqrt(tf.astype(np.float32)) * idf

@@ -1,0 +1,102 @@
+"""FLOCC-SLAM's loop-closure front-end for one candidate pair (§III-B): register the candidate, register the
+query robot's own odometry pair, and turn the ratio of their correspondence counts into a gate and a confidence.
+
+For a candidate (I_i^a, I_j^b):
+    1. loop = register(enc(I_i^a), enc(I_j^b))               -> T_{a,i}^{b,j} up to scale, n_pair
+    2. odom = register(enc(I_{i-1}^a), enc(I_i^a))          -> n_odom (cached per keyframe)
+    3. r = n_pair / n_odom (eq. 1), rejected below R_thr, p = logistic(k (r - 1)) (eq. 2)
+Counting and the logistic live in `graph.confidence` (one copy); this module only orchestrates. Encodings are
+computed once per keyframe and cached, as each robot would keep its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from graph.confidence import K_DEFAULT, R_THR_DEFAULT, correspondence_ratio, loop_confidence
+from kernels.camera import PinholeCamera
+from registration.pair.base import Encoding, PairRegistrar, PairResult
+
+KeyframeId = tuple[str, int]  # (agent, keyframe index)
+
+
+@dataclass
+class LoopMeasurement:
+    """The outcome for one candidate. `T_query_match` has a unit translation (scale it with odometry, eq. 6)."""
+
+    query: KeyframeId
+    match: KeyframeId
+    similarity: float
+    loop: PairResult
+    odom: PairResult | None
+    odom_pair: tuple[int, int] | None  # the query agent's keyframes registered for eq. (1)
+    ratio: float | None
+    p: float | None  # eq. (2); None when rejected
+    accepted: bool
+    reason: str = ""
+
+    @property
+    def T_query_match(self) -> np.ndarray:
+        return self.loop.T_query_match
+
+
+@dataclass
+class LoopFrontend:
+    """Registers loop candidates with one pair backend and gates them with the correspondence ratio.
+
+    image_of(agent, index) -> RGB uint8 image; camera_of(agent) -> PinholeCamera. Both are called lazily, so the
+    front-end holds only encodings (what a robot would keep), never a whole image sequence.
+    """
+
+    registrar: PairRegistrar
+    image_of: Callable[[str, int], np.ndarray]
+    camera_of: Callable[[str], PinholeCamera]
+    num_keyframes: Callable[[str], int]
+    k: float = K_DEFAULT
+    r_thr: float = R_THR_DEFAULT
+    _enc: dict = field(default_factory=dict, repr=False)
+    _odom: dict = field(default_factory=dict, repr=False)
+    encode_calls: int = 0
+
+    def encoding(self, kf: KeyframeId) -> Encoding:
+        """Encode keyframe `kf` once; later calls return the cached encoding."""
+        if kf not in self._enc:
+            self._enc[kf] = self.registrar.encode(self.image_of(*kf))
+            self.encode_calls += 1
+        return self._enc[kf]
+
+    def odometry_pair(self, agent: str, i: int) -> tuple[tuple[int, int] | None, PairResult | None]:
+        """Register (I_{i-1}, I_i) of `agent` (for i = 0 the next keyframe stands in: (I_0, I_1)); cached."""
+        if (agent, i) not in self._odom:
+            n = self.num_keyframes(agent)
+            pair = (i - 1, i) if i > 0 else ((0, 1) if n > 1 else None)
+            res = None
+            if pair is not None:
+                cam = self.camera_of(agent)
+                res = self.registrar.register(self.encoding((agent, pair[0])), self.encoding((agent, pair[1])), cam, cam)
+            self._odom[(agent, i)] = (pair, res)
+        return self._odom[(agent, i)]
+
+    def evaluate(self, query: KeyframeId, match: KeyframeId, similarity: float = float("nan")) -> LoopMeasurement:
+        """Register one candidate and gate it (see the module docstring)."""
+        loop = self.registrar.register(self.encoding(query), self.encoding(match), self.camera_of(query[0]),
+                                       self.camera_of(match[0]))
+        pair, odom = self.odometry_pair(*query)
+
+        def out(ratio, p, ok, why):
+            return LoopMeasurement(query, match, float(similarity), loop, odom, pair, ratio, p, ok, why)
+
+        if odom is None:
+            return out(None, None, False, "no odometry pair (agent has a single keyframe)")
+        if odom.n_correspondences == 0:
+            return out(None, None, False, f"odometry pair has no correspondences ({odom.reason or 'none'})")
+        ratio = correspondence_ratio(loop.n_correspondences, odom.n_correspondences)
+        if not loop.success:
+            return out(ratio, None, False, f"registration failed: {loop.reason}")
+        p = loop_confidence(ratio, k=self.k, r_thr=self.r_thr)
+        if p is None:
+            return out(ratio, None, False, f"ratio {ratio:.3f} < R_thr {self.r_thr}")
+        return out(ratio, p, True, "")

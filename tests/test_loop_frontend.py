@@ -1,0 +1,131 @@
+"""The FLOCC loop front-end (ratio gate and confidence) and `swarmsplat pairs` on a small rendered mono dataset."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+
+from graph.confidence import correspondence_ratio, loop_confidence
+from kernels import se3
+from kernels.errors import InputError
+from registration.pair.classical import ClassicalRegistrar
+from registration.synthetic_views import TexturedRoom, default_camera, look_pose
+from slam.frontend import LoopFrontend
+
+CAM = default_camera(240, 180)
+
+
+def _write_mono_dataset(root, agents: dict[str, list[np.ndarray]], room: TexturedRoom):
+    """Our folder format, monocular: rgb/, rgb.txt, odometry.txt, groundtruth.txt, calibration.yaml."""
+    import cv2
+    import yaml
+
+    from slam.trajectory import write_tum
+
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "dataset.yaml").write_text(yaml.safe_dump({"name": "rendered", "kind": "mono", "agents": list(agents)}))
+    for name, poses in agents.items():
+        d = root / name
+        (d / "rgb").mkdir(parents=True)
+        stamps = np.arange(len(poses), dtype=float)
+        lines = ["# timestamp filename"]
+        for i, T in enumerate(poses):
+            cv2.imwrite(str(d / "rgb" / f"{i:06d}.png"), room.render(T, CAM)[0][..., ::-1])
+            lines.append(f"{stamps[i]:.6f} rgb/{i:06d}.png")
+        (d / "rgb.txt").write_text("\n".join(lines) + "\n")
+        (d / "calibration.yaml").write_text(yaml.safe_dump(CAM.to_dict()))
+        write_tum(d / "groundtruth.txt", stamps, np.stack(poses))
+        # odometry in the agent's own frame (starts at identity): what a VIO would report
+        write_tum(d / "odometry.txt", stamps, se3.inverse(poses[0]) @ np.stack(poses))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    room = TexturedRoom(seed=7)
+    a = [look_pose((0.0, 0.0, -1.0 + 0.25 * i), 5.0 * i) for i in range(5)]  # walks forward, turning right
+    b = [look_pose((0.6, 0.0, -0.9 + 0.25 * i), 10.0 + 5.0 * i) for i in range(4)]  # a similar path, offset
+    root = tmp_path_factory.mktemp("mono")
+    _write_mono_dataset(root, {"alpha": a, "beta": b}, room)
+    return root
+
+
+def _frontend(images: dict, registrar=None):
+    return LoopFrontend(registrar or ClassicalRegistrar(), lambda a, i: images[a][i], lambda a: CAM,
+                        lambda a: len(images[a]))
+
+
+def test_frontend_ratio_gate_and_confidence_use_graph_confidence():
+    room = TexturedRoom(seed=7)
+    images = {"a": [room.render(look_pose((0, 0, 0.2 * i)), CAM)[0] for i in range(3)],
+              "b": [room.render(look_pose((0.3, 0.0, 0.3), 8.0), CAM)[0],
+                    TexturedRoom(seed=8).render(look_pose((0, 0, 0), 180.0), CAM)[0]]}
+    fe = _frontend(images)
+    good = fe.evaluate(("a", 2), ("b", 0), similarity=0.5)
+    assert good.odom_pair == (1, 2) and good.loop.success
+    r = correspondence_ratio(good.loop.n_correspondences, good.odom.n_correspondences)
+    assert good.ratio == pytest.approx(r)
+    assert good.accepted and good.p == pytest.approx(loop_confidence(r)) and 0 < good.p < 1
+    bad = fe.evaluate(("a", 2), ("b", 1), similarity=0.2)  # another room
+    assert not bad.accepted and bad.p is None and bad.reason
+    assert fe.encode_calls == 4  # a1, a2, b0, b1: a2 and the odometry pair are encoded once, then cached
+    first = fe.evaluate(("a", 0), ("b", 0))
+    assert first.odom_pair == (0, 1)  # the first keyframe borrows the next one
+    # a tighter gate rejects what a permissive one accepts, with the reason
+    strict = _frontend(images)
+    strict.r_thr = 10.0
+    res = strict.evaluate(("a", 2), ("b", 0))
+    assert not res.accepted and "R_thr" in res.reason and res.ratio == pytest.approx(good.ratio)
+
+
+def test_frontend_single_keyframe_agent_is_rejected_cleanly():
+    room = TexturedRoom(seed=7)
+    images = {"a": [room.render(look_pose((0, 0, 0)), CAM)[0]], "b": [room.render(look_pose((0.2, 0, 0)), CAM)[0]]}
+    res = _frontend(images).evaluate(("a", 0), ("b", 0))
+    assert not res.accepted and "single keyframe" in res.reason
+
+
+def test_pairs_command_writes_every_candidate_with_ground_truth_errors(dataset, tmp_path):
+    from slam.cli import main
+
+    out = tmp_path / "pairs.csv"
+    assert main(["pairs", str(dataset), "--out", str(out), "--quiet", "--save-vocabulary",
+                 str(tmp_path / "voc.npz")]) == 0
+    rows = list(csv.DictReader(out.open()))
+    from slam.pairs import COLUMNS
+
+    assert rows and list(rows[0]) == COLUMNS
+    keys = {frozenset([(r["query_agent"], r["query_index"]), (r["match_agent"], r["match_index"])]) for r in rows}
+    assert len(keys) == len(rows)  # each unordered pair once
+    assert all(float(r["similarity"]) >= 0.1 for r in rows)
+    acc = [r for r in rows if r["accepted"] == "1"]
+    assert acc, "no loop accepted on overlapping paths"
+    for r in acc:
+        assert float(r["rot_err_deg"]) < 3.0 and float(r["t_dir_err_deg"]) < 15.0
+        assert 0.0 < float(r["p"]) < 1.0 and float(r["ratio"]) >= 0.3
+        q = np.array([float(r[k]) for k in ("qx", "qy", "qz", "qw")])
+        assert math.isclose(np.linalg.norm(q), 1.0, rel_tol=1e-5)
+        assert math.isclose(np.linalg.norm([float(r[k]) for k in ("tx", "ty", "tz")]), 1.0, rel_tol=1e-4)
+    assert (tmp_path / "voc.npz").is_file()
+    # the saved vocabulary reproduces the same candidates
+    out2 = tmp_path / "pairs2.csv"
+    assert main(["pairs", str(dataset), "--out", str(out2), "--quiet", "--place-checkpoint",
+                 str(tmp_path / "voc.npz")]) == 0
+    assert [r["similarity"] for r in csv.DictReader(out2.open())] == [r["similarity"] for r in rows]
+
+
+def test_pairs_command_errors_are_one_line(dataset, tmp_path, capsys):
+    from slam.cli import main
+
+    assert main(["pairs", str(dataset), "--out", str(tmp_path / "x.csv"), "--backend", "mast3r", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "checkpoint" in err and "\n" not in err
+    assert main(["pairs", str(tmp_path / "missing"), "--out", str(tmp_path / "x.csv")]) == 2
+    assert main(["pairs", str(dataset), "--out", str(tmp_path / "x.csv"), "--place", "dbow3"]) == 2
+    assert not (tmp_path / "x.csv").exists()
+    from slam.pairs import run_pairs
+
+    with pytest.raises(InputError, match="stride"):
+        run_pairs(dataset, tmp_path / "x.csv", stride=0)
