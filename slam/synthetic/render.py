@@ -49,8 +49,18 @@ def camera_for(width: int, height: int, hfov_deg: float) -> PinholeCamera:
     return PinholeCamera(float(fx), float(fx), (width - 1) / 2.0, (height - 1) / 2.0, int(width), int(height))
 
 
-def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
-    """Ray-cast and texture a batch of poses: T_world_cam [N, 4, 4] (or [4, 4]) camera-to-world."""
+@dataclass
+class Traced:
+    """Raw ray-cast result of a batch of frames, before texturing (see `trace` and `shade`)."""
+
+    rays: np.ndarray  # [N*H*W, 6] float32 world origin and direction (z = 1 in the camera)
+    t_hit: np.ndarray  # [N*H*W] float32 depth, inf where nothing was hit
+    prim: np.ndarray  # [N*H*W] triangle id
+    shape: tuple[int, int, int]  # N, H, W
+
+
+def trace(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Traced:
+    """Ray-cast a batch of poses T_world_cam [N, 4, 4] (or [4, 4]) with Open3D (multi-threaded C++)."""
     import open3d as o3d
 
     T = np.asarray(T_world_cam, dtype=np.float64)
@@ -59,7 +69,6 @@ def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
     if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(f"T_world_cam must be finite [4, 4] or [N, 4, 4], got shape {list(T.shape)}")
     n, h, w = len(T), camera.height, camera.width
-    d_cam = _camera_rays(camera)  # [P, 3]
     # Open3D puts pixel centres at u + 0.5; shift the principal point so its rays pass through integer u, v.
     K = o3d.core.Tensor(camera.K + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]))
     rays = np.empty((n, h * w, 6), dtype=np.float32)
@@ -68,8 +77,13 @@ def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
         rays[k] = r.numpy().reshape(-1, 6)
     rays = rays.reshape(-1, 6)
     ans = world.scene.cast_rays(o3d.core.Tensor(rays))
-    t_hit = ans["t_hit"].numpy()
-    prim = ans["primitive_ids"].numpy()
+    return Traced(rays, ans["t_hit"].numpy(), ans["primitive_ids"].numpy(), (n, h, w))
+
+
+def shade(world: World, traced: Traced, camera: PinholeCamera) -> Hits:
+    """Texture the hits of `trace` (NumPy; safe to run in a worker thread)."""
+    rays, t_hit, prim = traced.rays, traced.t_hit, traced.prim
+    n, h, w = traced.shape
     hit = np.isfinite(t_hit) & (t_hit > 0)
     all_hit = bool(hit.all())  # always, from inside the closed world: skip the gathers
     idx = slice(None) if all_hit else np.nonzero(hit)[0]
@@ -100,6 +114,11 @@ def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
         material[idx] = mat_hit
     return Hits(depth.reshape(n, h, w), color.reshape(n, h, w, 3), cos_inc.reshape(n, h, w),
                 material.reshape(n, h, w))
+
+
+def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> Hits:
+    """Ray-cast and texture a batch of poses: T_world_cam [N, 4, 4] (or [4, 4]) camera-to-world."""
+    return shade(world, trace(world, T_world_cam, camera), camera)
 
 
 def render(world: World, T_world_cam: np.ndarray, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:

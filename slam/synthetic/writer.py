@@ -35,7 +35,7 @@ from slam.trajectory import write_tum
 from .config import GeneratorConfig
 from .mono import drifting_odometry
 from .noise import depth_to_uint16, frame_rng, noisy_color, noisy_depth
-from .render import camera_for, cast
+from .render import camera_for, shade, trace
 from .trajectories import agent_trajectory
 from .world import World, generate_world
 
@@ -112,30 +112,33 @@ def _write_agent(folder: Path, world: World, camera: PinholeCamera, poses: np.nd
     n = len(poses)
     stamps = np.arange(n) / config.fps
     files = [f"{k:06d}.png" for k in range(n)]
-    # Noise and PNG encoding (NumPy and OpenCV release the GIL) run in worker threads while the next batch is
-    # ray-cast. Each frame's noise comes from its own seeded generator, so the bytes do not depend on timing.
-    def finish(k: int, color: np.ndarray, depth: np.ndarray, cos_incidence: np.ndarray) -> None:
-        rng = frame_rng(config.seed, agent, k)
-        rgb = noisy_color(color, config.color_noise, rng)
-        _write_png(folder / "rgb" / files[k], cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        if not config.mono:
-            noisy = noisy_depth(depth, cos_incidence, config.depth_noise, rng)
-            _write_png(folder / "depth" / files[k], depth_to_uint16(noisy, config.depth_scale))
+    # Texturing, noise and PNG encoding (NumPy and OpenCV release the GIL) run in worker threads while the
+    # main thread ray-casts the next batch. Each frame's noise comes from its own seeded generator, so the
+    # bytes do not depend on timing.
+    def finish(start: int, traced) -> int:
+        hits = shade(world, traced, camera)
+        for j in range(len(hits.depth)):
+            k = start + j
+            rng = frame_rng(config.seed, agent, k)
+            rgb = noisy_color(hits.color[j], config.color_noise, rng)
+            _write_png(folder / "rgb" / files[k], cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            if not config.mono:
+                depth = noisy_depth(hits.depth[j], hits.cos_incidence[j], config.depth_noise, rng)
+                _write_png(folder / "depth" / files[k], depth_to_uint16(depth, config.depth_scale))
+        return len(hits.depth)
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         pending: list[Future] = []
         for start in range(0, n, _BATCH):
-            hits = cast(world, poses[start : start + _BATCH], camera)
-            for j in range(len(hits.depth)):
-                pending.append(pool.submit(finish, start + j, hits.color[j], hits.depth[j], hits.cos_incidence[j]))
-            while len(pending) > 2 * _BATCH:  # bound the memory held by frames waiting to be written
-                pending.pop(0).result()
+            pending.append(pool.submit(finish, start, trace(world, poses[start : start + _BATCH], camera)))
+            while len(pending) > 2:  # bound the memory held by batches waiting to be textured
+                done = pending.pop(0).result()
                 if progress:
-                    progress(1)
+                    progress(done)
         for f in pending:
-            f.result()
+            done = f.result()
             if progress:
-                progress(1)
+                progress(done)
 
     (folder / "rgb.txt").write_text(_image_list("color", "rgb", stamps, files))
     if not config.mono:
