@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from . import lie
 from .confidence import loop_confidence
+from .metrics import ate  # noqa: F401  (re-exported: the experiment's metric)
 from .pose_graph import PoseGraph, robot_key
 
 
@@ -174,16 +175,3 @@ def make_team(cfg: TeamConfig | None = None) -> Team:
             team.outliers.add(n)
         del e
     return team
-
-
-def ate(poses: dict[int, np.ndarray], gt: dict[int, np.ndarray]) -> tuple[float, float]:
-    """Mean and std of position errors (m) after one rigid alignment (Umeyama, no scale) of all robots."""
-    keys = sorted(gt)
-    X = np.stack([poses[k][:3, 3] for k in keys])
-    Y = np.stack([gt[k][:3, 3] for k in keys])
-    mx, my = X.mean(0), Y.mean(0)
-    U, _, Vt = np.linalg.svd((Y - my).T @ (X - mx))
-    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    err = np.linalg.norm((X - mx) @ R.T + my - Y, axis=1)
-    return float(err.mean()), float(err.std())
