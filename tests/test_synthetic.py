@@ -26,9 +26,9 @@ def tiny(tmp_path_factory) -> tuple[Path, GeneratorConfig]:
     return generate(tmp_path_factory.mktemp("tiny") / "data", cfg), cfg
 
 
-@pytest.fixture(scope="module")
-def default_world():
-    cfg = GeneratorConfig.preset("default", agents=6)
+@pytest.fixture(scope="module", params=[0, 3], ids=["seed0", "seed3"])
+def default_world(request):
+    cfg = GeneratorConfig.preset("default", agents=6, seed=request.param)
     world = generate_world(cfg.seed, cfg.world)
     return world, cfg, agent_poses(world, cfg)
 
@@ -212,6 +212,24 @@ def test_agents_overlap_including_from_opposite_directions(default_world):
     # Agent k's path does not depend on how many agents there are.
     two = agent_poses(world, cfg.model_copy(update={"agents": 2}))
     np.testing.assert_array_equal(two[1], poses[1])
+
+
+@pytest.mark.parametrize("rooms", [(2, 1), (1, 2), (3, 2)])
+def test_every_grid_keeps_cameras_in_rooms_and_clear_of_furniture(rooms):
+    from slam.synthetic.config import WorldConfig
+
+    cfg = GeneratorConfig.preset("default", agents=6, seed=sum(rooms), world=WorldConfig(rooms_x=rooms[0],
+                                                                                         rooms_y=rooms[1]))
+    world = generate_world(cfg.seed, cfg.world)
+    poses = agent_poses(world, cfg)
+    for T in poses:
+        p = T[:, :3, 3]
+        assert (world.room_at(p[:, :2]) >= 0).all()
+        for b in world.boxes:
+            if b.kind == "furniture":
+                assert not np.all((p > np.array(b.lo) - 0.3) & (p < np.array(b.hi) + 0.3), axis=1).any()
+    hits = cast(world, np.concatenate([T[::10] for T in poses]), dataset_camera(cfg).scaled(32, 24))
+    assert hits.depth.min() > 0.5 and (hits.material >= 0).all()  # a closed world: every ray hits
 
 
 def test_worlds_differ_by_seed_and_rooms_differ_within_a_world():
