@@ -28,6 +28,7 @@ def run(args) -> int:
 
     from kernels.errors import InputError
     from slam.synthetic import GeneratorConfig, agent_poses, generate, generate_world
+    from slam.synthetic.writer import check_output_dir
 
     if not args.out and not args.preview:
         raise InputError("give --out DIR (and/or --preview PNG)")
@@ -40,6 +41,7 @@ def run(args) -> int:
         plot_world(world, agent_poses(world, config), args.preview)
         print(f"wrote {args.preview}", file=sys.stderr)
     if args.out:
+        check_output_dir(args.out)  # before the progress bar, so a refusal is one clean line
         total = config.agents * config.frames
         with tqdm(total=total, unit="frame", desc=f"generate {config.kind}", file=sys.stderr) as bar:
             out = generate(args.out, config, progress=bar.update)

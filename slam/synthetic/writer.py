@@ -61,7 +61,7 @@ def generate(out_dir: str | os.PathLike, config: GeneratorConfig | None = None, 
     """
     config = config or GeneratorConfig()
     out = Path(out_dir)
-    _check_target(out)
+    check_output_dir(out)
     world = generate_world(config.seed, config.world)
     camera = dataset_camera(config)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -81,7 +81,9 @@ def generate(out_dir: str | os.PathLike, config: GeneratorConfig | None = None, 
     return out
 
 
-def _check_target(out: Path) -> None:
+def check_output_dir(out: str | os.PathLike) -> None:
+    """Raise InputError unless `out` is absent, an empty folder, or a dataset (which generate may replace)."""
+    out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(f"output path {out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / "dataset.yaml").is_file():
@@ -127,6 +129,7 @@ def _write_agent(folder: Path, world: World, camera: PinholeCamera, poses: np.nd
                 _write_png(folder / "depth" / files[k], depth_to_uint16(depth, config.depth_scale))
         return len(hits.depth)
 
+    world.texture  # build the shared texture once, before the worker threads read it
     with ThreadPoolExecutor(max_workers=2) as pool:
         pending: list[Future] = []
         for start in range(0, n, _BATCH):
