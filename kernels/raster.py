@@ -107,6 +107,9 @@ class _RasterFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, packed, rect, background, width, height, impl, device):
+        # Skip exp() where alpha cannot reach 1/255: power < -log(255 o) (minus a margin so that the exact
+        # alpha test after exp, the one the twin applies, still makes every decision).
+        pthr = (-torch.log(255.0 * packed[:, 5].detach()) - 1e-5).contiguous()
         ntx, nty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
         n_entries = int(((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])).sum()) if rect.shape[0] else 0
         tile_start = _empty((ntx * nty + 1,), torch.int32, packed.device)
@@ -117,9 +120,9 @@ class _RasterFn(torch.autograd.Function):
         t_final = _empty((height, width), torch.float32, packed.device)
         last = _empty((height, width), torch.int32, packed.device)
         hits = _empty((max(n_entries, 1),), torch.int32, packed.device)
-        impl.render_forward(packed, tile_start, entries, background, width, height, color, depth, t_final, last, hits,
+        impl.render_forward(packed, pthr, tile_start, entries, background, width, height, color, depth, t_final, last, hits,
                             device)
-        ctx.save_for_backward(packed, tile_start, entries, background, t_final, last)
+        ctx.save_for_backward(packed, pthr, tile_start, entries, background, t_final, last)
         ctx.dims = (width, height, n_entries, impl, device)
         ctx.mark_non_differentiable(hits)
         alpha = 1.0 - t_final
@@ -127,7 +130,7 @@ class _RasterFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_alpha, _g_hits, _g_entries):
-        packed, tile_start, entries, background, t_final, last = ctx.saved_tensors
+        packed, pthr, tile_start, entries, background, t_final, last = ctx.saved_tensors
         width, height, n_entries, impl, device = ctx.dims
         g_packed = torch.zeros_like(packed)
         if n_entries:
@@ -135,8 +138,10 @@ class _RasterFn(torch.autograd.Function):
             g_depth = g_depth.contiguous() if g_depth is not None else torch.zeros(height, width, device=packed.device)
             g_alpha = g_alpha.contiguous() if g_alpha is not None else torch.zeros(height, width, device=packed.device)
             g_entry = _empty((n_entries, PACKED), torch.float32, packed.device)
-            impl.render_backward(packed, tile_start, entries, background, width, height, t_final, last,
-                                 g_color, g_depth, g_alpha, g_entry, device)
+            t_run = _empty((height, width), torch.float32, packed.device)  # per-pixel scratch of the reverse pass
+            behind = _empty((height, width), torch.float32, packed.device)
+            impl.render_backward(packed, pthr, tile_start, entries, background, width, height, t_final, last,
+                                 g_color, g_depth, g_alpha, t_run, behind, g_entry, device)
             g_packed.index_add_(0, entries[:n_entries].long(), g_entry)
         return g_packed, None, None, None, None, None, None
 

@@ -50,118 +50,183 @@ def _bin(rect: wp.array2d(dtype=wp.int32), tiles_x: int, n_tiles: int, tile_star
     tile_start[0] = 0
 
 
+@wp.func
+def _pixel_box(mx: float, my: float, ca: float, cb: float, cc: float, lg: float, x0: int, y0: int, x1: int, y1: int):
+    # Pixels of the tile [x0, x1) x [y0, y1) where alpha can reach 1/255: the ellipse d^T Q d <= 2 ln(255 o) has
+    # half-extents sqrt(2 ln(255 o) (Q^-1)_xx), ...; one pixel of margin against rounding (the exact per-pixel test
+    # still decides). Returns (bx0, by0, bx1, by1) inclusive; empty when bx1 < bx0.
+    det_q = ca * cc - cb * cb
+    out = wp.vec4i(0, 0, -1, -1)
+    if lg > 0.0 and det_q > 0.0:
+        ex = wp.sqrt(2.0 * lg * cc / det_q) + 1.0
+        ey = wp.sqrt(2.0 * lg * ca / det_q) + 1.0
+        out = wp.vec4i(int(wp.max(float(x0), wp.ceil(mx - ex))), int(wp.max(float(y0), wp.ceil(my - ey))),
+                       int(wp.min(float(x1 - 1), wp.floor(mx + ex))), int(wp.min(float(y1 - 1), wp.floor(my + ey))))
+    return out
+
+
 @wp.kernel
-def _forward(packed: wp.array2d(dtype=float), tile_start: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
-             bg: wp.array(dtype=float), width: int, height: int, tiles_x: int, tile_offset: int,
-             color: wp.array3d(dtype=float), depth: wp.array2d(dtype=float), t_final: wp.array2d(dtype=float),
-             last: wp.array2d(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+def _forward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+             entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
+             tile_offset: int, color: wp.array3d(dtype=float), depth: wp.array2d(dtype=float),
+             t_final: wp.array2d(dtype=float), last: wp.array2d(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+    # Entry-outer order: each Gaussian of the tile (front to back) visits only the pixels of its alpha >= 1/255
+    # box; the per-pixel state lives in the output images (L1-resident for one tile). t_final holds the running
+    # transmittance, negated once the pixel is done (the next Gaussian would take it below 1e-4).
     t = wp.tid() + tile_offset
     ty = t // tiles_x
     tx = t - ty * tiles_x
+    x0 = tx * TILE
+    y0 = ty * TILE
+    x1 = wp.min(x0 + TILE, width)
+    y1 = wp.min(y0 + TILE, height)
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            t_final[py, px] = 1.0
+            color[py, px, 0] = 0.0
+            color[py, px, 1] = 0.0
+            color[py, px, 2] = 0.0
+            depth[py, px] = 0.0
+            last[py, px] = 0
     s0 = tile_start[t]
     s1 = tile_start[t + 1]
     for e in range(s0, s1):
-        hits[e] = 0
-    for ly in range(TILE):
-        py = ty * TILE + ly
-        for lx in range(TILE):
-            px = tx * TILE + lx
-            if px < width and py < height:
-                fx = float(px)
-                fy = float(py)
-                T = float(1.0)
-                cr = float(0.0)
-                cg = float(0.0)
-                cb = float(0.0)
-                d = float(0.0)
-                n = int(0)
-                for e in range(s0, s1):
-                    g = entries[e]
-                    dx = fx - packed[g, 0]
-                    dy = fy - packed[g, 1]
-                    power = -0.5 * (packed[g, 2] * dx * dx + packed[g, 4] * dy * dy) - packed[g, 3] * dx * dy
-                    if power <= 0.0:
-                        a = wp.min(0.99, packed[g, 5] * wp.exp(power))
+        g = entries[e]
+        mx = packed[g, 0]
+        my = packed[g, 1]
+        ca = packed[g, 2]
+        cb = packed[g, 3]
+        cc = packed[g, 4]
+        op = packed[g, 5]
+        lo = pthr[g]
+        box = _pixel_box(mx, my, ca, cb, cc, -lo, x0, y0, x1, y1)
+        count = int(0)
+        for py in range(box[1], box[3] + 1):
+            dy = float(py) - my
+            for px in range(box[0], box[2] + 1):
+                T = t_final[py, px]
+                if T > 0.0:
+                    dx = float(px) - mx
+                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if power <= 0.0 and power >= lo:
+                        a = wp.min(0.99, op * wp.exp(power))
                         if a >= ALPHA_MIN:
                             test_T = T * (1.0 - a)
                             if test_T < 1e-4:
-                                break
-                            w = a * T
-                            cr += w * packed[g, 6]
-                            cg += w * packed[g, 7]
-                            cb += w * packed[g, 8]
-                            d += w * packed[g, 9]
-                            T = test_T
-                            n = e - s0 + 1
-                            hits[e] = hits[e] + 1
-                color[py, px, 0] = cr + T * bg[0]
-                color[py, px, 1] = cg + T * bg[1]
-                color[py, px, 2] = cb + T * bg[2]
-                depth[py, px] = d
-                t_final[py, px] = T
-                last[py, px] = n
+                                t_final[py, px] = -T
+                            else:
+                                w = a * T
+                                color[py, px, 0] = color[py, px, 0] + w * packed[g, 6]
+                                color[py, px, 1] = color[py, px, 1] + w * packed[g, 7]
+                                color[py, px, 2] = color[py, px, 2] + w * packed[g, 8]
+                                depth[py, px] = depth[py, px] + w * packed[g, 9]
+                                t_final[py, px] = test_T
+                                last[py, px] = e - s0 + 1
+                                count += 1
+        hits[e] = count
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            T = wp.abs(t_final[py, px])
+            t_final[py, px] = T
+            color[py, px, 0] = color[py, px, 0] + T * bg[0]
+            color[py, px, 1] = color[py, px, 1] + T * bg[1]
+            color[py, px, 2] = color[py, px, 2] + T * bg[2]
 
 
 @wp.kernel
-def _backward(packed: wp.array2d(dtype=float), tile_start: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
-              bg: wp.array(dtype=float), width: int, height: int, tiles_x: int, tile_offset: int,
-              t_final: wp.array2d(dtype=float), last: wp.array2d(dtype=wp.int32), g_color: wp.array3d(dtype=float),
-              g_depth: wp.array2d(dtype=float), g_alpha: wp.array2d(dtype=float), g_entry: wp.array2d(dtype=float)):
+def _backward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+              entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
+              tile_offset: int, t_final: wp.array2d(dtype=float), last: wp.array2d(dtype=wp.int32),
+              g_color: wp.array3d(dtype=float), g_depth: wp.array2d(dtype=float), g_alpha: wp.array2d(dtype=float),
+              t_run: wp.array2d(dtype=float), behind: wp.array2d(dtype=float), g_entry: wp.array2d(dtype=float)):
+    # Reverse compositing, entry-outer from the back of the tile list: t_run recovers T_k = T_{k+1} / (1 - a_k),
+    # behind accumulates (dL/dC . colour + dL/dD depth) of everything behind Gaussian k, background and alpha
+    # terms included. Each entry's gradient is summed in registers over its pixels and written once.
     t = wp.tid() + tile_offset
     ty = t // tiles_x
     tx = t - ty * tiles_x
+    x0 = tx * TILE
+    y0 = ty * TILE
+    x1 = wp.min(x0 + TILE, width)
+    y1 = wp.min(y0 + TILE, height)
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            TN = t_final[py, px]
+            t_run[py, px] = TN
+            behind[py, px] = (g_color[py, px, 0] * bg[0] + g_color[py, px, 1] * bg[1] + g_color[py, px, 2] * bg[2]
+                              - g_alpha[py, px]) * TN
     s0 = tile_start[t]
     s1 = tile_start[t + 1]
-    for e in range(s0, s1):
-        for k in range(10):
-            g_entry[e, k] = 0.0
-    for ly in range(TILE):
-        py = ty * TILE + ly
-        for lx in range(TILE):
-            px = tx * TILE + lx
-            if px < width and py < height:
-                fx = float(px)
-                fy = float(py)
-                TN = t_final[py, px]
-                T = float(TN)
-                gr = g_color[py, px, 0]
-                gg = g_color[py, px, 1]
-                gb = g_color[py, px, 2]
-                gd = g_depth[py, px]
-                # what lies behind Gaussian k, seen through it: background and alpha terms start the sums
-                behind = float(0.0) + (gr * bg[0] + gg * bg[1] + gb * bg[2] - g_alpha[py, px]) * TN
-                n = last[py, px]
-                for i in range(n):
-                    e = s0 + n - 1 - i
-                    g = entries[e]
-                    dx = fx - packed[g, 0]
-                    dy = fy - packed[g, 1]
-                    ca = packed[g, 2]
-                    cb_ = packed[g, 3]
-                    cc = packed[g, 4]
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb_ * dx * dy
-                    if power <= 0.0:
+    for i in range(s1 - s0):
+        e = s1 - 1 - i
+        k = e - s0
+        g = entries[e]
+        mx = packed[g, 0]
+        my = packed[g, 1]
+        ca = packed[g, 2]
+        cb = packed[g, 3]
+        cc = packed[g, 4]
+        op = packed[g, 5]
+        cr = packed[g, 6]
+        cg = packed[g, 7]
+        cbl = packed[g, 8]
+        z = packed[g, 9]
+        lo = pthr[g]
+        box = _pixel_box(mx, my, ca, cb, cc, -lo, x0, y0, x1, y1)
+        v_mx = float(0.0)
+        v_my = float(0.0)
+        v_a = float(0.0)
+        v_b = float(0.0)
+        v_c = float(0.0)
+        v_o = float(0.0)
+        v_r = float(0.0)
+        v_g = float(0.0)
+        v_bl = float(0.0)
+        v_z = float(0.0)
+        for py in range(box[1], box[3] + 1):
+            dy = float(py) - my
+            for px in range(box[0], box[2] + 1):
+                if k < last[py, px]:
+                    dx = float(px) - mx
+                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if power <= 0.0 and power >= lo:
                         G = wp.exp(power)
-                        raw = packed[g, 5] * G
+                        raw = op * G
                         a = wp.min(0.99, raw)
                         if a >= ALPHA_MIN:
-                            T = T / (1.0 - a)
+                            T = t_run[py, px] / (1.0 - a)
+                            t_run[py, px] = T
                             w = a * T
-                            front = gr * packed[g, 6] + gg * packed[g, 7] + gb * packed[g, 8] + gd * packed[g, 9]
-                            g_a = T * front - behind / (1.0 - a)
-                            behind += w * front
-                            g_entry[e, 6] = g_entry[e, 6] + w * gr
-                            g_entry[e, 7] = g_entry[e, 7] + w * gg
-                            g_entry[e, 8] = g_entry[e, 8] + w * gb
-                            g_entry[e, 9] = g_entry[e, 9] + w * gd
+                            gr = g_color[py, px, 0]
+                            gg = g_color[py, px, 1]
+                            gb = g_color[py, px, 2]
+                            gd = g_depth[py, px]
+                            front = gr * cr + gg * cg + gb * cbl + gd * z
+                            bh = behind[py, px]
+                            g_a = T * front - bh / (1.0 - a)
+                            behind[py, px] = bh + w * front
+                            v_r += w * gr
+                            v_g += w * gg
+                            v_bl += w * gb
+                            v_z += w * gd
                             if raw < 0.99:
-                                g_entry[e, 5] = g_entry[e, 5] + g_a * G
+                                v_o += g_a * G
                                 g_p = g_a * a
-                                g_entry[e, 0] = g_entry[e, 0] + g_p * (ca * dx + cb_ * dy)
-                                g_entry[e, 1] = g_entry[e, 1] + g_p * (cc * dy + cb_ * dx)
-                                g_entry[e, 2] = g_entry[e, 2] - 0.5 * g_p * dx * dx
-                                g_entry[e, 3] = g_entry[e, 3] - g_p * dx * dy
-                                g_entry[e, 4] = g_entry[e, 4] - 0.5 * g_p * dy * dy
+                                v_mx += g_p * (ca * dx + cb * dy)
+                                v_my += g_p * (cc * dy + cb * dx)
+                                v_a -= 0.5 * g_p * dx * dx
+                                v_b -= g_p * dx * dy
+                                v_c -= 0.5 * g_p * dy * dy
+        g_entry[e, 0] = v_mx
+        g_entry[e, 1] = v_my
+        g_entry[e, 2] = v_a
+        g_entry[e, 3] = v_b
+        g_entry[e, 4] = v_c
+        g_entry[e, 5] = v_o
+        g_entry[e, 6] = v_r
+        g_entry[e, 7] = v_g
+        g_entry[e, 8] = v_bl
+        g_entry[e, 9] = v_z
 
 
 def _wp(t: torch.Tensor, dtype=None):
@@ -206,7 +271,7 @@ def _with_offset(inputs: list, offset: int) -> list:
     return out
 
 
-_OFFSET_POS = 7  # index of `tile_offset` in both tile kernels' argument lists
+_OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
 
 
 def bin_tiles(rect: torch.Tensor, tiles_x: int, tiles_y: int, tile_start: torch.Tensor, entries: torch.Tensor,
@@ -217,10 +282,10 @@ def bin_tiles(rect: torch.Tensor, tiles_x: int, tiles_y: int, tile_start: torch.
               device=device)
 
 
-def render_forward(packed, tile_start, entries, bg, width, height, color, depth, t_final, last, hits, device) -> None:
+def render_forward(packed, pthr, tile_start, entries, bg, width, height, color, depth, t_final, last, hits, device) -> None:
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     packed_w = _wp(packed) if packed.shape[0] else wp.zeros((0, 10), dtype=float, device=device)
-    inputs = [packed_w, _wp(tile_start), _wp(entries), _wp(bg), width, height, tiles_x,
+    inputs = [packed_w, _wp(pthr), _wp(tile_start), _wp(entries), _wp(bg), width, height, tiles_x,
               0, _wp(color), _wp(depth), _wp(t_final), _wp(last),
               _wp(hits)]
     _launch_tiles(_forward, tiles_x * tiles_y, inputs, device)
@@ -228,12 +293,12 @@ def render_forward(packed, tile_start, entries, bg, width, height, color, depth,
         wp.synchronize_device(device)
 
 
-def render_backward(packed, tile_start, entries, bg, width, height, t_final, last, g_color, g_depth, g_alpha, g_entry,
-                    device) -> None:
+def render_backward(packed, pthr, tile_start, entries, bg, width, height, t_final, last, g_color, g_depth, g_alpha,
+                    t_run, behind, g_entry, device) -> None:
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    inputs = [_wp(packed), _wp(tile_start), _wp(entries), _wp(bg), width, height,
+    inputs = [_wp(packed), _wp(pthr), _wp(tile_start), _wp(entries), _wp(bg), width, height,
               tiles_x, 0, _wp(t_final), _wp(last), _wp(g_color), _wp(g_depth),
-              _wp(g_alpha), _wp(g_entry)]
+              _wp(g_alpha), _wp(t_run), _wp(behind), _wp(g_entry)]
     _launch_tiles(_backward, tiles_x * tiles_y, inputs, device)
     if device == "cuda":
         wp.synchronize_device(device)
