@@ -174,14 +174,14 @@ def surface_offset(materials: MaterialTable, material: np.ndarray, axis: np.ndar
 # Each pattern maps surface coordinates to (weight of colour b, weight of accent colour c), both [n] in [0, 1].
 
 def _noise(s, t, coarse, fine, period, fp, m):
-    return 0.5 + 0.35 * coarse + 0.25 * fine, _soft_step(coarse - 1.1, 0.15 + 0 * fp)
+    return 0.5 + 0.35 * coarse + 0.25 * fine, _soft_step(coarse - 1.1, 0.15)
 
 
 def _stripes(s, t, coarse, fine, period, fp, m):
     phase = s / period + 0.08 * coarse
     dist = np.abs(phase - np.floor(phase) - 0.5) * period  # metres from the stripe's centre line
     stripe = _soft_step(dist - 0.25 * period, fp)
-    return 0.15 + 0.7 * stripe + 0.1 * fine, _soft_step(coarse - 1.3, 0.2 + 0 * fp)
+    return 0.15 + 0.7 * stripe + 0.1 * fine, _soft_step(coarse - 1.3, 0.2)
 
 
 def _tiles(s, t, coarse, fine, period, fp, m):
@@ -202,7 +202,8 @@ def _planks(s, t, coarse, fine, period, fp, m):
     dv = np.minimum(t / period - j, j + 1 - t / period) * period
     du = np.minimum((s + shift) / 1.2 - i, i + 1 - (s + shift) / 1.2) * 1.2
     seam = _soft_step(0.004 - np.minimum(du, dv), fp)
-    return 0.15 + 0.5 * tone + 0.25 * grain * np.clip(1.5 - fp / 0.01, 0, 1), seam
+    fade = np.clip(1.5 - fp / 0.01, 0, 1)  # the grain averages out (to its mean) once a pixel spans it
+    return 0.275 + 0.5 * tone + 0.25 * (grain - 0.5) * fade, seam
 
 
 def _blotches(s, t, coarse, fine, period, fp, m):

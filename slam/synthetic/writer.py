@@ -129,7 +129,7 @@ def _write_agent(folder: Path, world: World, camera: PinholeCamera, poses: np.nd
                 _write_png(folder / "depth" / files[k], depth_to_uint16(depth, config.depth_scale))
         return len(hits.depth)
 
-    world.texture  # build the shared texture once, before the worker threads read it
+    _ = world.texture  # build the shared texture once, before the worker threads read it
     with ThreadPoolExecutor(max_workers=2) as pool:
         pending: list[Future] = []
         for start in range(0, n, _BATCH):
