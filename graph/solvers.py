@@ -1,24 +1,31 @@
 """Levenberg–Marquardt and GNC (truncated least squares) for `graph.formulations.Problem`s.
 
-Where the time goes, and the design that follows from it. GTSAM's python `CustomFactor` calls back into Python
-with `(const CustomFactor&, const Values&, JacobianVector*)`; pybind11 converts a `const T&` argument of a
-callback with the `copy` policy, so every callback copies the whole `Values` (one heap allocation per
-variable): 0.7 ms per call at 3,600 poses, times 2,000 loops, times 2 calls per LM iteration (linearize + error).
-Batching loops into fewer CustomFactors does not help (a factor's keys become one dense clique). So:
+Where the time went with one `gtsam.CustomFactor` per loop under GTSAM's LevenbergMarquardtOptimizer (39-52 s
+for 2,000 loops on ~3,500 poses, against <1 s here). GTSAM's python CustomFactor calls back into Python with
+`(const CustomFactor&, const Values&, JacobianVector*)`. pybind11 converts a `const T&` callback argument with
+the `copy` policy *unless that C++ object is already owned by a Python object*, in which case it hands over the
+existing wrapper. Called from Python (`graph.linearize(values)` with a Values Python holds) there is no copy: 10 µs
+per callback measured. Inside `LevenbergMarquardtOptimizer.optimize()` the Values being evaluated are GTSAM's
+own internal copies, unknown to Python, so every callback deep-copies the whole Values: 0.5-0.6 ms per call with
+5,500 variables (= `gtsam.Values(values)` measured alone), i.e. O(variables) per factor call. The callbacks
+themselves are cheap. Batching loops into fewer CustomFactors would not help either: a factor's keys become one
+dense clique for elimination. So:
 
-  * graphs of built-in factors only (base formulation, metric loops, g2o files) run GTSAM's own C++
+  * graphs of built-in factors only (base formulation, metric loops, g2o files) run GTSAM's C++
     LevenbergMarquardtOptimizer;
-  * graphs with scale variables (IS / SS / shared) run `_hybrid_lm`: the built-in part is linearised by GTSAM in
-    C++ (`NonlinearFactorGraph.linearize`), all up-to-scale loops are linearised at once in NumPy
-    (`scale_factors.is_residuals`, the same maths as the CustomFactor, tested equal) and appended as
-    JacobianFactors, and GTSAM's multifrontal Cholesky solves each step (COLAMD ordering computed once). No
-    Python callback runs inside GTSAM. The LM loop (trust region on lambda, GTSAM's relative/absolute
-    decrease tests) is ours; lambda starts at 0 (a Gauss–Newton step: anchors and the weak scale priors make
-    the system positive definite) and damping factors are only built when a step fails.
-  * GNC (TLS, Yang et al. 2020, the schedule of GTSAM's GncOptimizer) is our own outer loop over either LM,
-    since GTSAM's GncLMOptimizer refuses CustomFactors; it warm-starts every inner solve from the previous
-    result (GTSAM restarts from the initial values each time, most of its run time) and initialises mu from the
-    residuals of the least-squares solution as the GNC paper does (GTSAM uses the initial values).
+  * graphs with scale variables (IS / SS / shared) run `_python_lm`, an LM loop in Python whose Values are always
+    Python-held: the built-in part is linearised by GTSAM in C++ (`NonlinearFactorGraph.linearize`), the
+    up-to-scale loops either all at once in NumPy (`loops="numpy"`, default: `scale_factors.is_residuals`, the
+    same maths as the CustomFactor, tested equal) appended as JacobianFactors, or as the CustomFactors
+    themselves (`loops="custom"`: no Values copy, one Python callback per loop). GTSAM's multifrontal Cholesky
+    solves each step (COLAMD ordering computed once). Lambda starts at 0 (a Gauss-Newton step: anchors and the
+    weak scale priors make the system positive definite); damping factors are built only when a step fails.
+    Stopping tests are GTSAM's (relative and absolute decrease).
+  * GNC (TLS, Yang et al. 2020, the weight update and schedule of GTSAM's GncOptimizer) is our own outer loop
+    over either LM, since GTSAM's GncLMOptimizer refuses CustomFactors. By default it warm-starts every inner
+    solve from the previous result (GTSAM restarts from the initial values each time, most of its run time) and
+    initialises mu from the residuals of the least-squares solution, as the GNC paper does (GTSAM uses the
+    initial values); `gtsam_schedule=True` restores both GTSAM choices.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ from scipy.stats import chi2
 from kernels.errors import GraphError, InputError
 
 from .formulations import Problem
-from .scale_factors import is_residuals
+from .scale_factors import is_loop_factor, is_residuals
 
 SCALE_MIN = 1e-3  # scales are projected back above this after each step (a negative scale flips a loop)
 
@@ -105,9 +112,12 @@ class _ScaleTerm:
 # ------------------------------------------------------------------------------------------- LM
 def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = None,
                         initial: gtsam.Values | None = None, max_iterations: int = 100,
-                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5) -> SolveResult:
+                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5, loops: str = "numpy") -> SolveResult:
     """Solve `problem` (loops weighted by `weights`, edge index -> w, default 1) from `initial` (default: the
-    problem's). GTSAM's C++ LM when every factor is built-in, `_hybrid_lm` otherwise."""
+    problem's). GTSAM's C++ LM when every factor is built-in, `_python_lm` otherwise, with the up-to-scale
+    loops evaluated in NumPy (`loops="numpy"`) or as gtsam.CustomFactors (`loops="custom"`)."""
+    if loops not in ("numpy", "custom"):
+        raise InputError(f"loops must be 'numpy' or 'custom', got {loops!r}")
     t0 = time.perf_counter()
     values = problem.initial if initial is None else initial
     graph = problem.builtin_graph(weights)
@@ -121,36 +131,51 @@ def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = 
         result = opt.optimize()
         return _result(problem, result, opt.iterations(), e0, graph.error(result), t0, "lm")
     term = _ScaleTerm(problem, weights)
-    result, iters, e0, e1 = _hybrid_lm(graph, term, values, max_iterations, relative_tol, absolute_tol)
+    if loops == "custom":
+        graph.push_back(custom_loop_factors(problem, weights))
+    dims = [(int(k), 1) for k in term.scale_keys] + [(int(k), 6) for k in term.pose_keys]
+    result, iters, e0, e1 = _python_lm(graph, term if loops == "numpy" else None, term.scale_keys, dims, values,
+                                       max_iterations, relative_tol, absolute_tol)
     return _result(problem, result, iters, e0, e1, t0, "lm")
 
 
-def _hybrid_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm, values: gtsam.Values, max_iterations: int,
-               relative_tol: float, absolute_tol: float):
-    err = graph.error(values) + term.error(values)
-    e0 = err
+def custom_loop_factors(problem: Problem, weights: dict[int, float] | None = None) -> gtsam.NonlinearFactorGraph:
+    """The problem's up-to-scale loops as IS gtsam.CustomFactors (weights scale their information)."""
+    out = gtsam.NonlinearFactorGraph()
+    sl = problem.scale_loops
+    for n in range(len(sl.edge)):
+        w = 1.0 if weights is None else weights.get(int(sl.edge[n]), 1.0)
+        if w <= 0:
+            continue
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = sl.R_meas[n], sl.t_meas[n]
+        info = w * sl.sqrt_info[n].T @ sl.sqrt_info[n]
+        out.add(is_loop_factor(int(sl.key_i[n]), int(sl.key_j[n]), int(sl.key_s[n]), T,
+                               gtsam.noiseModel.Gaussian.Information(info)))
+    return out
+
+
+def _python_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm | None, scale_keys: list[int],
+               dims: list[tuple[int, int]], values: gtsam.Values, max_iterations: int, relative_tol: float,
+               absolute_tol: float):
+    """LM over `graph` (+ the NumPy `term` when given). Every Values here is Python-held (see module docstring)."""
+
+    def total(v):
+        return graph.error(v) + (term.error(v) if term is not None else 0.0)
+
+    err = e0 = total(values)
     ordering = None
     lam = 0.0
-    dims = [(k, 1) for k in term.scale_keys] + [(int(k), 6) for k in term.pose_keys]
     it = 0
     for it in range(1, max_iterations + 1):
         gfg = graph.linearize(values)
-        for f in term.linear_factors(values):
-            gfg.push_back(f)
+        if term is not None:
+            for f in term.linear_factors(values):
+                gfg.push_back(f)
         if ordering is None:
             ordering = gtsam.Ordering.ColamdGaussianFactorGraph(gfg)
         while True:
-            if lam > 0:
-                damped = gtsam.GaussianFactorGraph()
-                damped.push_back(gfg)
-                sq = np.sqrt(lam)
-                eye = {1: sq * np.eye(1), 6: sq * np.eye(6)}
-                zero = {1: np.zeros(1), 6: np.zeros(6)}
-                unit = {1: gtsam.noiseModel.Unit.Create(1), 6: gtsam.noiseModel.Unit.Create(6)}
-                for k, d in dims:
-                    damped.push_back(gtsam.JacobianFactor(k, eye[d], zero[d], unit[d]))
-            else:
-                damped = gfg
+            damped = _damped(gfg, dims, lam) if lam > 0 else gfg
             try:
                 delta = damped.optimize(ordering)
             except RuntimeError as e:  # indeterminate system: damp and retry
@@ -159,8 +184,8 @@ def _hybrid_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm, values: gtsa
                 lam = max(lam * 10.0, 1e-5)
                 continue
             new = values.retract(delta)
-            _clamp_scales(new, term.scale_keys)
-            new_err = graph.error(new) + term.error(new)
+            _clamp_scales(new, scale_keys)
+            new_err = total(new)
             if np.isfinite(new_err) and new_err <= err:
                 lam = 0.0 if lam < 1e-8 else lam / 10.0
                 break
@@ -172,6 +197,19 @@ def _hybrid_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm, values: gtsa
         if decrease < absolute_tol or decrease < relative_tol * max(err + decrease, 1e-300) or err < 1e-12:
             break
     return values, it, e0, err
+
+
+def _damped(gfg: gtsam.GaussianFactorGraph, dims: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:
+    """gfg plus sqrt(lam) * I on every variable (GTSAM's LM damping without diagonal scaling)."""
+    out = gtsam.GaussianFactorGraph()
+    out.push_back(gfg)
+    sq = np.sqrt(lam)
+    eye = {d: sq * np.eye(d) for d in (1, 3, 6)}
+    zero = {d: np.zeros(d) for d in (1, 3, 6)}
+    unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (1, 3, 6)}
+    for k, d in dims:
+        out.push_back(gtsam.JacobianFactor(k, eye[d], zero[d], unit[d]))
+    return out
 
 
 def _clamp_scales(values: gtsam.Values, keys: list[int]) -> None:
