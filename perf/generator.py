@@ -27,6 +27,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
     from kernels import se3
     from slam.synthetic import GeneratorConfig, agent_poses, cast, dataset_camera, generate, generate_world
     from slam.synthetic.noise import depth_to_uint16, frame_rng, noisy_color, noisy_depth
+    from slam.synthetic.writer import PNG_PARAMS
 
     cfg = GeneratorConfig.preset("default", agents=1, frames=16 if quick else 48)
     world = generate_world(cfg.seed, cfg.world)
@@ -51,8 +52,8 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
             rng = frame_rng(0, 0, j)
             rgb = noisy_color(hits.color[j], cfg.color_noise, rng)
             depth = noisy_depth(hits.depth[j], hits.cos_incidence[j], cfg.depth_noise, rng)
-            cv2.imencode(".png", rgb, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            cv2.imencode(".png", depth_to_uint16(depth, cfg.depth_scale), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            cv2.imencode(".png", rgb, PNG_PARAMS)
+            cv2.imencode(".png", depth_to_uint16(depth, cfg.depth_scale), PNG_PARAMS)
 
     tmp = Path(tempfile.mkdtemp(prefix="perf_generator_"))
     try:
