@@ -46,6 +46,7 @@ PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWR
 
 
 def dataset_camera(config: GeneratorConfig) -> PinholeCamera:
+    """The pinhole camera of every agent: width x height, `hfov_deg` field of view, centred principal point."""
     return camera_for(config.width, config.height, config.hfov_deg)
 
 
