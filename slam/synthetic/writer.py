@@ -63,7 +63,7 @@ def generate(out_dir: str | os.PathLike, config: GeneratorConfig | None = None, 
     Raises InputError if `out_dir` is a file or a non-empty folder that is not a dataset.
     """
     config = config or GeneratorConfig()
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()  # a name and a real parent folder even for "." or "sub/"
     check_output_dir(out)
     world = generate_world(config.seed, config.world)
     camera = dataset_camera(config)
