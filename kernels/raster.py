@@ -1,9 +1,9 @@
 """Differentiable 3D Gaussian splatting rasteriser (the 3DGS rules), colour + depth + alpha, Warp or Taichi.
 
 Pipeline, one call:
-1. `_project` (torch, float32, autograd): camera-space means, EWA 2D covariance with the 0.3 px low-pass, its
-   inverse (conic), 3-sigma radius and the 16x16-tile rectangle of every Gaussian; culls behind near/far,
-   off-screen and degenerate ones. O(N) elementwise work; autograd carries its gradients to means, quats,
+1. `_ProjectFn` (one kernel thread per Gaussian, hand-written backward): camera-space means, EWA 2D covariance
+   with the 0.3 px low-pass, its inverse (conic), 3-sigma radius and the 16x16-tile rectangle of every Gaussian;
+   culls outside near/far, off-screen and degenerate ones. Its backward gives the gradients of means, quats,
    scales and the viewmat (including the rotation's effect on the projected covariance).
 2. Stable depth sort of the visible Gaussians (torch) and a packed [M, 10] attribute table in that order.
 3. `_RasterFn` (hand-written forward and backward kernels on the active backend, see kernels/_warp/raster.py
@@ -51,55 +51,41 @@ def _empty(shape, dtype: torch.dtype, device) -> torch.Tensor:
     return torch.empty(shape, dtype=dtype, device=device)
 
 
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:  # [N, 4] wxyz -> [N, 3, 3]
-    q = q * torch.rsqrt((q * q).sum(-1, keepdim=True))
-    w, x, y, z = q.unbind(-1)
-    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
-    return torch.stack(
-        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-         2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-         2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)], -1).reshape(-1, 3, 3)
+class _ProjectFn(torch.autograd.Function):
+    """EWA projection on the active backend: (means, quats, scales, opacities, colors, viewmat) -> proj [N, 10]
+    rows in the PACKED layout (zeros for culled Gaussians), radius [N] and tile rect [N, 4] (not differentiable)."""
 
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, viewmat, intr, width, height, near, far, impl, device):
+        n, dev = means.shape[0], means.device
+        proj = _empty((n, PACKED), torch.float32, dev)
+        radius = _empty((n,), torch.int32, dev)
+        rect = _empty((n, 4), torch.int32, dev)
+        args = [t.detach().contiguous() for t in (means, quats, scales, opacities, colors, viewmat)]
+        impl.project_forward(*args, intr, width, height, float(near), float(far), proj, radius, rect, device)
+        ctx.save_for_backward(*args[:3], args[5], proj, radius)
+        ctx.dims = (intr, width, height, impl, device)
+        ctx.mark_non_differentiable(radius, rect)
+        return proj, radius, rect
 
-def _project(means, quats, scales, viewmat, K, width: int, height: int, near: float, far: float):
-    """EWA projection, float32. Returns mean2d [N,2], conic [N,3] (a, b, c of the inverse 2D covariance),
-    z [N], radius [N] int32, rect [N,4] int32 tile range (x0, y0, x1, y1; ends exclusive), visible [N] bool."""
-    R_v, t_v = viewmat[:3, :3], viewmat[:3, 3]
-    p = torch.addmm(t_v, means, R_v.T)  # [N, 3] camera frame
-    x, y, z = p.unbind(-1)
-    valid = (z >= near) & (z <= far)
-    zs = torch.where(valid, z, torch.ones_like(z))
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    # 3DGS clamps the Jacobian's x/z, y/z to 1.3x the field of view so off-axis giants stay bounded.
-    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
-    inv_z = 1.0 / zs
-    u = torch.minimum(torch.maximum(x * inv_z, -(cx / fx + lim_x)), (width - cx) / fx + lim_x)
-    v = torch.minimum(torch.maximum(y * inv_z, -(cy / fy + lim_y)), (height - cy) / fy + lim_y)
-    # T = J R_v R(q) S: rows of the 2x3 map from the Gaussian's unit frame to pixels.
-    Mc = torch.matmul(R_v, _quat_to_rotmat(quats)) * scales[:, None, :]  # [N, 3, 3]
-    T0 = (fx * inv_z)[:, None] * (Mc[:, 0] - u[:, None] * Mc[:, 2])  # [N, 3]
-    T1 = (fy * inv_z)[:, None] * (Mc[:, 1] - v[:, None] * Mc[:, 2])
-    a = (T0 * T0).sum(-1) + 0.3
-    b = (T0 * T1).sum(-1)
-    c = (T1 * T1).sum(-1) + 0.3
-    det = a * c - b * b
-    visible = valid & (det > 0)
-    inv_det = 1.0 / torch.where(visible, det, torch.ones_like(det))
-    conic = torch.stack([c * inv_det, -b * inv_det, a * inv_det], -1)
-    mean2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], -1)
-    with torch.no_grad():
-        mid = 0.5 * (a + c)
-        radius = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))))
-        ntx, nty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-        m = mean2d.detach()
-        x0 = torch.floor((m[:, 0] - radius) / TILE).clamp(0, ntx)
-        x1 = (torch.floor((m[:, 0] + radius) / TILE) + 1).clamp(0, ntx)
-        y0 = torch.floor((m[:, 1] - radius) / TILE).clamp(0, nty)
-        y1 = (torch.floor((m[:, 1] + radius) / TILE) + 1).clamp(0, nty)
-        visible = visible & (x1 > x0) & (y1 > y0)
-        rect = torch.stack([x0, y0, x1, y1], -1).to(torch.int32)
-        radius = torch.where(visible, radius.clamp(max=2**30), torch.zeros_like(radius)).to(torch.int32)
-    return mean2d, conic, z, radius, rect, visible
+    @staticmethod
+    def backward(ctx, g_proj, _g_radius, _g_rect):
+        means, quats, scales, viewmat, proj, radius = ctx.saved_tensors
+        intr, width, height, impl, device = ctx.dims
+        n, dev = means.shape[0], means.device
+        g_means = _empty((n, 3), torch.float32, dev)
+        g_quats = _empty((n, 4), torch.float32, dev)
+        g_scales = _empty((n, 3), torch.float32, dev)
+        g_parts = _empty((n, 12), torch.float32, dev)  # per-Gaussian viewmat gradient: R row-major, then t
+        g_proj = g_proj.contiguous()
+        impl.project_backward(means, quats, scales, viewmat, intr, width, height, proj, radius, g_proj,
+                              g_means, g_quats, g_scales, g_parts, device)
+        g_view = torch.zeros(4, 4, dtype=torch.float32, device=dev)
+        total = g_parts.sum(0)
+        g_view[:3, :3] = total[:9].reshape(3, 3)
+        g_view[:3, 3] = total[9:]
+        return (g_means, g_quats, g_scales, g_proj[:, 5], g_proj[:, 6:9], g_view,
+                None, None, None, None, None, None, None)
 
 
 class _RasterFn(torch.autograd.Function):
@@ -198,13 +184,15 @@ def rasterize(
 
     impl = backend_module("raster")
     dev = means.device
-    viewmat32, K32 = viewmat.to(torch.float32), K.to(torch.float32)
+    viewmat32 = viewmat.to(torch.float32)
+    intr = tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     bg = torch.zeros(3, dtype=torch.float32, device=dev) if background is None else background.to(torch.float32)
     n = means.shape[0]
-    mean2d, conic, z, radius, rect, visible = _project(means, quats, scales, viewmat32, K32, width, height, near, far)
-    idx = torch.nonzero(visible).squeeze(1)
-    order = idx[torch.sort(z.detach()[idx], stable=True).indices]  # front to back, ties by index
-    packed = torch.cat([mean2d[order], conic[order], opacities[order, None], colors[order], z[order, None]], 1)
+    proj, radius, rect = _ProjectFn.apply(means, quats, scales, opacities, colors, viewmat32, intr, int(width),
+                                          int(height), near, far, backend_module("project"), b.device)
+    idx = torch.nonzero(radius > 0).squeeze(1)
+    order = idx[torch.sort(proj.detach()[idx, 9], stable=True).indices]  # front to back, ties by index
+    packed = proj[order]
     color, depth, alpha, hits, entries = _RasterFn.apply(
         packed.contiguous(), rect[order].contiguous(), bg.contiguous(), int(width), int(height), impl, b.device)
     n_touched = torch.zeros(n, dtype=torch.int32, device=dev)

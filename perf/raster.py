@@ -35,11 +35,60 @@ def make_scene(n: int, width: int, height: int, seed: int = 0):
                 viewmat=torch.eye(4), K=K, width=width, height=height)
 
 
+def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:  # [N, 4] wxyz -> [N, 3, 3]
+    q = q * torch.rsqrt((q * q).sum(-1, keepdim=True))
+    w, x, y, z = q.unbind(-1)
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+    return torch.stack(
+        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+         2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+         2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)], -1).reshape(-1, 3, 3)
+
+
+def torch_project(means, quats, scales, viewmat, K, width: int, height: int, near: float, far: float):
+    """The peer's EWA projection (torch, float32, autograd). Returns mean2d [N,2], conic [N,3] (a, b, c of the inverse 2D covariance),
+    z [N], radius [N] int32, rect [N,4] int32 tile range (x0, y0, x1, y1; ends exclusive), visible [N] bool."""
+    R_v, t_v = viewmat[:3, :3], viewmat[:3, 3]
+    p = torch.addmm(t_v, means, R_v.T)  # [N, 3] camera frame
+    x, y, z = p.unbind(-1)
+    valid = (z >= near) & (z <= far)
+    zs = torch.where(valid, z, torch.ones_like(z))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    # 3DGS clamps the Jacobian's x/z, y/z to 1.3x the field of view so off-axis giants stay bounded.
+    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+    inv_z = 1.0 / zs
+    u = torch.minimum(torch.maximum(x * inv_z, -(cx / fx + lim_x)), (width - cx) / fx + lim_x)
+    v = torch.minimum(torch.maximum(y * inv_z, -(cy / fy + lim_y)), (height - cy) / fy + lim_y)
+    # T = J R_v R(q) S: rows of the 2x3 map from the Gaussian's unit frame to pixels.
+    Mc = torch.matmul(R_v, _quat_to_rotmat(quats)) * scales[:, None, :]  # [N, 3, 3]
+    T0 = (fx * inv_z)[:, None] * (Mc[:, 0] - u[:, None] * Mc[:, 2])  # [N, 3]
+    T1 = (fy * inv_z)[:, None] * (Mc[:, 1] - v[:, None] * Mc[:, 2])
+    a = (T0 * T0).sum(-1) + 0.3
+    b = (T0 * T1).sum(-1)
+    c = (T1 * T1).sum(-1) + 0.3
+    det = a * c - b * b
+    visible = valid & (det > 0)
+    inv_det = 1.0 / torch.where(visible, det, torch.ones_like(det))
+    conic = torch.stack([c * inv_det, -b * inv_det, a * inv_det], -1)
+    mean2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], -1)
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        radius = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))))
+        ntx, nty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+        m = mean2d.detach()
+        x0 = torch.floor((m[:, 0] - radius) / TILE).clamp(0, ntx)
+        x1 = (torch.floor((m[:, 0] + radius) / TILE) + 1).clamp(0, ntx)
+        y0 = torch.floor((m[:, 1] - radius) / TILE).clamp(0, nty)
+        y1 = (torch.floor((m[:, 1] + radius) / TILE) + 1).clamp(0, nty)
+        visible = visible & (x1 > x0) & (y1 > y0)
+        rect = torch.stack([x0, y0, x1, y1], -1).to(torch.int32)
+        radius = torch.where(visible, radius.clamp(max=2**30), torch.zeros_like(radius)).to(torch.int32)
+    return mean2d, conic, z, radius, rect, visible
+
+
 def torch_tiles_rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height):
     """The peer: per-tile vectorised torch compositing with autograd; returns (color, depth, alpha)."""
-    from kernels.raster import _project
-
-    mean2d, conic, z, _radius, rect, visible = _project(means, quats, scales, viewmat, K, width, height, 0.01, 100.0)
+    mean2d, conic, z, _radius, rect, visible = torch_project(means, quats, scales, viewmat, K, width, height, 0.01, 100.0)
     idx = torch.nonzero(visible).squeeze(1)
     idx = idx[torch.sort(z.detach()[idx], stable=True).indices]
     m2, cn, zz, op, col, rc = mean2d[idx], conic[idx], z[idx], opacities[idx], colors[idx], rect[idx]

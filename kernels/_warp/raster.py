@@ -229,7 +229,7 @@ def _backward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile
         g_entry[e, 9] = v_z
 
 
-def _wp(t: torch.Tensor, dtype=None):
+def to_warp(t: torch.Tensor, dtype=None):
     # detached and without Warp-side grads: the hand-written backward owns the gradients
     return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)
 
@@ -243,31 +243,33 @@ def _workers() -> int:
     return max(1, int(os.environ.get("SWARMSPLAT_WARP_CPU_THREADS", os.cpu_count() or 1)))
 
 
-def _launch_tiles(kernel, n_tiles: int, inputs: list, device: str) -> None:
-    """Launch `kernel` over tiles; on the CPU in contiguous chunks from a thread pool (see module docstring)."""
+def launch_chunked(kernel, n: int, inputs: list, offset_pos: int, device: str) -> None:
+    """Launch `kernel` over n items whose first index is inputs[offset_pos]; on the CPU in contiguous chunks from
+    a thread pool (see the module docstring). Chunks must not write to shared memory."""
     global _pool
     workers = _workers() if device == "cpu" else 1
-    if workers == 1 or n_tiles < 2 or (kernel.key, device) not in _loaded:
+    if workers == 1 or n < 2 or (kernel.key, device) not in _loaded:
         # the first launch compiles and loads the module: do it on this thread, once
-        wp.launch(kernel, dim=n_tiles, inputs=_with_offset(inputs, 0), device=device)
+        wp.launch(kernel, dim=n, inputs=_with_offset(inputs, offset_pos, 0), device=device)
         _loaded.add((kernel.key, device))
         return
     with _pool_lock:
         if _pool is None:
             _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warp-raster")
-    n_chunks = min(n_tiles, 4 * workers)  # more chunks than workers evens out dense and empty regions
-    bounds = [n_tiles * i // n_chunks for i in range(n_chunks + 1)]
+    n_chunks = min(n, 4 * workers)  # more chunks than workers evens out dense and empty regions
+    bounds = [n * i // n_chunks for i in range(n_chunks + 1)]
     futures = [
-        _pool.submit(wp.launch, kernel, dim=bounds[i + 1] - bounds[i], inputs=_with_offset(inputs, bounds[i]), device=device)
+        _pool.submit(wp.launch, kernel, dim=bounds[i + 1] - bounds[i],
+                     inputs=_with_offset(inputs, offset_pos, bounds[i]), device=device)
         for i in range(n_chunks) if bounds[i + 1] > bounds[i]
     ]
     for f in futures:
         f.result()
 
 
-def _with_offset(inputs: list, offset: int) -> list:
+def _with_offset(inputs: list, pos: int, offset: int) -> list:
     out = list(inputs)
-    out[_OFFSET_POS] = offset
+    out[pos] = offset
     return out
 
 
@@ -277,18 +279,18 @@ _OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
 def bin_tiles(rect: torch.Tensor, tiles_x: int, tiles_y: int, tile_start: torch.Tensor, entries: torch.Tensor,
               device: str) -> None:
     """rect [M, 4] int32 tile ranges of depth-sorted Gaussians -> tile_start [T+1], entries [E] (filled here)."""
-    rect_w = _wp(rect.reshape(-1, 4), dtype=wp.int32) if rect.shape[0] else wp.zeros((0, 4), dtype=wp.int32, device=device)
-    wp.launch(_bin, dim=1, inputs=[rect_w, tiles_x, tiles_x * tiles_y, _wp(tile_start), _wp(entries)],
+    rect_w = to_warp(rect.reshape(-1, 4), dtype=wp.int32) if rect.shape[0] else wp.zeros((0, 4), dtype=wp.int32, device=device)
+    wp.launch(_bin, dim=1, inputs=[rect_w, tiles_x, tiles_x * tiles_y, to_warp(tile_start), to_warp(entries)],
               device=device)
 
 
 def render_forward(packed, pthr, tile_start, entries, bg, width, height, color, depth, t_final, last, hits, device) -> None:
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    packed_w = _wp(packed) if packed.shape[0] else wp.zeros((0, 10), dtype=float, device=device)
-    inputs = [packed_w, _wp(pthr), _wp(tile_start), _wp(entries), _wp(bg), width, height, tiles_x,
-              0, _wp(color), _wp(depth), _wp(t_final), _wp(last),
-              _wp(hits)]
-    _launch_tiles(_forward, tiles_x * tiles_y, inputs, device)
+    packed_w = to_warp(packed) if packed.shape[0] else wp.zeros((0, 10), dtype=float, device=device)
+    inputs = [packed_w, to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height, tiles_x,
+              0, to_warp(color), to_warp(depth), to_warp(t_final), to_warp(last),
+              to_warp(hits)]
+    launch_chunked(_forward, tiles_x * tiles_y, inputs, _OFFSET_POS, device)
     if device == "cuda":
         wp.synchronize_device(device)
 
@@ -296,9 +298,9 @@ def render_forward(packed, pthr, tile_start, entries, bg, width, height, color, 
 def render_backward(packed, pthr, tile_start, entries, bg, width, height, t_final, last, g_color, g_depth, g_alpha,
                     t_run, behind, g_entry, device) -> None:
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    inputs = [_wp(packed), _wp(pthr), _wp(tile_start), _wp(entries), _wp(bg), width, height,
-              tiles_x, 0, _wp(t_final), _wp(last), _wp(g_color), _wp(g_depth),
-              _wp(g_alpha), _wp(t_run), _wp(behind), _wp(g_entry)]
-    _launch_tiles(_backward, tiles_x * tiles_y, inputs, device)
+    inputs = [to_warp(packed), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
+              tiles_x, 0, to_warp(t_final), to_warp(last), to_warp(g_color), to_warp(g_depth),
+              to_warp(g_alpha), to_warp(t_run), to_warp(behind), to_warp(g_entry)]
+    launch_chunked(_backward, tiles_x * tiles_y, inputs, _OFFSET_POS, device)
     if device == "cuda":
         wp.synchronize_device(device)
