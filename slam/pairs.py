@@ -38,11 +38,13 @@ class PairsSummary:
     n_gt_inliers: int | None  # accepted loops within the paper's 2 m after GT scaling (None without GT)
     descriptor_bytes: int
     mean_encoding_bytes: float
+    average_precision: dict  # score name -> AP of the inlier detector (Fig. 3), with ground truth
 
     def line(self) -> str:
         gt = "" if self.n_gt_inliers is None else f", {self.n_gt_inliers} within 2 m of ground truth"
+        ap = "".join(f", AP[{k}] {v:.3f}" for k, v in self.average_precision.items() if v == v)
         return (f"{self.n_keyframes} keyframes, {self.n_candidates} candidates, {self.n_registered} registered, "
-                f"{self.n_accepted} accepted{gt}; descriptor {self.descriptor_bytes} B, encoding "
+                f"{self.n_accepted} accepted{gt}{ap}; descriptor {self.descriptor_bytes} B, encoding "
                 f"{self.mean_encoding_bytes:.0f} B per keyframe -> {self.out}")
 
 
@@ -132,8 +134,33 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
             n_in += 1
     _write_csv(out, rows)
     enc_bytes = [e.nbytes for e in front._enc.values()]
+    ap = {sc: inlier_precision_recall(rows, sc)["ap"] for sc in ("similarity", "n_correspondences", "ratio")} \
+        if have_gt else {}
     return PairsSummary(Path(out), sum(map(len, kf.values())), len(cands), n_reg, n_acc, n_in if have_gt else None,
-                        recognizer.descriptor_bytes, float(np.mean(enc_bytes)) if enc_bytes else 0.0)
+                        recognizer.descriptor_bytes, float(np.mean(enc_bytes)) if enc_bytes else 0.0, ap)
+
+
+def inlier_precision_recall(rows: list[dict], score: str, *, outlier_m: float = 2.0) -> dict:
+    """FLOCC Fig. 3: how well `score` (similarity | n_correspondences | ratio) separates inlier loops from outliers.
+
+    rows: CSV rows (dicts) of registered candidates with ground truth; a loop is an outlier when its translation
+    error after scaling with ground truth exceeds `outlier_m` metres (the paper's 2 m). Returns thresholds sorted
+    by descending score with precision and recall at each, and the average precision (area under the PR steps).
+    """
+    data = [(float(r[score]), float(r["t_err_m_gt_scale"]) <= outlier_m) for r in rows
+            if str(r.get("success")) == "1" and r.get("t_err_m_gt_scale", "") != "" and r.get(score, "") != ""]
+    if not data:
+        return {"score": score, "n": 0, "n_inliers": 0, "ap": float("nan"), "threshold": [], "precision": [],
+                "recall": []}
+    s = np.array([d[0] for d in data])
+    y = np.array([d[1] for d in data], bool)
+    order = np.argsort(-s, kind="stable")
+    tp = np.cumsum(y[order])
+    precision = tp / np.arange(1, len(s) + 1)
+    recall = tp / max(int(y.sum()), 1)
+    ap = float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+    return {"score": score, "n": len(s), "n_inliers": int(y.sum()), "ap": ap, "threshold": s[order].tolist(),
+            "precision": precision.tolist(), "recall": recall.tolist()}
 
 
 def _row(meas, seqs, kf, have_gt: bool) -> dict:

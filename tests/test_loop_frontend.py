@@ -129,3 +129,18 @@ def test_pairs_command_errors_are_one_line(dataset, tmp_path, capsys):
 
     with pytest.raises(InputError, match="stride"):
         run_pairs(dataset, tmp_path / "x.csv", stride=0)
+
+
+def test_inlier_precision_recall_ranks_detectors():
+    from slam.pairs import inlier_precision_recall
+
+    rows = [{"success": "1", "t_err_m_gt_scale": str(err), "ratio": str(r), "similarity": str(s)}
+            for err, r, s in [(0.1, 0.9, 0.2), (0.5, 0.8, 0.9), (5.0, 0.2, 0.8), (0.3, 0.7, 0.1), (9.0, 0.1, 0.7)]]
+    rows.append({"success": "0", "t_err_m_gt_scale": "", "ratio": "0.05", "similarity": "0.95"})  # not registered
+    by_ratio = inlier_precision_recall(rows, "ratio")
+    by_sim = inlier_precision_recall(rows, "similarity")
+    assert by_ratio["n"] == 5 and by_ratio["n_inliers"] == 3
+    assert by_ratio["ap"] == pytest.approx(1.0)  # the ratio puts all three inliers first
+    assert by_sim["ap"] < by_ratio["ap"]
+    assert by_ratio["recall"][-1] == pytest.approx(1.0) and by_ratio["precision"][-1] == pytest.approx(3 / 5)
+    assert inlier_precision_recall([], "ratio")["n"] == 0
