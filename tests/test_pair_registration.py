@@ -90,7 +90,12 @@ def test_encoding_round_trips_through_bytes(room, query):
     assert r1.n_correspondences == r2.n_correspondences
     # SIFT descriptors travel as bytes: well under 150 bytes per keypoint
     assert len(data) < 150 * len(enc.arrays["kp"]) + 500
-    for bad in (b"garbage", data[:-3], data + b"x"):
+    import json
+    import struct
+
+    header = json.dumps({"backend": "classical", "arrays": [{"name": "x", "dtype": "|O", "shape": [1]}]}).encode()
+    forged = b"SSENC1" + struct.pack("<I", len(header)) + header
+    for bad in (b"garbage", data[:-3], data + b"x", forged):
         with pytest.raises(InputError):
             Encoding.from_bytes(bad)
 

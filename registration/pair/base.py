@@ -64,17 +64,24 @@ class Encoding:
             raise InputError(f"Encoding.from_bytes: corrupt header: {e}") from None
         off = 10 + n
         arrays = {}
-        for spec in header["arrays"]:
-            dt = np.dtype(spec["dtype"])
-            size = int(np.prod(spec["shape"], dtype=np.int64)) * dt.itemsize
-            if off + size > len(data):
-                raise InputError(f"Encoding.from_bytes: truncated data in array {spec['name']!r}")
-            arrays[spec["name"]] = np.frombuffer(data, dt, count=size // dt.itemsize if dt.itemsize else 0,
-                                                 offset=off).reshape(spec["shape"]).copy()
-            off += size
+        try:
+            for spec in header["arrays"]:
+                dt = np.dtype(spec["dtype"])
+                if dt.hasobject:
+                    raise ValueError("object arrays are not allowed")
+                size = int(np.prod(spec["shape"], dtype=np.int64)) * dt.itemsize
+                if off + size > len(data):
+                    raise InputError(f"Encoding.from_bytes: truncated data in array {spec['name']!r}")
+                arrays[spec["name"]] = np.frombuffer(data, dt, count=size // dt.itemsize if dt.itemsize else 0,
+                                                     offset=off).reshape(spec["shape"]).copy()
+                off += size
+            enc = cls(str(header["backend"]), tuple(int(v) for v in header["image_size"]), arrays,
+                      dict(header.get("meta", {})))
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"Encoding.from_bytes: malformed header: {type(e).__name__}: {e}") from None
         if off != len(data):
             raise InputError(f"Encoding.from_bytes: {len(data) - off} trailing bytes")
-        return cls(header["backend"], tuple(header["image_size"]), arrays, header.get("meta", {}))
+        return enc
 
     @property
     def nbytes(self) -> int:
