@@ -1,0 +1,135 @@
+"""Outputs of a swarm run, in-process or over Zenoh, all in one folder:
+
+    <agent>.txt              each robot's keyframe trajectory in the global frame it holds (TUM, evo reads it)
+    odometry/<agent>.txt     each robot's own odometry at its keyframes (the no-collaboration reference)
+    pose_graph_optimized.g2o the final global graph, solved as configured (vertices = optimised poses)
+    metrics.json             ATE per robot and merged (one alignment) for the run, for odometry only and for the
+                             other formulations re-solved on the same final graphs; loops; bytes per message type
+    trajectories.png         every robot against ground truth after the merged alignment
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from kernels.fileio import atomic_write_text
+
+from .optimiser import SolveConfig, solve_group
+
+ALTERNATIVES = {  # name -> (formulation, solver, uniform noise); "baseline" is Swarm-SLAM-like
+    "is-lm": ("is", "lm", False), "ss-lm": ("ss", "lm", False), "base-lm": ("base", "lm", False),
+    "is-gnc": ("is", "gnc", False), "baseline-base-gnc-uniform": ("base", "gnc", True),
+}
+
+
+def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray]) -> dict:
+    """Per-robot ATE (each aligned alone) and merged ATE (one SE(3) alignment for all), RMSE in metres."""
+    from slam.metrics import ate_multi
+
+    gt, est = {}, {}
+    for r, seq in enumerate(setup.dataset.agents):
+        if r not in trajs or seq.gt_poses is None:
+            continue
+        frames = np.arange(0, len(seq), setup.stride)[: len(trajs[r])]
+        gt[seq.name] = (np.asarray(stamps[r]), seq.gt_poses[frames])
+        est[seq.name] = (np.asarray(stamps[r]), trajs[r])
+    if not est:
+        return {}
+    res = ate_multi(gt, est, align="se3", by_index=True)
+    return {"merged_rmse": res.joint.rmse, "per_robot_rmse": {k: v.rmse for k, v in res.per_agent.items()},
+            "_result": res}
+
+
+def _public(d: dict) -> dict:
+    return {k: v for k, v in d.items() if not k.startswith("_")}
+
+
+def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *, mode: str) -> dict:
+    """robots: id -> {trajectory, odometry, timestamps, bytes, estimate, n_solves}; final_subs: the graphs of
+    the optimiser's last solve (robot id -> GraphSubmission), re-solved here for the comparison and the g2o."""
+    from graph.g2o import write_g2o
+    from slam.trajectory import write_tum
+
+    out = Path(out)
+    names = {r: s.name for r, s in enumerate(setup.dataset.agents)}
+    (out / "odometry").mkdir(parents=True, exist_ok=True)
+    for r, d in robots.items():
+        write_tum(out / f"{names[r]}.txt", d["timestamps"], d["trajectory"])
+        write_tum(out / "odometry" / f"{names[r]}.txt", d["timestamps"], d["odometry"])
+    stamps = {r: d["timestamps"] for r, d in robots.items()}
+    run = _ate(setup, {r: d["trajectory"] for r, d in robots.items()}, stamps)
+    odo = _ate(setup, {r: d["odometry"] for r, d in robots.items()}, stamps)
+    cfg = setup.node_config.solve
+    metrics = {"mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
+               "schedule": setup.schedule.to_dict(), "stride": setup.stride,
+               "ate": _public(run), "odometry_only_ate": _public(odo), "alternatives": {}}
+    if final_subs:
+        sol = solve_group(final_subs, cfg)
+        keys = sorted(sol.graph.poses)
+        from graph.pose_graph import robot_key
+
+        poses = {}
+        off = 0
+        for r, c in zip(sol.robots, sol.counts):
+            for i in range(c):
+                poses[robot_key(chr(ord("a") + r), i)] = sol.poses[off + i]
+            off += c
+        write_g2o(sol.graph, out / "pose_graph_optimized.g2o", {k: poses[k] for k in keys})
+        loops = sol.graph.loops()
+        metrics["loop_closures"] = {"count": len(loops),
+                                    "per_pair": _per_pair(loops), "mean_confidence": float(np.mean(
+                                        [e.confidence for e in loops])) if loops else None}
+        for name, (f, s, u) in ALTERNATIVES.items():
+            alt = solve_group(final_subs, SolveConfig(formulation=f, solver=s, uniform_noise=u))
+            trajs, off = {}, 0
+            for r, c in zip(alt.robots, alt.counts):
+                trajs[r] = alt.poses[off: off + c]
+                off += c
+            metrics["alternatives"][name] = {**_public(_ate(setup, trajs, {r: stamps[r][: len(trajs[r])]
+                                                                           for r in trajs})),
+                                             "time_s": alt.time_s}
+    metrics["bytes"] = {names[r]: d["bytes"] for r, d in robots.items()}
+    metrics["images_bytes"] = {names[r]: _image_bytes(setup, r, len(d["timestamps"])) for r, d in robots.items()}
+    metrics["n_solves"] = {names[r]: d["n_solves"] for r, d in robots.items()}
+    metrics["estimate_stamp"] = {names[r]: (list(d["estimate"].stamp) if d["estimate"] is not None else None)
+                                 for r, d in robots.items()}
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=float))
+    if run.get("_result") is not None:
+        _plot(out / "trajectories.png", run["_result"])
+    return metrics
+
+
+def _per_pair(loops) -> dict:
+    from graph.pose_graph import key_robot
+
+    out: dict[str, int] = {}
+    for e in loops:
+        k = f"{key_robot(e.key_i)}-{key_robot(e.key_j)}"
+        out[k] = out.get(k, 0) + 1
+    return out
+
+
+def _image_bytes(setup, robot: int, n_kf: int) -> dict:
+    """What sending the keyframe images themselves would cost once: raw RGB and PNG-compressed."""
+    import cv2
+
+    seq = setup.dataset.agents[robot]
+    frames = list(range(0, len(seq), setup.stride))[:n_kf]
+    raw = png = 0
+    for f in frames:
+        im = seq[f].color
+        raw += im.nbytes
+        png += len(cv2.imencode(".png", im[..., ::-1])[1])
+    return {"raw": int(raw), "png": int(png), "keyframes": len(frames)}
+
+
+def _plot(path: Path, res) -> None:
+    from slam.plots import plot_trajectories
+
+    S = res.joint.transform
+    est = {k: S.apply_to_poses(v.pairs.T_est)[:, :3, 3] for k, v in res.per_agent.items()}
+    gt = {k: v.pairs.T_gt[:, :3, 3] for k, v in res.per_agent.items()}
+    plot_trajectories(path, gt, est, title=f"swarm: merged ATE RMSE {res.joint.rmse:.3f} m (one SE(3) alignment)")
