@@ -17,7 +17,7 @@ import numpy as np
 from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 
-from .icp import evaluate_rgbd, icp_rgbd
+from .icp import default_strides, evaluate_rgbd, icp_rgbd
 from .pointcloud import check_camera, check_color, check_depth, check_pose, depth_to_points
 from .result import POOR_ALIGNMENT, TOO_FEW_POINTS, RegistrationResult
 
@@ -27,13 +27,13 @@ OPEN3D_METHODS = {"open3d-hybrid": "Hybrid", "open3d-intensity": "Intensity", "o
 def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 3] uint8, [H, W] metres
                   target_color: np.ndarray, target_depth: np.ndarray, camera: PinholeCamera,
                   init: np.ndarray = np.eye(4), *, method: str = "hybrid", photometric_weight: float = 0.3,
-                  strides: Sequence[int] = (8, 4, 2), iterations: Sequence[int] = (10, 10, 10),
+                  strides: Sequence[int] | None = None, iterations: Sequence[int] | None = None,
                   max_distance: float = 0.05, depth_max: float | None = None) -> RegistrationResult:
     """Coarse frame-to-frame alignment T_target_source from colour and depth.
 
     method "hybrid" (default): our projective point-to-plane + intensity term with weight `photometric_weight`
-    (intensity in [0, 1] against metres; 0.1-0.3 measured equally good) on strides (8, 4, 2): the finest level
-    is left to `icp_rgbd`. "geometric": the same without colour. "open3d-hybrid" / "open3d-intensity" /
+    (intensity in [0, 1] against metres; 0.1-0.3 measured equally good) on the pyramid of `icp_rgbd` without its
+    full-resolution level (640x480: strides 8, 4, 2), which is left to the refinement. "geometric": the same without colour. "open3d-hybrid" / "open3d-intensity" /
     "open3d-point-to-plane": Open3D's tensor `rgbd_odometry_multi_scale` (10/5/3 iterations, depth_diff 0.2 m),
     scored with our evaluation. fitness / RMSE use projective correspondences within `max_distance`.
     """
@@ -41,6 +41,9 @@ def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 
     check_color("source_color", source_color, camera)
     check_color("target_color", target_color, camera)
     if method in ("hybrid", "geometric"):
+        if strides is None:
+            strides = default_strides(camera.width)
+            strides = strides[:-1] if len(strides) > 1 else strides
         colors = dict(source_color=source_color, target_color=target_color) if method == "hybrid" else {}
         res = icp_rgbd(source_depth, target_depth, camera, init, max_distance=max_distance, strides=strides,
                        iterations=iterations, photometric_weight=photometric_weight if colors else 0.0,
