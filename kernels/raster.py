@@ -93,6 +93,7 @@ class _RasterFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, packed, rect, background, width, height, impl, device):
+        packed = packed.detach()  # the kernels see plain tensors; gradients come from backward()
         # Skip exp() where alpha cannot reach 1/255: power < -log(255 o) (minus a margin so that the exact
         # alpha test after exp, the one the twin applies, still makes every decision).
         pthr = (-torch.log(255.0 * packed[:, 5].detach()) - 1e-5).contiguous()
