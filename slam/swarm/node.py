@@ -99,6 +99,7 @@ class RobotNode:
         self.n_solves = 0
         self._sent: dict[tuple, tuple] = {}  # (what, peer) -> (content, tick): resend bookkeeping
         self._dirty: set[int] = set()  # peers whose candidates must be searched again
+        self._pending: set[int] = set()  # peers whose encodings we asked for and still lack (ask again)
         self.tick = 0
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -164,7 +165,7 @@ class RobotNode:
         nb = self.neighbours()
         for peer in nb:
             self._sync(peer)
-        for peer in sorted(self._dirty):
+        for peer in sorted(self._dirty | (self._pending & set(nb))):
             self._close_loops(peer)
         self._dirty.clear()
         leader = elect(self.id, nb)
@@ -232,9 +233,13 @@ class RobotNode:
             return
         have = int(h.have_desc.get(str(self.id), 0))
         n = len(self.own_desc)
-        if have < n and self._due("desc", peer, (have, n)):
-            self.tx.send(peer, M.Descriptors(owner=self.id, indices=np.arange(have, n, dtype=np.int64),
-                                             descriptors=np.stack(self.own_desc[have:n])))
+        upto, when = self._sent.get(("desc", peer), (0, -10**9))
+        # what was sent recently is in flight: send only newer keyframes; after `resend` ticks, everything missing
+        start = have if (have >= upto or self.tick - when >= self.cfg.resend) else upto
+        if start < n:
+            self._sent[("desc", peer)] = (n, self.tick)
+            self.tx.send(peer, M.Descriptors(owner=self.id, indices=np.arange(start, n, dtype=np.int64),
+                                             descriptors=np.stack(self.own_desc[start:n])))
         mine = self.loops.get(peer, {})
         digest = self._loops_digest(peer)
         if peer > self.id and int(h.loops_with.get(str(self.id), 0)) != digest and self._due("loops", peer, digest):
@@ -271,6 +276,7 @@ class RobotNode:
                 cands[(i, js[jj])] = float(sim[i, jj])
         c = robot_char(peer)
         need = sorted({j for (_, j) in cands if (c, j) not in self.front._enc})
+        (self._pending.add if need else self._pending.discard)(peer)
         if need and self._due("encreq", peer, tuple(need)):
             self.tx.send(peer, M.EncodingRequest(owner=peer, indices=np.array(need, np.int64)))
         for (i, j), s in sorted(cands.items()):

@@ -1,0 +1,88 @@
+"""`Transport` over Zenoh (`eclipse-zenoh`): peer-to-peer sessions, no router or broker, one per robot process.
+
+Each robot listens on `tcp/<host>:<port_base + id>` and connects to the other robots' endpoints (multicast
+scouting off, so tests stay on loopback). Messages go to key `swarmsplat/<run>/to/<dest>` or, for a broadcast,
+`swarmsplat/<run>/all`. The rendezvous schedule is enforced on both ends with the robot's own tick clock: a robot
+does not send to a robot it is not linked with, and drops what arrives from one.
+
+`zenoh` is imported when a transport is created, so the rest of the package works without it.
+"""
+
+from __future__ import annotations
+
+import queue
+from typing import Callable
+
+from kernels.errors import InputError
+
+from . import messages as M
+from .rendezvous import Schedule
+from .transport import Transport
+
+
+def zenoh_available() -> bool:
+    try:
+        import zenoh  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class ZenohTransport(Transport):
+    """One robot's Zenoh session. `clock()` returns the current tick (used with `schedule` to gate links)."""
+
+    def __init__(self, robot: int, robots: list[int], *, run: str = "default", port_base: int = 17447,
+                 host: str = "127.0.0.1", schedule: Schedule | None = None, clock: Callable[[], int] | None = None):
+        super().__init__(robot)
+        try:
+            import zenoh
+        except ImportError:
+            raise InputError("the Zenoh transport needs eclipse-zenoh: pip install eclipse-zenoh") from None
+        self.robots = sorted(int(r) for r in robots)
+        self.schedule, self.clock = schedule, clock or (lambda: 0)
+        self.prefix = f"swarmsplat/{run}"
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("listen/endpoints", f'["tcp/{host}:{port_base + self.robot}"]')
+        others = [f'"tcp/{host}:{port_base + r}"' for r in self.robots if r != self.robot]
+        conf.insert_json5("connect/endpoints", "[" + ",".join(others) + "]")
+        self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self.session = zenoh.open(conf)
+        cb = lambda sample: self._q.put(sample.payload.to_bytes())  # noqa: E731  (runs on Zenoh's thread)
+        self._subs = [self.session.declare_subscriber(f"{self.prefix}/to/{self.robot}", cb),
+                      self.session.declare_subscriber(f"{self.prefix}/all", cb)]
+
+    def _linked(self, other: int) -> bool:
+        return self.schedule is None or self.schedule.linked(self.clock(), self.robot, other)
+
+    def send(self, dest: int | None, msg: M.Message) -> int:
+        if dest is not None and not self._linked(int(dest)):
+            return 0  # out of range: nothing leaves the robot
+        if dest is None and not any(self._linked(r) for r in self.robots if r != self.robot):
+            return 0
+        return super().send(dest, msg)
+
+    def _send_bytes(self, dest: int | None, data: bytes) -> None:
+        key = f"{self.prefix}/all" if dest is None else f"{self.prefix}/to/{int(dest)}"
+        self.session.put(key, data)
+
+    def _receive_bytes(self) -> list[bytes]:
+        out = []
+        while True:
+            try:
+                data = self._q.get_nowait()
+            except queue.Empty:
+                return out
+            try:
+                sender = M.peek_header(data).sender
+            except M.MessageError:
+                out.append(data)  # let poll() count it as rejected
+                continue
+            if self._linked(sender):
+                out.append(data)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.session.close()
