@@ -207,7 +207,8 @@ def _best_overlap(world, Ta, Tb, opposite: bool) -> float:
 def test_agents_overlap_including_from_opposite_directions(default_world):
     world, cfg, poses = default_world
     assert _best_overlap(world, poses[0], poses[1], opposite=True) > 0.1  # same place, opposite views
-    assert _best_overlap(world, poses[1], poses[2], opposite=False) > 0.1  # same place, same direction
+    assert _best_overlap(world, poses[0], poses[2], opposite=False) > 0.4  # same place, same direction
+    assert _best_overlap(world, poses[1], poses[2], opposite=True) > 0.1
     assert _best_overlap(world, poses[4], poses[5], opposite=True) > 0.1
     # Agent k's path does not depend on how many agents there are.
     two = agent_poses(world, cfg.model_copy(update={"agents": 2}))

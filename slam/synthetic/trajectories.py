@@ -8,10 +8,11 @@ loop a bit more than once (`MotionConfig.loop_turns`) makes the agent revisit it
 closure. The six agent slots are laid out around the world's main (wide) opening between room A and room B:
 
     slot 0: room A, looking into B         slot 1: room B, looking into A  (opposite direction of slot 0)
-    slot 2: room A, looking away from B    slot 3: room B, looking away from A
+    slot 2: room A, beside and behind 0, looking into B (same direction as 0, opposite to 1)
+    slot 3: room B, beside and behind 1, looking into A (same direction as 1, opposite to 0 and 2)
     slot 4: room C (or B), looking at A    slot 5: room A, looking at C    (a second opposite pair)
 
-so agents 0 and 1 see the region around the opening from opposite directions, 1 and 2 see room A's far half
+so agents 0 and 1 see the region around the opening from opposite directions, 0 and 2 see it from nearby
 looking the same way, and so on. Speeds are the largest that respect the per-frame translation and rotation
 limits of `MotionConfig`.
 """
@@ -99,7 +100,7 @@ def plan_loops(rooms, main_opening, rng: np.random.Generator, n: int = MAX_AGENT
                and abs(np.dot(_unit(_centre(r) - _centre(ra)), v)) > 0.9), None)
     if rc is not None:
         v = _unit(_centre(rc) - _centre(ra))
-    slots = [(ra, 0.0, 0.08, u), (rb, 0.0, -0.08, -u), (ra, 0.12, -0.12, -u), (rb, -0.12, 0.12, u)]
+    slots = [(ra, 0.0, 0.08, u), (rb, 0.0, -0.08, -u), (ra, -0.1, -0.2, u), (rb, 0.1, 0.2, -u)]
     slots += [(rc, 0.0, 0.2, -v) if rc is not None else (rb, 0.0, -0.15, v), (ra, 0.0, -0.2, v)]
     loops = []
     for agent, (room, fu, fv, heading) in enumerate(slots[:n]):
