@@ -61,6 +61,19 @@ def _open3d_rows(label, ps, pt, ts, tt, dist, init, T_true, repeat, quick):
     return out
 
 
+def _row(case: str, impl: str, seconds: float, peer: dict | None = None, err=None, fitness=None) -> dict:
+    """One table row; `peer` = {"legacy": s, "tensor": s} gives Open3D's times and the ratios of medians."""
+    row = {"case": case, "impl": impl, "median_ms": seconds * 1e3}
+    if peer:
+        row.update(open3d_legacy_ms=peer["legacy"] * 1e3, open3d_tensor_ms=peer["tensor"] * 1e3,
+                   x_vs_legacy=peer["legacy"] / seconds, x_vs_tensor=peer["tensor"] / seconds)
+    if err is not None:
+        row.update(err_mm=err[0], err_deg=err[1])
+    if fitness is not None:
+        row["fitness"] = fitness
+    return row
+
+
 def _coarse_rows(cam, cs, ds, ct, dt, T_true, backend, repeat):
     """The coarse RGB-D stage from identity: ours (hybrid, geometric) and Open3D's odometry variants."""
     import kernels
@@ -74,9 +87,9 @@ def _coarse_rows(cam, cs, ds, ct, dt, T_true, backend, repeat):
         t = time_fn(lambda: holder.__setitem__("r", rgbd_odometry(cs, ds, ct, dt, cam, method=method)),
                     repeat=repeat, max_seconds=20)
         r = holder["r"]
-        e = _err(r.T_target_source, T_true)
-        rows.append({"case": f"coarse RGB-D 640x480 from identity: {method}", "impl": backend if method in ("hybrid", "geometric") else "open3d tensor",
-                     "median_ms": t["median_s"] * 1e3, "err_mm": e[0], "err_deg": e[1], "fitness": r.fitness})
+        impl = backend if method in ("hybrid", "geometric") else "open3d tensor"
+        rows.append(_row(f"coarse RGB-D 640x480 from identity: {method}", impl, t["median_s"],
+                         err=_err(r.T_target_source, T_true), fitness=r.fitness))
     # Open3D legacy hybrid at its defaults (the issue's 148 mm case) and with more iterations.
     K = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
     rgbd = lambda c, d: o3d.geometry.RGBDImage.create_from_color_and_depth(  # noqa: E731
@@ -84,14 +97,14 @@ def _coarse_rows(cam, cs, ds, ct, dt, T_true, backend, repeat):
         depth_trunc=10.0, convert_rgb_to_intensity=True)
     S, Tg = rgbd(cs, ds), rgbd(ct, dt)
     odo = o3d.pipelines.odometry
-    for name, opt in (("defaults", odo.OdometryOption()),
-                      ("40/20/10 it, depth_diff 0.07, depth_max 10", odo.OdometryOption(o3d.utility.IntVector([40, 20, 10]), 0.07, 0.0, 10.0))):
+    more = odo.OdometryOption(o3d.utility.IntVector([40, 20, 10]), 0.07, 0.0, 10.0)
+    for name, opt in (("defaults", odo.OdometryOption()), ("40/20/10 it, depth_diff 0.07, depth_max 10", more)):
         holder = {}
-        t = time_fn(lambda: holder.__setitem__("r", odo.compute_rgbd_odometry(S, Tg, K, np.eye(4), odo.RGBDOdometryJacobianFromHybridTerm(), opt)),
+        jac = odo.RGBDOdometryJacobianFromHybridTerm()
+        t = time_fn(lambda: holder.__setitem__("r", odo.compute_rgbd_odometry(S, Tg, K, np.eye(4), jac, opt)),
                     repeat=1, warmup=0, max_seconds=20)
-        e = _err(np.asarray(holder["r"][1]), T_true)
-        rows.append({"case": f"coarse RGB-D 640x480 from identity: open3d-legacy-hybrid {name}", "impl": "open3d legacy",
-                     "median_ms": t["median_s"] * 1e3, "err_mm": e[0], "err_deg": e[1]})
+        rows.append(_row(f"coarse RGB-D 640x480 from identity: open3d-legacy-hybrid {name}", "open3d legacy",
+                         t["median_s"], err=_err(np.asarray(holder["r"][1]), T_true)))
     return rows
 
 
@@ -132,22 +145,22 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
             sv, sn = K.vertices_normals_from_depth(torch.from_numpy(ds).to(dev), cam)
             src, srcn = sv.reshape(-1, 3).contiguous(), sn.reshape(-1, 3).contiguous()
             Tt = torch.from_numpy(init).to(dev)
-            step = lambda: K.projective_normal_equations(src, Tt, tv, tn, cam, max_distance=0.05, source_normals=srcn,  # noqa: E731
-                                                         max_angle_deg=45.0, robust="huber", robust_scale=0.025,
-                                                         validate=False)
+            def step():
+                return K.projective_normal_equations(src, Tt, tv, tn, cam, max_distance=0.05, source_normals=srcn,
+                                                     max_angle_deg=45.0, robust="huber", robust_scale=0.025,
+                                                     validate=False)
+
+            full_peer = {"legacy": o3_full["legacy_iter_s"], "tensor": o3_full["tensor_iter_s"]}
             t = time_fn(step, repeat=repeat * 3, device=device)
-            rows.append({"case": "projective ICP iteration, 640x480 (307k pts)", "impl": b, "median_ms": t["median_s"] * 1e3,
-                         "open3d_legacy_ms": o3_full["legacy_iter_s"] * 1e3, "open3d_tensor_ms": o3_full["tensor_iter_s"] * 1e3,
-                         "x_vs_legacy": o3_full["legacy_iter_s"] / t["median_s"], "x_vs_tensor": o3_full["tensor_iter_s"] / t["median_s"]})
-            tn_t = time_fn(lambda: K.vertices_normals_from_depth(torch.from_numpy(dt).to(dev), cam), repeat=repeat, device=device)
-            rows.append({"case": "vertex + normal maps, 640x480", "impl": b, "median_ms": tn_t["median_s"] * 1e3})
+            rows.append(_row("projective ICP iteration, 640x480 (307k pts)", b, t["median_s"], full_peer))
+            t = time_fn(lambda: K.vertices_normals_from_depth(torch.from_numpy(dt).to(dev), cam), repeat=repeat,
+                        device=device)
+            rows.append(_row("vertex + normal maps, 640x480", b, t["median_s"]))
             holder = {}
-            full = time_fn(lambda: holder.__setitem__("r", icp_rgbd(ds, dt, cam, init)), repeat=repeat, device=device)
-            e = _err(holder["r"].T_target_source, T_true)
-            rows.append({"case": "full projective ICP 640x480 (8/4/2/1, 10 it/level)", "impl": b, "median_ms": full["median_s"] * 1e3,
-                         "open3d_legacy_ms": o3_full["legacy_full_s"] * 1e3, "open3d_tensor_ms": o3_full["tensor_full_s"] * 1e3,
-                         "x_vs_legacy": o3_full["legacy_full_s"] / full["median_s"], "x_vs_tensor": o3_full["tensor_full_s"] / full["median_s"],
-                         "err_mm": e[0], "err_deg": e[1], "fitness": holder["r"].fitness})
+            t = time_fn(lambda: holder.__setitem__("r", icp_rgbd(ds, dt, cam, init)), repeat=repeat, device=device)
+            rows.append(_row("full projective ICP 640x480 (8/4/2/1, 10 it/level)", b, t["median_s"],
+                             {"legacy": o3_full["legacy_full_s"], "tensor": o3_full["tensor_full_s"]},
+                             _err(holder["r"].T_target_source, T_true), holder["r"].fitness))
             # Voxelised clouds, nearest-neighbour association through the grid.
             s_t = torch.from_numpy(src_v).to(dev)
             g_t = torch.from_numpy(tgt_v).to(dev)
@@ -159,21 +172,20 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
                 return K.reduce_point_to_plane(s_t, Tt, g_t, n_t, idx, validate=False)
 
             t = time_fn(nn_step, repeat=repeat * 3, device=device)
-            rows.append({"case": f"NN ICP iteration, voxel {vox} m ({len(src_v)} pts)", "impl": b, "median_ms": t["median_s"] * 1e3,
-                         "open3d_legacy_ms": o3_vox["legacy_iter_s"] * 1e3, "open3d_tensor_ms": o3_vox["tensor_iter_s"] * 1e3,
-                         "x_vs_legacy": o3_vox["legacy_iter_s"] / t["median_s"], "x_vs_tensor": o3_vox["tensor_iter_s"] / t["median_s"]})
-            full = time_fn(lambda: holder.__setitem__("c", icp_clouds(src_v, tgt_v, init, max_distance=2 * vox,
-                                                                       target_normals=tgt_normals_v, max_iterations=10 if quick else 30)),
-                           repeat=repeat, device=device)
-            e = _err(holder["c"].T_target_source, T_true)
-            rows.append({"case": f"full NN ICP, voxel {vox} m", "impl": b, "median_ms": full["median_s"] * 1e3,
-                         "open3d_legacy_ms": o3_vox["legacy_full_s"] * 1e3, "open3d_tensor_ms": o3_vox["tensor_full_s"] * 1e3,
-                         "x_vs_legacy": o3_vox["legacy_full_s"] / full["median_s"], "x_vs_tensor": o3_vox["tensor_full_s"] / full["median_s"],
-                         "err_mm": e[0], "err_deg": e[1], "fitness": holder["c"].fitness})
-        rows.append({"case": "full ICP 640x480 (307k pts, from the same init)", "impl": "open3d legacy",
-                     "median_ms": o3_full["legacy_full_s"] * 1e3, "err_mm": o3_full["legacy_err"][0], "err_deg": o3_full["legacy_err"][1]})
-        rows.append({"case": "full ICP 640x480 (307k pts, from the same init)", "impl": "open3d tensor",
-                     "median_ms": o3_full["tensor_full_s"] * 1e3, "err_mm": o3_full["tensor_err"][0], "err_deg": o3_full["tensor_err"][1]})
+            rows.append(_row(f"NN ICP iteration, voxel {vox} m ({len(src_v)} pts)", b, t["median_s"],
+                             {"legacy": o3_vox["legacy_iter_s"], "tensor": o3_vox["tensor_iter_s"]}))
+
+            def nn_full():
+                holder["c"] = icp_clouds(src_v, tgt_v, init, max_distance=2 * vox, target_normals=tgt_normals_v,
+                                         max_iterations=10 if quick else 30)
+
+            t = time_fn(nn_full, repeat=repeat, device=device)
+            rows.append(_row(f"full NN ICP, voxel {vox} m", b, t["median_s"],
+                             {"legacy": o3_vox["legacy_full_s"], "tensor": o3_vox["tensor_full_s"]},
+                             _err(holder["c"].T_target_source, T_true), holder["c"].fitness))
+        for impl in ("legacy", "tensor"):
+            rows.append(_row("full ICP 640x480 (307k pts, from the same init)", f"open3d {impl}",
+                             o3_full[f"{impl}_full_s"], err=o3_full[f"{impl}_err"]))
         rows += _coarse_rows(cam, cs, ds, ct, dt, T_true, backends[0], 1 if quick else 2)
     finally:
         torch.set_num_threads(threads)

@@ -115,7 +115,8 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
     normal angle below `max_angle_deg`. Geometry alone has a narrow basin in box-like scenes (measured on the
     synthetic room: 5 cm / 3 deg from identity can slide along walls); start it from a coarse estimate
     (`registration.rgbd.rgbd_odometry`) or add the colour term, which converged from 19 cm / 10 deg.
-    robust: "none" | "huber" | "tukey" with `robust_scale` metres (default half the level's gate). With both colours and `photometric_weight` > 0 an intensity term (hybrid alignment) is added.
+    robust: "none" | "huber" | "tukey" with `robust_scale` metres (default half the level's gate). With both
+    colours and `photometric_weight` > 0 an intensity term (hybrid alignment) is added.
     Steps stop when |omega| and |v| fall below `tolerance` (rad, m). fitness / inlier_rmse are evaluated at full
     resolution with projective correspondences within `max_distance` and Open3D's definitions.
     """

@@ -33,7 +33,8 @@ def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 
 
     method "hybrid" (default): our projective point-to-plane + intensity term with weight `photometric_weight`
     (intensity in [0, 1] against metres; 0.1-0.3 measured equally good) on the pyramid of `icp_rgbd` without its
-    full-resolution level (640x480: strides 8, 4, 2), which is left to the refinement. "geometric": the same without colour. "open3d-hybrid" / "open3d-intensity" /
+    full-resolution level (640x480: strides 8, 4, 2), which is left to the refinement. "geometric": the same
+    without colour. "open3d-hybrid" / "open3d-intensity" /
     "open3d-point-to-plane": Open3D's tensor `rgbd_odometry_multi_scale` (10/5/3 iterations, depth_diff 0.2 m),
     scored with our evaluation. fitness / RMSE use projective correspondences within `max_distance`.
     """

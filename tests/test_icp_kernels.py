@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import kernels
-from kernels import _ref_icp as R
+from kernels import reference as R
 from kernels import icp as K
 from kernels import se3
 from kernels.errors import InputError
