@@ -47,11 +47,29 @@ class ZenohTransport(Transport):
         conf.insert_json5("listen/endpoints", f'["tcp/{host}:{port_base + self.robot}"]')
         others = [f'"tcp/{host}:{port_base + r}"' for r in self.robots if r != self.robot]
         conf.insert_json5("connect/endpoints", "[" + ",".join(others) + "]")
+        try:  # peers start in any order: retry connecting quickly instead of Zenoh's slow default back-off
+            conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, '
+                                               '"period_increase_factor": 1.5}')
+        except Exception:  # noqa: BLE001 (older releases without the key keep their default)
+            pass
         self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self.session = zenoh.open(conf)
         cb = lambda sample: self._q.put(sample.payload.to_bytes())  # noqa: E731  (runs on Zenoh's thread)
         self._subs = [self.session.declare_subscriber(f"{self.prefix}/to/{self.robot}", cb),
                       self.session.declare_subscriber(f"{self.prefix}/all", cb)]
+
+    def wait_for_peers(self, timeout: float = 30.0) -> int:
+        """Block until a session is open with every other robot (or `timeout` seconds); returns how many are."""
+        import time
+
+        t_end = time.time() + timeout
+        n = 0
+        while time.time() < t_end:
+            n = len(list(self.session.info.peers_zid()))
+            if n >= len(self.robots) - 1:
+                break
+            time.sleep(0.05)
+        return n
 
     def _linked(self, other: int) -> bool:
         return self.schedule is None or self.schedule.linked(self.clock(), self.robot, other)
