@@ -200,3 +200,25 @@ def test_bad_inputs_raise_input_errors_naming_the_argument(small_pair):
         icp_clouds(pts, bad, np.eye(4), max_distance=0.05)
     with pytest.raises(InputError, match="'target_normals'.*shape"):
         icp_clouds(pts, pts, np.eye(4), max_distance=0.05, target_normals=pts[:10])
+
+
+def test_views_without_overlap_fail_with_the_initial_pose():
+    kernels.use("taichi", "cpu")
+    cam = synthetic.default_camera(160, 120)
+    ca, da = synthetic.render(cam, synthetic.pose((0.1, -0.1, -0.5), (-5.0, 8.0, 0.0)))
+    cb, db = synthetic.render(cam, synthetic.pose((0.3, -0.1, 1.0), (0.0, 180.0, 0.0)))  # facing the other way
+    init = se3.exp(np.array([0.0, 0.1, 0.0, 0.05, 0.0, 0.0]))
+    r = register_rgbd(ca, da, cb, db, cam, init)
+    assert not r.success and r.reason in (R.TOO_FEW_POINTS, R.POOR_ALIGNMENT, R.DEGENERATE), r
+    assert np.array_equal(r.T_target_source, init)
+
+
+def test_open3d_odometry_methods_are_scored_with_our_evaluation(mid_pair):
+    kernels.use("warp", "cpu")
+    cam, (cs, ds), (ct, dt), T = mid_pair
+    r = rgbd_odometry(cs, ds, ct, dt, cam, method="open3d-point-to-plane")
+    assert r.success and r.method == "rgbd_odometry/open3d-point-to-plane" and r.fitness > 0.8
+    et, er = pose_error(r.T_target_source, T)
+    assert et < 3e-3 and er < 0.1
+    with pytest.raises(InputError, match="'method'"):
+        rgbd_odometry(cs, ds, ct, dt, cam, method="sift")
