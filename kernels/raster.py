@@ -130,7 +130,10 @@ class _RasterFn(torch.autograd.Function):
             impl.render_backward(packed, pthr, tile_start, entries, background, width, height, t_final, last,
                                  g_color, g_depth, g_alpha, t_run, behind, g_entry, device)
             g_packed.index_add_(0, entries[:n_entries].long(), g_entry)
-        return g_packed, None, None, None, None, None, None
+        g_bg = None
+        if ctx.needs_input_grad[2] and g_color is not None:
+            g_bg = (t_final[..., None] * g_color).sum((0, 1))  # colour = ... + T_final * background
+        return g_packed, None, g_bg, None, None, None, None
 
 
 def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, dev):

@@ -158,10 +158,13 @@ def _grads(fn, s, viewmat0, bg, dtype):
     """Gradients of the weighted loss to the Gaussians and to the twist xi of viewmat = exp(xi) @ viewmat0."""
     params = {k: v.to(dtype).clone().requires_grad_(True) for k, v in s.items()}
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    bg = bg.detach().to(dtype).clone().requires_grad_(True)
     viewmat = (se3.exp_torch(xi) @ viewmat0.double()).to(dtype)
-    out = fn(**params, viewmat=viewmat, K=K.to(dtype), width=W, height=H, background=bg.to(dtype))
+    out = fn(**params, viewmat=viewmat, K=K.to(dtype), width=W, height=H, background=bg)
     _loss(out, _loss_weights(7)).backward()
-    return {k: p.grad.double() for k, p in params.items()}, xi.grad
+    grads = {k: p.grad.double() for k, p in params.items()}
+    grads["background"] = bg.grad.double()
+    return grads, xi.grad
 
 
 def _twin_loss(s, viewmat, bg):
@@ -179,7 +182,7 @@ def test_gradients_match_twin_autograd(backend):
     s, v0, bg = _grad_scene(), viewmat_rotated(), torch.tensor([0.3, 0.2, 0.7])
     g_k, xi_k = _grads(kernels.rasterize, s, v0, bg, torch.float32)
     g_r, xi_r = _grads(rasterize_reference, s, v0, bg, torch.float64)
-    for name in NAMES:
+    for name in NAMES + ("background",):
         scale = g_r[name].abs().max().item()
         assert scale > 0, name
         err = (g_k[name] - g_r[name]).abs().max().item()
