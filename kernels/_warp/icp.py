@@ -178,10 +178,37 @@ def _robust_w(r: float, kind: int, k: float):
     return 1.0
 
 
+vec33f = wp.types.vector(length=33, dtype=wp.float32)
+vec33d = wp.types.vector(length=33, dtype=wp.float64)
+SUB = 64  # points summed in float32 before each float64 flush
+
+
+@wp.func
+def _contrib(J: wp.spatial_vectorf, w: float, r: float, e0: float, e1: float, e2: float, e3: float, e4: float,
+             e5: float):
+    # Packed per-point terms: [0:21] upper triangle of w J J^T (row-major), [21:27] w r J, [27:33] the extras.
+    a0 = J[0]
+    a1 = J[1]
+    a2 = J[2]
+    a3 = J[3]
+    a4 = J[4]
+    a5 = J[5]
+    b0 = w * a0
+    b1 = w * a1
+    b2 = w * a2
+    b3 = w * a3
+    b4 = w * a4
+    b5 = w * a5
+    return vec33f(b0 * a0, b0 * a1, b0 * a2, b0 * a3, b0 * a4, b0 * a5, b1 * a1, b1 * a2, b1 * a3, b1 * a4, b1 * a5,
+                  b2 * a2, b2 * a3, b2 * a4, b2 * a5, b3 * a3, b3 * a4, b3 * a5, b4 * a4, b4 * a5, b5 * a5,
+                  b0 * r, b1 * r, b2 * r, b3 * r, b4 * r, b5 * r, e0, e1, e2, e3, e4, e5)
+
+
 def _make_reduce(projective: bool, photo: bool):
     """The reduction kernel specialised at compile time (wp.static) for the association mode and the photometric
-    term: Warp copies every local assigned under a run-time branch, and copying the 6x6 accumulator per point
-    would cost more than the arithmetic."""
+    term. Two measured choices for Warp's single CPU thread: accumulators are updated unconditionally (Warp copies
+    every local assigned under a run-time branch), and each run of SUB points is summed in float32 over the upper
+    triangle only before a float64 flush (1.8x faster than a float64 6x6 outer product per point)."""
 
     @wp.kernel(module="unique", enable_backward=False)
     def _reduce(src: wp.array(dtype=wp.vec3), T: wp.mat44, tp: wp.array(dtype=wp.vec3),
@@ -193,68 +220,67 @@ def _make_reduce(projective: bool, photo: bool):
                 start_stride: int, item_stride: int, count: int, out: wp.array2d(dtype=wp.float64)):
         b = wp.tid()
         n_pts = src.shape[0]
-        H = wp.spatial_matrixd()
-        g = wp.spatial_vectord()
-        acc = wp.vec4d()  # cost, squared distance, count, |r|
-        pacc = wp.vec2d()  # photometric cost, count
-        for jj in range(count):
-            i = b * start_stride + jj * item_stride
-            ii = wp.min(i, n_pts - 1)
-            p = _xform(T, src[ii])
-            t = int(-1)
-            if i < n_pts:
-                if wp.static(projective):
-                    t = _project_assoc(src[ii], p, sn[ii], T, tp, tn, th, tw, fx, fy, cx, cy, max_d, cos_min)
-                else:
-                    t = idx[ii]
-            # Invalid points contribute zeros, so the accumulation below needs no branch.
-            m = wp.where(t >= 0, 1.0, 0.0)
-            tt = wp.max(t, 0)
-            nq = tn[tt] * m
-            d = (p - tp[tt]) * m
-            r = wp.dot(nq, d)
-            c = wp.cross(p, nq)
-            J = wp.spatial_vectord(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2]),
-                                   wp.float64(nq[0]), wp.float64(nq[1]), wp.float64(nq[2]))
-            w = wp.float64(_robust_w(r, kind, k) * m)
-            rd = wp.float64(r)
-            H += wp.outer(J, J * w)
-            g += J * (w * rd)
-            acc += wp.vec4d(w * rd * rd, wp.float64(wp.length_sq(d)), wp.float64(m), wp.abs(rd))
-            if wp.static(photo):
-                ri = float(0.0)
-                gu = float(0.0)
-                gv = float(0.0)
-                mi = float(0.0)
-                z = wp.where(p[2] > 0.0, p[2], 1.0)
-                u = fx * p[0] / z + cx
-                v = fy * p[1] / z + cy
-                fu = wp.floor(u)
-                fv = wp.floor(v)
-                if t >= 0 and fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= float(t_int.shape[1] - 1):
-                    if fv + 1.0 <= float(t_int.shape[0] - 1):
-                        mi = 1.0
-                        ri = lam * (_bilinear1(t_int, u, v) - s_int[ii])
-                        gu = _bilinear1(t_gu, u, v)
-                        gv = _bilinear1(t_gv, u, v)
-                dp = wp.vec3(gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z))
-                cp = wp.cross(p, dp)
-                JI = wp.spatial_vectord(wp.float64(cp[0]), wp.float64(cp[1]), wp.float64(cp[2]),
-                                        wp.float64(dp[0]), wp.float64(dp[1]), wp.float64(dp[2])) * wp.float64(lam)
-                rid = wp.float64(ri)
-                H += wp.outer(JI, JI)
-                g += JI * rid
-                pacc += wp.vec2d(rid * rid, wp.float64(mi))
-        for a in range(6):
-            for c2 in range(6):
-                out[b, a * 6 + c2] = H[a, c2]
-            out[b, 36 + a] = g[a]
-        out[b, 42] = acc[0]
-        out[b, 43] = acc[1]
-        out[b, 44] = acc[2]
-        out[b, 45] = pacc[0]
-        out[b, 46] = pacc[1]
-        out[b, 47] = acc[3]
+        acc = vec33d()
+        for s in range((count + SUB - 1) // SUB):
+            part = vec33f()
+            for kk in range(SUB):
+                jj = s * SUB + kk
+                i = b * start_stride + jj * item_stride
+                ii = wp.min(i, n_pts - 1)
+                p = _xform(T, src[ii])
+                t = int(-1)
+                if i < n_pts and jj < count:
+                    if wp.static(projective):
+                        t = _project_assoc(src[ii], p, sn[ii], T, tp, tn, th, tw, fx, fy, cx, cy, max_d, cos_min)
+                    else:
+                        t = idx[ii]
+                # Invalid points contribute zeros, so the accumulation needs no branch.
+                m = wp.where(t >= 0, 1.0, 0.0)
+                tt = wp.max(t, 0)
+                nq = tn[tt] * m
+                d = (p - tp[tt]) * m
+                r = wp.dot(nq, d)
+                c = wp.cross(p, nq)
+                w = _robust_w(r, kind, k) * m
+                J = wp.spatial_vectorf(c[0], c[1], c[2], nq[0], nq[1], nq[2])
+                part += _contrib(J, w, r, w * r * r, wp.length_sq(d), m, wp.abs(r), 0.0, 0.0)
+                if wp.static(photo):
+                    ri = float(0.0)
+                    gu = float(0.0)
+                    gv = float(0.0)
+                    mi = float(0.0)
+                    z = wp.where(p[2] > 0.0, p[2], 1.0)
+                    u = fx * p[0] / z + cx
+                    v = fy * p[1] / z + cy
+                    fu = wp.floor(u)
+                    fv = wp.floor(v)
+                    if t >= 0 and fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= float(t_int.shape[1] - 1):
+                        if fv + 1.0 <= float(t_int.shape[0] - 1):
+                            mi = 1.0
+                            ri = lam * (_bilinear1(t_int, u, v) - s_int[ii])
+                            gu = _bilinear1(t_gu, u, v)
+                            gv = _bilinear1(t_gv, u, v)
+                    dp = wp.vec3(gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z))
+                    cp = wp.cross(p, dp)
+                    JI = wp.spatial_vectorf(cp[0], cp[1], cp[2], dp[0], dp[1], dp[2]) * lam
+                    part += _contrib(JI, 1.0, ri, 0.0, 0.0, 0.0, 0.0, ri * ri, mi)
+            for q in range(33):
+                acc[q] += wp.float64(part[q])
+        # Unpack: symmetric 6x6 from the upper triangle, then Jtr and the extras (layout in kernels.icp).
+        n = int(0)
+        for r0 in range(6):
+            for c0 in range(r0, 6):
+                out[b, r0 * 6 + c0] = acc[n]
+                out[b, c0 * 6 + r0] = acc[n]
+                n += 1
+        for q in range(6):
+            out[b, 36 + q] = acc[21 + q]
+        out[b, 42] = acc[27]
+        out[b, 43] = acc[28]
+        out[b, 44] = acc[29]
+        out[b, 47] = acc[30]
+        out[b, 45] = acc[31]
+        out[b, 46] = acc[32]
 
     return _reduce
 
