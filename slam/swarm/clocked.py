@@ -2,7 +2,8 @@
 
 All robot processes of a run get the same `start_time`, so their ticks — and with them the rendezvous schedule
 each enforces on its own links — agree to within the clock skew of one machine. A robot that falls behind
-(a slow registration) simply runs the ticks it missed back to back.
+(a slow registration) skips the ticks it missed and runs the current one: its keyframes are read by tick, so
+none is lost, and what arrived meanwhile waits in its inbox.
 """
 
 from __future__ import annotations
@@ -22,12 +23,19 @@ class TickClock:
 
 
 def run_clocked(step: Callable[[int], None], ticks: int, start_time: float, tick_seconds: float,
-                clock: TickClock | None = None) -> None:
-    """Call `step(tick)` for tick = 0 .. ticks-1, each no earlier than its wall-clock start."""
-    for tick in range(ticks):
+                clock: TickClock | None = None) -> int:
+    """Call `step(tick)` at the wall-clock start of each tick in 0 .. ticks-1, skipping ticks already over
+    (the last tick always runs). Returns the number of ticks skipped."""
+    tick, skipped = 0, 0
+    while tick < ticks:
         wait = start_time + tick * tick_seconds - time.time()
         if wait > 0:
             time.sleep(wait)
+        now = min(ticks - 1, max(tick, int((time.time() - start_time) // tick_seconds)))
+        skipped += now - tick
+        tick = now
         if clock is not None:
             clock.tick = tick
         step(tick)
+        tick += 1
+    return skipped

@@ -40,6 +40,14 @@ class SolveConfig:
         return np.diag([1 / r**2] * 3 + [1 / t**2] * 3)
 
 
+def warm_up() -> None:
+    """Import the solver stack now (GTSAM and friends take seconds to import): a robot process calls this before
+    its first tick so that its first solve does not stall it past a rendezvous window."""
+    import graph.formulations  # noqa: F401
+    import graph.init  # noqa: F401
+    import graph.solvers  # noqa: F401
+
+
 def robot_char(robot: int) -> str:
     """GTSAM Symbol character of robot id `robot` (0 -> 'a', ...)."""
     if not 0 <= robot < 26:
