@@ -78,7 +78,7 @@ class _ProjectFn(torch.autograd.Function):
         g_scales = _empty((n, 3), torch.float32, dev)
         g_parts = _empty((n, 12), torch.float32, dev)  # per-Gaussian viewmat gradient: R row-major, then t
         g_proj = g_proj.contiguous()
-        impl.project_backward(means, quats, scales, viewmat, intr, width, height, proj, radius, g_proj,
+        impl.project_backward(means, quats, scales, viewmat, intr, width, height, proj.detach(), radius, g_proj,
                               g_means, g_quats, g_scales, g_parts, device)
         g_view = torch.zeros(4, 4, dtype=torch.float32, device=dev)
         total = g_parts.sum(0)
