@@ -167,62 +167,83 @@ def _robust_w(r, kind, k):
     return w
 
 
+SUB = 64  # points summed in float32 before each float64 flush
+
+
+@ti.func
+def _contrib(J, w, r, e0, e1, e2, e3, e4, e5):
+    # Packed per-point terms: [0:21] upper triangle of w J J^T (row-major), [21:27] w r J, [27:33] the extras.
+    b = w * J
+    return ti.Vector([b[0] * J[0], b[0] * J[1], b[0] * J[2], b[0] * J[3], b[0] * J[4], b[0] * J[5],
+                      b[1] * J[1], b[1] * J[2], b[1] * J[3], b[1] * J[4], b[1] * J[5],
+                      b[2] * J[2], b[2] * J[3], b[2] * J[4], b[2] * J[5],
+                      b[3] * J[3], b[3] * J[4], b[3] * J[5], b[4] * J[4], b[4] * J[5], b[5] * J[5],
+                      b[0] * r, b[1] * r, b[2] * r, b[3] * r, b[4] * r, b[5] * r, e0, e1, e2, e3, e4, e5], dt=ti.f32)
+
+
 @ti.kernel
 def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dtype=ti.i32, ndim=1), kind: ti.i32,
             k: ti.f32, has_photo: ti.i32, s_int: ti.types.ndarray(dtype=ti.f32, ndim=1), t_int: f32_2, t_gu: f32_2,
             t_gv: f32_2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, lam: ti.f32, projective: ti.i32, sn: f32_2,
             th: ti.i32, tw: ti.i32, max_d: ti.f32, cos_min: ti.f32, blocks: ti.i32,
             start_stride: ti.i32, item_stride: ti.i32, count: ti.i32, out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    # Same scheme as the Warp kernel: runs of SUB points summed in float32 over the upper triangle, flushed into
+    # float64 per block; blocks run in parallel over the cores.
     n_pts = src.shape[0]
     for b in range(blocks):
-        H = ti.Matrix.zero(ti.f64, 6, 6)
-        g = ti.Vector.zero(ti.f64, 6)
-        s = ti.Vector.zero(ti.f64, 6)  # cost, dist, count, photo cost, photo count, |r|
-        for jj in range(count):
-            i = b * start_stride + jj * item_stride
-            t = -1
-            p = ti.Vector([0.0, 0.0, 0.0])
-            if i < n_pts:
-                p = _xform(T, src[i, 0], src[i, 1], src[i, 2])
-                if projective != 0:
-                    t = _project_assoc(ti.Vector([src[i, 0], src[i, 1], src[i, 2]]), p, T, tp, tn, sn, i, th, tw,
-                                       fx, fy, cx, cy, max_d, cos_min)
-                else:
-                    t = idx[i]
-            if t >= 0:
-                q = ti.Vector([tp[t, 0], tp[t, 1], tp[t, 2]])
-                nq = ti.Vector([tn[t, 0], tn[t, 1], tn[t, 2]])
-                r = nq.dot(p - q)
-                c = p.cross(nq)
-                J = ti.Vector([c[0], c[1], c[2], nq[0], nq[1], nq[2]], dt=ti.f64)
-                w = ti.cast(_robust_w(r, kind, k), ti.f64)
-                rd = ti.cast(r, ti.f64)
-                H += w * J.outer_product(J)
-                g += (w * rd) * J
-                s += ti.Vector([w * rd * rd, ti.cast((p - q).norm_sqr(), ti.f64), 1.0, 0.0, 0.0, ti.abs(rd)], dt=ti.f64)
-                if has_photo != 0:
-                    hh, ww = t_int.shape[0], t_int.shape[1]
-                    u = fx * p[0] / p[2] + cx
-                    v = fy * p[1] / p[2] + cy
-                    fu, fv = ti.floor(u), ti.floor(v)
-                    if fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= ti.cast(ww - 1, ti.f32) and fv + 1.0 <= ti.cast(hh - 1, ti.f32):
-                        ri = lam * (_bilinear1(t_int, u, v) - s_int[i])
-                        gu = _bilinear1(t_gu, u, v)
-                        gv = _bilinear1(t_gv, u, v)
-                        z = p[2]
-                        dp = ti.Vector([gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z)])
-                        cp = p.cross(dp)
-                        JI = ti.cast(lam, ti.f64) * ti.Vector([cp[0], cp[1], cp[2], dp[0], dp[1], dp[2]], dt=ti.f64)
-                        rid = ti.cast(ri, ti.f64)
-                        H += JI.outer_product(JI)
-                        g += rid * JI
-                        s += ti.Vector([0.0, 0.0, 0.0, rid * rid, 1.0, 0.0], dt=ti.f64)
-        for a in ti.static(range(6)):
-            for c2 in ti.static(range(6)):
-                out[b, a * 6 + c2] = H[a, c2]
-        for a in ti.static(range(6)):
-            out[b, 36 + a] = g[a]
-            out[b, 42 + a] = s[a]
+        acc = ti.Vector.zero(ti.f64, 33)
+        for s in range((count + SUB - 1) // SUB):
+            part = ti.Vector.zero(ti.f32, 33)
+            for kk in range(SUB):
+                jj = s * SUB + kk
+                i = b * start_stride + jj * item_stride
+                t = -1
+                p = ti.Vector([0.0, 0.0, 0.0])
+                if i < n_pts and jj < count:
+                    p = _xform(T, src[i, 0], src[i, 1], src[i, 2])
+                    if projective != 0:
+                        t = _project_assoc(ti.Vector([src[i, 0], src[i, 1], src[i, 2]]), p, T, tp, tn, sn, i, th, tw,
+                                           fx, fy, cx, cy, max_d, cos_min)
+                    else:
+                        t = idx[i]
+                if t >= 0:
+                    q = ti.Vector([tp[t, 0], tp[t, 1], tp[t, 2]])
+                    nq = ti.Vector([tn[t, 0], tn[t, 1], tn[t, 2]])
+                    d = p - q
+                    r = nq.dot(d)
+                    c = p.cross(nq)
+                    J = ti.Vector([c[0], c[1], c[2], nq[0], nq[1], nq[2]])
+                    w = _robust_w(r, kind, k)
+                    part += _contrib(J, w, r, w * r * r, d.norm_sqr(), 1.0, ti.abs(r), 0.0, 0.0)
+                    if has_photo != 0:
+                        hh, ww = t_int.shape[0], t_int.shape[1]
+                        u = fx * p[0] / p[2] + cx
+                        v = fy * p[1] / p[2] + cy
+                        fu, fv = ti.floor(u), ti.floor(v)
+                        if fu >= 0.0 and fv >= 0.0 and fu + 1.0 <= ti.cast(ww - 1, ti.f32) and fv + 1.0 <= ti.cast(hh - 1, ti.f32):
+                            ri = lam * (_bilinear1(t_int, u, v) - s_int[i])
+                            gu = _bilinear1(t_gu, u, v)
+                            gv = _bilinear1(t_gv, u, v)
+                            z = p[2]
+                            dp = ti.Vector([gu * fx / z, gv * fy / z, -(gu * fx * p[0] + gv * fy * p[1]) / (z * z)])
+                            cp = p.cross(dp)
+                            JI = lam * ti.Vector([cp[0], cp[1], cp[2], dp[0], dp[1], dp[2]])
+                            part += _contrib(JI, 1.0, ri, 0.0, 0.0, 0.0, 0.0, ri * ri, 1.0)
+            acc += ti.cast(part, ti.f64)
+        n = 0
+        for r0 in ti.static(range(6)):
+            for c0 in ti.static(range(r0, 6)):
+                out[b, r0 * 6 + c0] = acc[n]
+                out[b, c0 * 6 + r0] = acc[n]
+                n += 1
+        for q in ti.static(range(6)):
+            out[b, 36 + q] = acc[21 + q]
+        out[b, 42] = acc[27]
+        out[b, 43] = acc[28]
+        out[b, 44] = acc[29]
+        out[b, 47] = acc[30]
+        out[b, 45] = acc[31]
+        out[b, 46] = acc[32]
 
 
 def _sync(device: str) -> None:
