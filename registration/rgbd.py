@@ -60,8 +60,11 @@ def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 
     T = _open3d_odometry(source_color, sd, target_color, td, camera, T0, OPEN3D_METHODS[method], depth_max)
     if T is None:
         return RegistrationResult.failure(T0, TOO_FEW_POINTS, f"rgbd_odometry/{method}")
-    return evaluate_rgbd(sd, td, camera, T, max_distance=max_distance, depth_max=depth_max,
-                         method=f"rgbd_odometry/{method}")
+    res = evaluate_rgbd(sd, td, camera, T, max_distance=max_distance, depth_max=depth_max,
+                        method=f"rgbd_odometry/{method}")
+    if not res.success:
+        res.T_target_source = T0.copy()  # a failure carries the initial guess, never the rejected pose
+    return res
 
 
 def _open3d_odometry(sc, sd, tc, td, camera, T0, method_name, depth_max):
