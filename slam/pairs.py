@@ -1,9 +1,9 @@
 """`swarmsplat pairs`: place recognition and pair registration over a multi-agent dataset, every candidate to CSV.
 
-Steps (FLOCC-SLAM §III-A/B): describe every keyframe; for each keyframe of each agent, its nearest neighbour(s)
-among the other agents' keyframes by cosine similarity above a threshold (0.1 in the paper); register each
-candidate and the query's odometry pair; ratio, gate and confidence; compare with ground truth where it exists.
-An unordered keyframe pair found from both sides is registered once, from the lower-numbered agent.
+Steps (FLOCC-SLAM §III-A/B): describe every keyframe; for each keyframe of each agent and each other agent, its
+nearest neighbour(s) among that agent's keyframes by cosine similarity above a threshold (0.1 in the paper);
+register each candidate and the query's odometry pair; ratio, gate and confidence; compare with ground truth
+where it exists. An unordered keyframe pair found from both sides is registered once, from the first agent.
 """
 
 from __future__ import annotations
@@ -114,12 +114,15 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     bar.close()
 
     seen, cands = set(), []
-    for a in names:
-        for m in db.candidates(a, range(len(kf[a])), desc[a], threshold=threshold, k=top_k):
-            key = frozenset([(m.query_agent, m.query_index), (m.agent, m.index)])
-            if key not in seen:
-                seen.add(key)
-                cands.append(m)
+    for a in names:  # robot a searches each neighbour b's descriptors for every own keyframe, as when they meet
+        for b in names:
+            if b == a:
+                continue
+            for m in db.candidates(a, range(len(kf[a])), desc[a], threshold=threshold, k=top_k, agents=[b]):
+                key = frozenset([(m.query_agent, m.query_index), (m.agent, m.index)])
+                if key not in seen:
+                    seen.add(key)
+                    cands.append(m)
 
     front = LoopFrontend(registrar, image_of, lambda a: seqs[a].camera, lambda a: len(kf[a]),
                          k=K_DEFAULT if k is None else k, r_thr=R_THR_DEFAULT if r_thr is None else r_thr)

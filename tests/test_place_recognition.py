@@ -100,6 +100,9 @@ def test_database_nearest_neighbour_threshold_topk_and_exclusion():
     # per-keyframe nearest neighbour between agents, with the paper's permissive threshold
     cands = db.candidates("b", [0, 1], np.stack([_unit([1, 0.02, 0]), _unit([0, 0, 1])]), threshold=PAPER_THRESHOLD)
     assert [(c.query_index, c.agent, c.index) for c in cands] == [(0, "a", 0)]  # b1 has nothing above 0.1 in a
+    db.add("c", 0, _unit([1, 0.03, 0]))
+    only_c = db.candidates("b", [0], [_unit([1, 0.02, 0])], agents=["c"])
+    assert [(c.agent, c.index) for c in only_c] == [("c", 0)]
     with pytest.raises(InputError, match=r"shape \[3\]"):
         db.add("a", 9, np.ones(4))
 

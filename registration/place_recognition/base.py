@@ -153,16 +153,17 @@ class PlaceDatabase:
                 for i in order]
 
     def candidates(self, agent: str, indices, descriptors: np.ndarray, *, threshold: float | None = PAPER_THRESHOLD,
-                   k: int = 1, exclusion_window: int | None = None) -> list[PlaceMatch]:
+                   k: int = 1, exclusion_window: int | None = None, agents: list[str] | None = None) -> list[PlaceMatch]:
         """FLOCC-SLAM's search for one agent: for each of its keyframes, the best match(es) among stored keyframes.
 
         With `exclusion_window=None` only other agents are searched (inter-robot loop closures); with an integer,
-        the agent's own keyframes outside that window are searched too (intra-robot loops).
+        the agent's own keyframes outside that window are searched too (intra-robot loops). `agents` restricts the
+        search to some agents, e.g. the one neighbour whose descriptors just arrived.
         """
         descriptors = np.asarray(descriptors, dtype=np.float32)
         out: list[PlaceMatch] = []
         for i, d in zip(list(indices), descriptors):
             out += self.query(d, query_agent=agent, query_index=int(i), k=k, threshold=threshold,
                               exclusion_window=-1 if exclusion_window is None else exclusion_window,
-                              other_agents_only=exclusion_window is None)
+                              other_agents_only=exclusion_window is None, agents=agents)
         return out
