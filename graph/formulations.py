@@ -45,7 +45,8 @@ class ScaleLoops:
     key_s: np.ndarray  # [L] scale variable of each loop (one key for all loops in "shared")
     R_meas: np.ndarray  # [L, 3, 3]
     t_meas: np.ndarray  # [L, 3] network unit
-    sqrt_info: np.ndarray  # [L, 6, 6] upper-triangular R with R^T R = p * info
+    sqrt_info: np.ndarray  # [L, 6, 6] upper-triangular R with R^T R = p * info (network: in network units)
+    residual: str = "metric"  # "metric" (eq. 8, the paper) or "network" (scale_factors.is_residuals_network)
 
 
 @dataclass
@@ -150,9 +151,14 @@ def scale_clusters(graph: PoseGraph, edges: list[int], gap: int = 10) -> list[li
 
 def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str = "odometry", *,
                   initial_poses: dict[int, np.ndarray] | None = None, gt_scales: dict[int, float] | None = None,
-                  cluster_gap: int = 10, scale_sigma: float = 0.05, scale_prior_sigma: float = 10.0) -> Problem:
+                  cluster_gap: int = 10, scale_sigma: float = 0.05, scale_prior_sigma: float = 10.0,
+                  scale_residual: str = "metric") -> Problem:
     """Factor graph + initial values for `formulation` (module docstring). `initial_poses` defaults to the
-    graph's own poses; `scale_sigma` is SS's 1/sqrt(Omega_s)."""
+    graph's own poses; `scale_sigma` is SS's 1/sqrt(Omega_s). `scale_residual`: "metric" is eq. 8 as the paper
+    writes it; "network" compares in the network's unit (unbiased scales, see graph.scale_factors), with the
+    translation information scaled by the initial scale squared."""
+    if scale_residual not in ("metric", "network"):
+        raise InputError(f"scale_residual must be 'metric' or 'network', got {scale_residual!r}")
     if formulation not in FORMULATIONS:
         raise InputError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
     is_2d = graph.is_2d
@@ -206,6 +212,10 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
                                                     gtsam.noiseModel.Isotropic.Sigma(1, scale_sigma)))
     E = [graph.edges[n] for n in scaled]
     info = np.stack([e.info * e.confidence for e in E])
+    if scale_residual == "network":
+        S = np.ones((len(E), 6))
+        S[:, 3:] = np.array([s0[n] for n in scaled])[:, None]
+        info = S[:, :, None] * info * S[:, None, :]
     problem.scale_loops = ScaleLoops(
         edge=np.array(scaled),
         key_i=np.array([e.key_i for e in E], dtype=np.uint64),
@@ -214,5 +224,6 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
         R_meas=np.stack([e.T_ij[:3, :3] for e in E]),
         t_meas=np.stack([e.T_ij[:3, 3] for e in E]),
         sqrt_info=np.swapaxes(np.linalg.cholesky(info), 1, 2),
+        residual=scale_residual,
     )
     return problem

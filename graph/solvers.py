@@ -40,9 +40,12 @@ from scipy.stats import chi2
 from kernels.errors import GraphError, InputError
 
 from .formulations import Problem
-from .scale_factors import is_loop_factor, is_residuals
+from .scale_factors import is_loop_factor, is_residuals, is_residuals_network
 
-SCALE_MIN = 1e-3  # scales are projected back above this after each step (a negative scale flips a loop)
+SCALE_MIN = 1e-3
+# First damping after a failed Gauss-Newton step. Information here is 1e1..1e5 per unit (m, rad, scale), so
+# GTSAM's 1e-5 start would take ~6 failed solves to matter; each solve is the expensive part of an iteration.
+LAMBDA_FIRST = 1.0  # scales are projected back above this after each step (a negative scale flips a loop)
 
 
 @dataclass
@@ -76,6 +79,7 @@ class _ScaleTerm:
         w = np.ones(len(sl.edge)) if weights is None else np.array([weights.get(int(n), 1.0) for n in sl.edge])
         self.sqrt_w = np.sqrt(w)
         self.active = w > 0
+        self.fn = is_residuals_network if sl.residual == "network" else is_residuals
 
     def state(self, values: gtsam.Values):
         X = gtsam.utilities.extractPose3(values)  # [N, 12]: row-major R, then t
@@ -89,7 +93,7 @@ class _ScaleTerm:
     def costs(self, values: gtsam.Values) -> np.ndarray:
         """Unweighted 0.5 ||R e||² per loop [L]."""
         T, s = self.state(values)
-        e = is_residuals(T[self.ii], T[self.jj], s[self.ss], self.sl.R_meas, self.sl.t_meas, jacobians=False)
+        e = self.fn(T[self.ii], T[self.jj], s[self.ss], self.sl.R_meas, self.sl.t_meas, jacobians=False)
         r = np.einsum("lab,lb->la", self.sl.sqrt_info, e)
         return 0.5 * np.einsum("la,la->l", r, r)
 
@@ -98,7 +102,7 @@ class _ScaleTerm:
 
     def linear_factors(self, values: gtsam.Values) -> list[gtsam.JacobianFactor]:
         T, s = self.state(values)
-        e, Hi, Hj, Hs = is_residuals(T[self.ii], T[self.jj], s[self.ss], self.sl.R_meas, self.sl.t_meas)
+        e, Hi, Hj, Hs = self.fn(T[self.ii], T[self.jj], s[self.ss], self.sl.R_meas, self.sl.t_meas)
         W = self.sl.sqrt_info * self.sqrt_w[:, None, None]
         Ai, Aj = W @ Hi, W @ Hj
         As = np.einsum("lab,lb->la", W, Hs)[:, :, None]
@@ -143,6 +147,8 @@ def custom_loop_factors(problem: Problem, weights: dict[int, float] | None = Non
     """The problem's up-to-scale loops as IS gtsam.CustomFactors (weights scale their information)."""
     out = gtsam.NonlinearFactorGraph()
     sl = problem.scale_loops
+    if sl.residual != "metric":
+        raise InputError("CustomFactor loops implement the paper's (metric) residual only")
     for n in range(len(sl.edge)):
         w = 1.0 if weights is None else weights.get(int(sl.edge[n]), 1.0)
         if w <= 0:
@@ -164,6 +170,8 @@ def _python_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm | None, scale
         return graph.error(v) + (term.error(v) if term is not None else 0.0)
 
     err = e0 = total(values)
+    pinned: set[int] = set()  # scale keys held at SCALE_MIN (loops whose scale wants to go through zero)
+    unit1 = gtsam.noiseModel.Unit.Create(1)
     ordering = None
     lam = 0.0
     it = 0
@@ -172,6 +180,11 @@ def _python_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm | None, scale
         if term is not None:
             for f in term.linear_factors(values):
                 gfg.push_back(f)
+        if pinned:  # release held scales whose cost gradient now points up (into the feasible side)
+            grad = gfg.gradientAtZero()
+            pinned = {k for k in pinned if grad.at(k)[0] >= 0.0}
+        for k in pinned:
+            gfg.push_back(_pin(k, values, unit1))
         if ordering is None:
             ordering = gtsam.Ordering.ColamdGaussianFactorGraph(gfg)
         while True:
@@ -181,15 +194,23 @@ def _python_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm | None, scale
             except RuntimeError as e:  # indeterminate system: damp and retry
                 if lam > 1e10:
                     raise GraphError(f"LM: linear system cannot be solved ({e})") from None
-                lam = max(lam * 10.0, 1e-5)
+                lam = max(lam * 10.0, LAMBDA_FIRST)
                 continue
             new = values.retract(delta)
-            _clamp_scales(new, scale_keys)
+            hit = [k for k in _clamp_scales(new, scale_keys) if k not in pinned]
+            if hit:  # projected step: hold these scales at the bound (active set) and solve again
+                pinned.update(hit)
+                for k in hit:
+                    gfg.push_back(_pin(k, values, unit1))
+                continue
             new_err = total(new)
+            predicted = err - gfg.error(delta)  # decrease the linear model promises for this step
+            if predicted < max(absolute_tol, relative_tol * err) and not new_err < err:
+                return values, it, e0, err  # converged: no step can decrease the cost by the tolerance
             if np.isfinite(new_err) and new_err <= err:
-                lam = 0.0 if lam < 1e-8 else lam / 10.0
+                lam = 0.0 if lam <= LAMBDA_FIRST / 1e3 else lam / 10.0
                 break
-            lam = max(lam * 10.0, 1e-5)
+            lam = max(lam * 10.0, LAMBDA_FIRST)
             if lam > 1e10:
                 return values, it, e0, err
         decrease = err - new_err
@@ -199,23 +220,44 @@ def _python_lm(graph: gtsam.NonlinearFactorGraph, term: _ScaleTerm | None, scale
     return values, it, e0, err
 
 
+_DAMPING_CACHE: dict = {}
+
+
 def _damped(gfg: gtsam.GaussianFactorGraph, dims: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:
-    """gfg plus sqrt(lam) * I on every variable (GTSAM's LM damping without diagonal scaling)."""
+    """gfg plus sqrt(lam) * I on every variable (GTSAM's LM damping without diagonal scaling). The damping
+    factors depend only on (keys, lam) and lam takes powers of ten, so they are built once and reused."""
+    key = (id(dims), lam)
+    if key not in _DAMPING_CACHE:
+        if len(_DAMPING_CACHE) > 32:
+            _DAMPING_CACHE.clear()
+        d_graph = gtsam.GaussianFactorGraph()
+        sq = np.sqrt(lam)
+        eye = {d: sq * np.eye(d) for d in (1, 3, 6)}
+        zero = {d: np.zeros(d) for d in (1, 3, 6)}
+        unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (1, 3, 6)}
+        for k, d in dims:
+            d_graph.push_back(gtsam.JacobianFactor(k, eye[d], zero[d], unit[d]))
+        _DAMPING_CACHE[key] = (dims, d_graph)  # holding dims keeps id(dims) unique while cached
     out = gtsam.GaussianFactorGraph()
     out.push_back(gfg)
-    sq = np.sqrt(lam)
-    eye = {d: sq * np.eye(d) for d in (1, 3, 6)}
-    zero = {d: np.zeros(d) for d in (1, 3, 6)}
-    unit = {d: gtsam.noiseModel.Unit.Create(d) for d in (1, 3, 6)}
-    for k, d in dims:
-        out.push_back(gtsam.JacobianFactor(k, eye[d], zero[d], unit[d]))
+    out.push_back(_DAMPING_CACHE[key][1])
     return out
 
 
-def _clamp_scales(values: gtsam.Values, keys: list[int]) -> None:
+def _pin(k: int, values: gtsam.Values, unit) -> gtsam.JacobianFactor:
+    """Linear constraint (stiff) that moves scale k to SCALE_MIN in this step and keeps it there."""
+    return gtsam.JacobianFactor(k, np.full((1, 1), 1e6), np.array([1e6 * (SCALE_MIN - values.atDouble(k))]), unit)
+
+
+def _clamp_scales(values: gtsam.Values, keys: list[int]) -> list[int]:
+    """Put scales below SCALE_MIN back at it; returns the keys that were below (a sign flip of s would turn the
+    loop's translation around: such a loop is an outlier, GNC's to reject, not a reason to flip)."""
+    hit = []
     for k in keys:
         if values.atDouble(k) < SCALE_MIN:
             values.update(k, SCALE_MIN)
+            hit.append(k)
+    return hit
 
 
 def _result(problem: Problem, values: gtsam.Values, iters: int, e0: float, e1: float, t0: float, solver: str):
