@@ -37,7 +37,8 @@ class SwarmSetup:
 def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | Path | None = None,
             place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
             checkpoint: str | None = None, formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
-            vocabulary_out: str | Path | None = None, device: str = "cpu") -> SwarmSetup:
+            vocabulary_out: str | Path | None = None, device: str = "cpu", r_thr: float | None = None,
+            k: float | None = None) -> SwarmSetup:
     """Load the dataset, build the models (fitting VLAD if needed) and the schedule (default: `Schedule.default`)."""
     from registration.pair import make_registrar
     from registration.place_recognition import make_recognizer
@@ -66,7 +67,8 @@ def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | 
         recognizer.fit([s[f].color for s, f in pick], seed=0)
         if vocabulary_out:
             recognizer.save(vocabulary_out)
-    cfg = NodeConfig(solve=SolveConfig(formulation=formulation, solver=solver, uniform_noise=uniform_noise))
+    cfg = NodeConfig(r_thr=r_thr, k=k,
+                     solve=SolveConfig(formulation=formulation, solver=solver, uniform_noise=uniform_noise))
     return SwarmSetup(ds, stride, schedule, recognizer, registrar, cfg)
 
 
@@ -117,7 +119,8 @@ def simulate(setup: SwarmSetup, *, faults: Faults | None = None, progress: bool 
 def run_swarm(dataset: str | Path, out: str | Path, *, formulation: str = "is", solver: str = "lm",
               schedule: str | Path | Schedule | None = None, stride: int = 4, place: str = "bow",
               place_checkpoint: str | None = None, backend: str = "classical", checkpoint: str | None = None,
-              uniform_noise: bool = False, progress: bool = True) -> dict:
+              uniform_noise: bool = False, r_thr: float | None = None, k: float | None = None,
+              progress: bool = True) -> dict:
     """Run the whole team in one process and write the outputs to `out` (see `outputs.write_outputs`).
     Returns the metrics dictionary that is also written as `metrics.json`."""
     from .outputs import write_outputs
@@ -126,7 +129,7 @@ def run_swarm(dataset: str | Path, out: str | Path, *, formulation: str = "is", 
     out.mkdir(parents=True, exist_ok=True)
     setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
                     backend=backend, checkpoint=checkpoint, formulation=formulation, solver=solver,
-                    uniform_noise=uniform_noise, vocabulary_out=out / "vocabulary.npz")
+                    uniform_noise=uniform_noise, vocabulary_out=out / "vocabulary.npz", r_thr=r_thr, k=k)
     nodes, net = simulate(setup, progress=progress)
     robots = {r: {"trajectory": n.trajectory(), "odometry": np.array(n.odometry), "timestamps": np.array(n.timestamps),
                   "bytes": n.tx.stats.to_dict(), "estimate": n.estimate, "n_solves": n.n_solves}

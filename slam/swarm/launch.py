@@ -1,0 +1,151 @@
+"""One robot per process over Zenoh: `run_robot` is what `swarmsplat robot --id K` runs; `launch` starts N of them
+on this machine, gives them a common tick 0 once every one is connected, and gathers their outputs.
+
+A robot process writes `robots/<agent>/`: `state.npz` (keyframe trajectory, odometry, stamps), `bytes.json`, and
+its held estimate and (if it ever optimised) the graphs of its last solve as swarm messages (`*.msg`, the same
+safe encoding as on the wire). `launch` then writes the same outputs as an in-process run (`outputs.py`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kernels.errors import InputError, SwarmsplatError
+from kernels.fileio import atomic_write_bytes, atomic_write_text
+
+from . import messages as M
+
+
+def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: float | None = None,
+              port_base: int = 17447, run: str = "swarmsplat", stride: int = 4, schedule=None,
+              place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
+              formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
+              r_thr: float | None = None, k: float | None = None) -> Path:
+    """Run robot `robot` of `dataset` on Zenoh until the schedule ends; write its outputs under `out`.
+
+    start_time: epoch seconds of tick 0 (None: read it from stdin after printing `ready`, as `launch` does).
+    The VLAD/BoW vocabulary must be given (`place_checkpoint`) so that every robot describes images alike.
+    """
+    from .clocked import TickClock, run_clocked
+    from .node import RobotNode
+    from .optimiser import warm_up
+    from .run import KeyframeFeeder, prepare
+    from .zenoh_transport import ZenohTransport
+
+    if place in ("bow", "vlad") and not place_checkpoint:
+        raise InputError("a robot process needs the shared vocabulary: --place-checkpoint VOCAB.npz")
+    setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
+                    backend=backend, formulation=formulation, solver=solver, uniform_noise=uniform_noise,
+                    r_thr=r_thr, k=k)
+    n = len(setup.dataset.agents)
+    if not 0 <= robot < n:
+        raise InputError(f"--id {robot}: the dataset has robots 0..{n - 1}")
+    seq = setup.dataset.agents[robot]
+    clock = TickClock()
+    tx = ZenohTransport(robot, list(range(n)), run=run, port_base=port_base, schedule=setup.schedule, clock=clock)
+    node = RobotNode(robot, seq.camera, tx, setup.recognizer, setup.registrar, setup.node_config)
+    feeder = KeyframeFeeder(seq, setup.stride)
+    warm_up()
+    tx.wait_for_peers(60.0)
+    if start_time is None:
+        print("ready", flush=True)
+        start_time = float(sys.stdin.readline())
+
+    def step(tick: int) -> None:
+        feeder.feed(node, setup.schedule.frames_at(tick))
+        node.step(tick)
+
+    try:
+        skipped = run_clocked(step, setup.schedule.ticks, start_time, setup.schedule.tick_seconds, clock)
+    finally:
+        tx.close()
+    d = Path(out) / "robots" / seq.name
+    d.mkdir(parents=True, exist_ok=True)
+    np.savez(d / "state.npz", trajectory=node.trajectory(), odometry=np.array(node.odometry),
+             timestamps=np.array(node.timestamps))
+    atomic_write_text(d / "bytes.json", json.dumps({**tx.stats.to_dict(), "n_solves": node.n_solves,
+                                                   "skipped_ticks": skipped}))
+    if node.estimate is not None:
+        atomic_write_bytes(d / "estimate.msg", M.encode(node.estimate, robot, 0))
+    if node.solved_basis:
+        for r in node.solved_basis:
+            atomic_write_bytes(d / f"graph_{int(r)}.msg", M.encode(node.subs[int(r)], int(r), 0))
+    return d
+
+
+def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, timeout: float | None = None,
+           **options) -> dict:
+    """Start one `swarmsplat robot` process per robot, wait for them, and write the run's outputs. `options` are
+    `run_robot`'s keyword arguments (stride, schedule, place, backend, formulation, solver, uniform_noise)."""
+    from .outputs import write_outputs
+    from .run import prepare
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    vocab = options.pop("place_checkpoint", None)
+    place = options.get("place", "bow")
+    setup = prepare(dataset, place_checkpoint=vocab,
+                    vocabulary_out=None if vocab else out / "vocabulary.npz",
+                    **{k: v for k, v in options.items() if k in ("stride", "schedule", "place", "backend",
+                                                                 "formulation", "solver", "uniform_noise", "r_thr", "k")})
+    if place in ("bow", "vlad") and not vocab:
+        vocab = str(out / "vocabulary.npz")
+    sched_path = out / "schedule.yaml"
+    import yaml
+
+    atomic_write_text(sched_path, yaml.safe_dump(setup.schedule.to_dict(), sort_keys=False))
+    n = len(setup.dataset.agents)
+    run_name = f"r{os.getpid()}"
+    cmd = lambda r: [sys.executable, "-m", "slam", "robot", "--id", str(r), str(dataset), "--out", str(out),  # noqa: E731
+                     "--port-base", str(port_base), "--run", run_name, "--schedule", str(sched_path),
+                     "--stride", str(setup.stride), "--place", place, "--backend", options.get("backend", "classical"),
+                     "--formulation", setup.node_config.solve.formulation, "--solver", setup.node_config.solve.solver] \
+        + (["--place-checkpoint", vocab] if vocab else []) \
+        + (["--uniform-noise"] if setup.node_config.solve.uniform_noise else []) \
+        + sum([[f"--{n.replace('_', '-')}", str(options[n])] for n in ("r_thr", "k") if options.get(n) is not None], [])
+    procs = [subprocess.Popen(cmd(r), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for r in range(n)]
+    try:
+        for r, p in enumerate(procs):
+            line = p.stdout.readline().strip()
+            if line != "ready":
+                raise SwarmsplatError(f"robot {r} did not start: {(line + p.stderr.read())[-800:]}")
+        start = time.time() + 2.0
+        for p in procs:
+            p.stdin.write(f"{start}\n")
+            p.stdin.flush()
+        limit = timeout or setup.schedule.ticks * setup.schedule.tick_seconds * 3 + 120
+        for r, p in enumerate(procs):
+            _, err = p.communicate(timeout=limit)
+            if p.returncode != 0:
+                raise SwarmsplatError(f"robot {r} failed (exit {p.returncode}): {err[-800:]}")
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    return gather(out, setup)
+
+
+def gather(out: Path, setup) -> dict:
+    """Read the robot processes' outputs and write the run's (`outputs.write_outputs`)."""
+    from .outputs import write_outputs
+
+    robots, final = {}, {}
+    for r, seq in enumerate(setup.dataset.agents):
+        d = out / "robots" / seq.name
+        st = np.load(d / "state.npz")
+        b = json.loads((d / "bytes.json").read_text())
+        est = M.decode((d / "estimate.msg").read_bytes())[1] if (d / "estimate.msg").exists() else None
+        robots[r] = {"trajectory": st["trajectory"], "odometry": st["odometry"], "timestamps": st["timestamps"],
+                     "bytes": b, "estimate": est, "n_solves": b.get("n_solves", 0)}
+        graphs = sorted(d.glob("graph_*.msg"))
+        if graphs and not final:  # the lowest robot that optimised: its last solve is the team's
+            final = {int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs}
+    return write_outputs(out, setup, robots, final, mode="zenoh")
