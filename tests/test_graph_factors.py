@@ -129,3 +129,28 @@ def test_confidence():
         scale_information(np.eye(6), 0.0)
     with pytest.raises(InputError):
         loop_confidence(float("nan"))
+
+
+def test_network_unit_residual_jacobians_match_numerical():
+    from graph.scale_factors import is_residuals_network
+
+    rng = np.random.default_rng(4)
+    L = 5
+    Ti, Tj, Tm = _random_poses(rng, L), _random_poses(rng, L), _random_poses(rng, L)
+    s = rng.uniform(0.4, 2.5, L)
+    e, Hi, Hj, Hs = is_residuals_network(Ti, Tj, s, Tm[:, :3, :3], Tm[:, :3, 3])
+
+    def f(a, b, c):
+        return is_residuals_network(a, b, c, Tm[:, :3, :3], Tm[:, :3, 3], jacobians=False)
+
+    h = 1e-6
+    for k in range(6):
+        d = np.zeros((L, 6))
+        d[:, k] = h
+        assert np.allclose((f(Ti @ lie.exp(d), Tj, s) - f(Ti @ lie.exp(-d), Tj, s)) / (2 * h), Hi[:, :, k], rtol=1e-6, atol=1e-6)
+        assert np.allclose((f(Ti, Tj @ lie.exp(d), s) - f(Ti, Tj @ lie.exp(-d), s)) / (2 * h), Hj[:, :, k], rtol=1e-6, atol=1e-6)
+    assert np.allclose((f(Ti, Tj, s + h) - f(Ti, Tj, s - h)) / (2 * h), Hs, rtol=1e-6, atol=1e-6)
+    # the measurement reproduced exactly (t_ij = s t̄) gives zero residual
+    That = Tm.copy()
+    That[:, :3, 3] *= s[:, None]
+    assert np.allclose(f(Ti, Ti @ That, s), 0.0, atol=1e-12)
