@@ -78,11 +78,12 @@ class Problem:
         for lf in self.loops:
             w = 1.0 if weights is None else weights.get(lf.edge, 1.0)
             if w > 0:
-                g.add(_between(lf.key_i, lf.key_j, lf.measured, w * lf.info, self.is_2d))
+                g.add(between_factor(lf.key_i, lf.key_j, lf.measured, w * lf.info, self.is_2d))
         return g
 
 
-def _between(ki: int, kj: int, measured: gtsam.Pose3, info: np.ndarray, is_2d: bool):
+def between_factor(ki: int, kj: int, measured: gtsam.Pose3, info: np.ndarray, is_2d: bool):
+    """BetweenFactorPose3 (or Pose2 for 2D graphs) with a Gaussian noise model of information `info` [6, 6]."""
     if is_2d:
         idx = [3, 4, 2]
         return gtsam.BetweenFactorPose2(ki, kj, _pose2(measured.matrix()),
@@ -181,7 +182,7 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
     for n, e in enumerate(graph.edges):
         info = e.info * e.confidence
         if e.kind == "odometry":
-            fixed.add(_between(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), info, is_2d))
+            fixed.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), info, is_2d))
         elif e.up_to_scale and formulation != "base":
             scaled.append(n)
         else:
@@ -203,7 +204,8 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
             values.insert(key_of[n], float(s0[n]))
     problem.scale_keys = sorted(set(key_of.values()))
     for k in problem.scale_keys:
-        fixed.add(gtsam.PriorFactorDouble(k, values.atDouble(k), gtsam.noiseModel.Isotropic.Sigma(1, scale_prior_sigma)))
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(1, scale_prior_sigma)
+        fixed.add(gtsam.PriorFactorDouble(k, values.atDouble(k), prior_noise))
     if formulation == "ss":
         problem.clusters = scale_clusters(graph, scaled, cluster_gap)
         for c in problem.clusters:

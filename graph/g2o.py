@@ -9,8 +9,8 @@ Ids are GTSAM keys (Symbol keys for multi-robot files). The information matrix i
 (rotation, translation) order on read and back on write. Consecutive keys of one robot are odometry, every other
 edge a loop closure. An edge to a keyframe of a robot the file has no vertex of (DGS writes each robot's
 inter-robot edges into its own file) is kept in `PoseGraph.pending` until the graphs are merged; an edge to a
-missing vertex of the file's own robot is an error. A file without any VERTEX line (CSAIL.g2o) gets its poses by composing edges along a
-spanning tree. Every malformed line raises InputError naming file:line.
+missing vertex of the file's own robot is an error. A file without any VERTEX line (CSAIL.g2o) gets its poses
+by composing edges along a spanning tree. Every malformed line raises InputError naming file:line.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import scipy.sparse.linalg as spla
 
 from kernels.errors import GraphError
 
-from .pose_graph import PoseGraph, key_str
+from .pose_graph import PoseGraph
 
 
 def isotropic_weights(info: np.ndarray, is_2d: bool = False) -> tuple[float, float]:

@@ -39,7 +39,7 @@ from scipy.stats import chi2
 
 from kernels.errors import GraphError, InputError
 
-from .formulations import Problem
+from .formulations import Problem, between_factor
 from .scale_factors import is_loop_factor, is_residuals, is_residuals_network
 
 SCALE_MIN = 1e-3
@@ -299,9 +299,7 @@ def loop_costs(problem: Problem, values: gtsam.Values) -> dict[int, float]:
 
 
 def _single(problem: Problem, lf):
-    from .formulations import _between
-
-    return _between(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d)
+    return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d)
 
 
 def gnc(problem: Problem, *, inlier_cost: float | None = None, probability: float = 0.99, mu_step: float = 1.4,

@@ -2,8 +2,9 @@
 
 Robots drive random routes on a shared street grid (so they revisit each other's places), keyframes every
 `kf_spacing` metres, gentle terrain. Odometry: per-step Gaussian noise plus a per-robot yaw-rate bias and scale
-error (a LIO/VIO-like drift: tens of metres after half a kilometre). Inter-robot loops: `target_loops` pairs drawn from
-all keyframe pairs of two robots closer than `loop_radius` with a similar heading. A loop's measurement is what MASt3R would give:
+error (a LIO/VIO-like drift: tens of metres after half a kilometre). Inter-robot loops: `target_loops` pairs
+drawn from all keyframe pairs of two robots closer than `loop_radius` with a similar heading. A loop's
+measurement is what MASt3R would give:
 rotation with ~1 deg noise, translation with noise, in the network's own unit — the true translation divided by
 a scale that is correlated in space (log-normal per `scale_cell` x `scale_cell` cell, like one image domain)
 with a small per-loop jitter. The eq. 6 scale the front-end would compute (odometry-pair translation over the
@@ -168,10 +169,9 @@ def make_team(cfg: TeamConfig | None = None) -> Team:
         meas[:3, 3] /= s_true
         p = loop_confidence(ratio, k=cfg.k)
         odom_scale = s_true * float(np.exp(rng.normal() * cfg.odom_scale_log_sigma))
-        e = graph.add_loop(ki, kj, meas, loop_info, up_to_scale=True, confidence=p, odom_scale=odom_scale)
+        graph.add_loop(ki, kj, meas, loop_info, up_to_scale=True, confidence=p, odom_scale=odom_scale)
         n = len(graph.edges) - 1
         team.gt_scales[n] = s_true
         if outlier:
             team.outliers.add(n)
-        del e
     return team
