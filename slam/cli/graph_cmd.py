@@ -3,6 +3,7 @@
 Reads one or more g2o files (several robots' files are merged, edges present in two files kept once), solves
 the pose graph with Levenberg–Marquardt or GNC, writes the optimised graph as g2o (atomically) and prints the
 initial and final error (GTSAM's 0.5 * sum of squared whitened residuals) and, for GNC, the rejected loops.
+A 2D (SE2) input is written back as 3D g2o (z, roll and pitch 0).
 """
 
 from __future__ import annotations
