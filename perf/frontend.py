@@ -81,7 +81,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
     width, height = (320, 240) if quick else (640, 480)
     repeat = 3 if quick else 7
     cam, img_q, img_m, T = _pair(width, height)
-    rows, notes = [], [f"images {width}x{height} rendered from a textured room; torch threads {torch.get_num_threads()}",
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    rows, notes = [], [f"images {width}x{height} rendered from a textured room; torch threads {torch.get_num_threads()}; "
+                       f"1-minute load average at start {load:.1f} on {os.cpu_count()} CPUs (timings scale with it)",
                        f"kernel backends {backends} and device {device!r} do not affect the front-end (OpenCV/torch CPU)"]
     peer = None
     for name, reg in _registrars(quick):
