@@ -97,6 +97,12 @@ def test_clean_run_merges_maps(clean):
     for n in nodes:
         rows = n.tx.stats.sent_count["Descriptors"]
         assert 2 <= rows <= 2 * N_KF
+    # each encoding travelled once: the bytes received are those of the distinct encodings held, plus headers
+    for n in nodes:
+        remote = [e for (a, _), e in n.front._enc.items() if a != n.char]
+        st = n.tx.stats
+        if remote:
+            assert st.recv_bytes["EncodingReply"] <= sum(e.nbytes for e in remote) + 300 * st.recv_count["EncodingReply"]
     assert nodes[0].n_solves >= 1 and nodes[2].n_solves == 0  # robot 2 never the lowest id in range
 
 

@@ -64,7 +64,7 @@ class Hello(Message):
     """Heartbeat: what the sender has, so neighbours send only what it lacks.
 
     n_keyframes: the sender's own keyframes; have_desc: robot id (str) -> contiguous descriptor count held;
-    loops_with: robot id (str) -> inter-robot loops known between the sender and that robot;
+    loops_with: robot id (str) -> CRC of the inter-robot loop keys known between the sender and that robot;
     graph_version: [n_keyframes, loop digest] of the sender's own graph; graphs_held: robot id (str) -> the
     graph_version of that robot's submission the sender holds (meaningful when the sender is the optimiser);
     estimate_stamp: stamp of the sender's current global estimate ([] without one).

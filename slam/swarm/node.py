@@ -100,6 +100,7 @@ class RobotNode:
         self._sent: dict[tuple, tuple] = {}  # (what, peer) -> (content, tick): resend bookkeeping
         self._dirty: set[int] = set()  # peers whose candidates must be searched again
         self._pending: set[int] = set()  # peers whose encodings we asked for and still lack (ask again)
+        self._asked: dict[tuple[int, int], int] = {}  # (peer, keyframe) -> tick its encoding was last requested
         self.tick = 0
 
     # ------------------------------------------------------------------------------------------ inputs
@@ -277,8 +278,11 @@ class RobotNode:
         c = robot_char(peer)
         need = sorted({j for (_, j) in cands if (c, j) not in self.front._enc})
         (self._pending.add if need else self._pending.discard)(peer)
-        if need and self._due("encreq", peer, tuple(need)):
-            self.tx.send(peer, M.EncodingRequest(owner=peer, indices=np.array(need, np.int64)))
+        # ask for each encoding once; again only if it has not come `resend` ticks later (lost on the way)
+        ask = [j for j in need if self.tick - self._asked.get((peer, j), -10**9) >= self.cfg.resend]
+        if ask:
+            self._asked.update({(peer, j): self.tick for j in ask})
+            self.tx.send(peer, M.EncodingRequest(owner=peer, indices=np.array(ask, np.int64)))
         for (i, j), s in sorted(cands.items()):
             if (peer, i, j) not in self.registered and (c, j) in self.front._enc:
                 self.registered[(peer, i, j)] = self.front.evaluate((self.char, i), (c, j), s)

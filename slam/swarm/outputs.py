@@ -25,8 +25,9 @@ ALTERNATIVES = {  # name -> (formulation, solver, uniform noise); "baseline" is 
 }
 
 
-def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray]) -> dict:
-    """Per-robot ATE (each aligned alone) and merged ATE (one SE(3) alignment for all), RMSE in metres."""
+def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray], linked: list[int] | None = None) -> dict:
+    """Per-robot ATE (each aligned alone) and merged ATE (one SE(3) alignment for all), RMSE in metres; with
+    `linked` (the robots joined by loop closures), also the merged ATE of those robots alone."""
     from slam.metrics import ate_multi
 
     gt, est = {}, {}
@@ -39,8 +40,37 @@ def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray]) -> 
     if not est:
         return {}
     res = ate_multi(gt, est, align="se3", by_index=True)
-    return {"merged_rmse": res.joint.rmse, "per_robot_rmse": {k: v.rmse for k, v in res.per_agent.items()},
-            "_result": res}
+    out = {"merged_rmse": res.joint.rmse, "per_robot_rmse": {k: v.rmse for k, v in res.per_agent.items()},
+           "_result": res}
+    names = [setup.dataset.agents[r].name for r in (linked or [])]
+    if len(names) >= 2 and all(n in est for n in names):
+        sub = ate_multi({n: gt[n] for n in names}, {n: est[n] for n in names}, align="se3", by_index=True)
+        out["linked_robots"] = names
+        out["linked_merged_rmse"] = sub.joint.rmse
+    return out
+
+
+def linked_robots(graph) -> list[int]:
+    """The largest set of robots joined by inter-robot loop closures in `graph` (ties: the lowest ids)."""
+    from graph.pose_graph import key_robot
+
+    parent: dict[str, str] = {}
+
+    def find(x):
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    for e in graph.loops():
+        a, b = find(key_robot(e.key_i)), find(key_robot(e.key_j))
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    groups: dict[str, list[str]] = {}
+    for r in parent:
+        groups.setdefault(find(r), []).append(r)
+    best = max(groups.values(), key=lambda g: (len(g), [-ord(c) for c in sorted(g)]), default=[])
+    return sorted(ord(c) - ord("a") for c in best)
 
 
 def _public(d: dict) -> dict:
@@ -60,14 +90,15 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
         write_tum(out / f"{names[r]}.txt", d["timestamps"], d["trajectory"])
         write_tum(out / "odometry" / f"{names[r]}.txt", d["timestamps"], d["odometry"])
     stamps = {r: d["timestamps"] for r, d in robots.items()}
-    run = _ate(setup, {r: d["trajectory"] for r, d in robots.items()}, stamps)
-    odo = _ate(setup, {r: d["odometry"] for r, d in robots.items()}, stamps)
+    sol = solve_group(final_subs, setup.node_config.solve) if final_subs else None
+    linked = linked_robots(sol.graph) if sol else []
+    run = _ate(setup, {r: d["trajectory"] for r, d in robots.items()}, stamps, linked)
+    odo = _ate(setup, {r: d["odometry"] for r, d in robots.items()}, stamps, linked)
     cfg = setup.node_config.solve
     metrics = {"mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
                "schedule": setup.schedule.to_dict(), "stride": setup.stride,
                "ate": _public(run), "odometry_only_ate": _public(odo), "alternatives": {}}
-    if final_subs:
-        sol = solve_group(final_subs, cfg)
+    if sol is not None:
         keys = sorted(sol.graph.poses)
         from graph.pose_graph import robot_key
 
@@ -89,7 +120,7 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
                 trajs[r] = alt.poses[off: off + c]
                 off += c
             metrics["alternatives"][name] = {**_public(_ate(setup, trajs, {r: stamps[r][: len(trajs[r])]
-                                                                           for r in trajs})),
+                                                                           for r in trajs}, linked)),
                                              "time_s": alt.time_s}
     metrics["bytes"] = {names[r]: d["bytes"] for r, d in robots.items()}
     metrics["images_bytes"] = {names[r]: _image_bytes(setup, r, len(d["timestamps"])) for r, d in robots.items()}
