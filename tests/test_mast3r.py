@@ -36,6 +36,10 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
+class Odd:
+    """A class the safe checkpoint loader does not know."""
+
+
 def tiny_net(seed: int = 0) -> Mast3rNet:
     torch.manual_seed(seed)
     return Mast3rNet(Mast3rConfig(**TINY)).eval()
@@ -169,6 +173,11 @@ def test_checkpoint_round_trip_and_missing_checkpoint(tmp_path, views):
     assert "no checkpoint" in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(InputError, match="not found"):
         make_registrar("mast3r", checkpoint=str(tmp_path / "nope.pth"))
+    odd = tmp_path / "odd.pth"  # a pickled object the safe loader refuses
+    torch.save({"model": net.state_dict(), "args": argparse.Namespace(model=TINY_STRING, when=object.__new__(Odd))}, odd)
+    with pytest.raises(InputError, match="trust_checkpoint"):
+        load_mast3r_checkpoint(odd)
+    assert load_mast3r_checkpoint(odd, trust_checkpoint=True).cfg == net.cfg
     other = tmp_path / "other.pth"
     torch.save({"model": {"patch_embed.proj.weight": torch.zeros(2)}}, other)
     with pytest.raises(InputError, match="does not fit"):

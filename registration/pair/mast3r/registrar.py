@@ -26,9 +26,13 @@ from .matching import fast_reciprocal_nns, pose_from_matches
 from .model import EncodedImage, Mast3rConfig, Mast3rNet, grid_positions
 
 
-def load_mast3r_checkpoint(path, device: str = "cpu") -> Mast3rNet:
+def load_mast3r_checkpoint(path, device: str = "cpu", *, trust_checkpoint: bool = False) -> Mast3rNet:
     """Build the network described by an official checkpoint ({'model': state_dict, 'args': Namespace(model=...)})
-    and load its weights strictly."""
+    and load its weights strictly.
+
+    The file is read with torch's safe loader (tensors and an argparse Namespace only). `trust_checkpoint=True`
+    allows full unpickling, as the official code does, for a file from a source you trust that carries other objects.
+    """
     if path is None:
         raise InputError("MASt3R: no checkpoint given; pass --checkpoint PATH to the official "
                          "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth (nothing is downloaded)")
@@ -37,9 +41,11 @@ def load_mast3r_checkpoint(path, device: str = "cpu") -> Mast3rNet:
         raise InputError(f"MASt3R: checkpoint not found: {path}")
     torch.serialization.add_safe_globals([argparse.Namespace])
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        ckpt = torch.load(path, map_location="cpu", weights_only=not trust_checkpoint)
     except Exception as e:  # noqa: BLE001 - torch raises many kinds for a bad file
-        raise InputError(f"MASt3R: cannot read checkpoint {path}: {type(e).__name__}: {str(e).splitlines()[0]}") from None
+        hint = "" if trust_checkpoint else " (if the file is from a source you trust: trust_checkpoint=True)"
+        raise InputError(f"MASt3R: cannot read checkpoint {path}: {type(e).__name__}: "
+                         f"{str(e).strip().splitlines()[0]}{hint}") from None
     state = ckpt.get("model", ckpt) if isinstance(ckpt, dict) else None
     if not isinstance(state, dict):
         raise InputError(f"MASt3R: {path} does not hold a state dict")
@@ -74,8 +80,8 @@ class Mast3rRegistrar(PairRegistrar):
         self.min_desc_conf, self.reproj_px, self.min_inliers = float(min_desc_conf), float(reproj_px), int(min_inliers)
 
     @classmethod
-    def from_checkpoint(cls, path, *, device: str = "cpu", **kw) -> "Mast3rRegistrar":
-        return cls(load_mast3r_checkpoint(path, device), device=device, **kw)
+    def from_checkpoint(cls, path, *, device: str = "cpu", trust_checkpoint: bool = False, **kw) -> "Mast3rRegistrar":
+        return cls(load_mast3r_checkpoint(path, device, trust_checkpoint=trust_checkpoint), device=device, **kw)
 
     # ---- image <-> network frame -------------------------------------------------------------------------------
 
