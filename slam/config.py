@@ -33,11 +33,13 @@ class ImageConfig(_Section):
 class TrackingConfig(_Section):
     coarse: Literal["rgbd_odometry", "none"] = "rgbd_odometry"
     coarse_max_width: int = Field(160, ge=16, description="resolution of the coarse frame-to-frame odometry")
+    coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
+                                                            "distrusted: constant velocity is used instead")
     refine: bool = True
     refine_max_width: int = Field(160, ge=16, description="resolution of the frame-to-model refinement "
                                                           "(coarsest pyramid level is half of it)")
     pyramid_levels: int = Field(2, ge=1, le=4)
-    iterations: int = Field(40, ge=0, description="maximum refinement iterations at the finest level")
+    iterations: int = Field(20, ge=0, description="maximum refinement iterations at the finest level")
     lr_rotation: float = Field(2e-3, gt=0, description="Adam step on the rotation (rad)")
     lr_translation: float = Field(2e-3, gt=0, description="Adam step on the translation (m)")
     lambda_color: float = Field(0.5, ge=0, le=1, description="λ_c: weight of colour vs depth L1 (eq. 3/5)")
@@ -56,9 +58,9 @@ class KeyframeConfig(_Section):
 
 
 class MappingConfig(_Section):
-    max_width: int = Field(320, ge=16, description="resolution of the mapping renders")
-    iterations: int = Field(40, ge=0, description="optimisation iterations per new keyframe")
-    first_iterations: int = Field(100, ge=0, description="iterations for a submap's first keyframe")
+    max_width: int = Field(160, ge=16, description="resolution of the mapping renders")
+    iterations: int = Field(20, ge=0, description="optimisation iterations per new keyframe")
+    first_iterations: int = Field(60, ge=0, description="iterations for a submap's first keyframe")
     current_keyframe_fraction: float = Field(0.4, ge=0, le=1, description="share of iterations on the newest keyframe")
     alpha_seed: float = Field(0.6, ge=0, le=1, description="α_min: seed Gaussians where rendered alpha is below this")
     seed_stride: int = Field(2, ge=1, description="one seed per stride x stride pixels in sparse regions")
@@ -104,6 +106,9 @@ class LoopClosureConfig(_Section):
 class KernelsConfig(_Section):
     backend: Literal["warp", "taichi"] = "warp"
     device: Literal["cpu", "cuda"] = "cpu"
+    torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default). The per-call "
+                                                    "tensors are small, so one thread avoids costly thread "
+                                                    "hand-offs; the kernels bring their own parallelism")
 
 
 class SlamConfig(_Section):

@@ -1,0 +1,152 @@
+"""One GRAND-SLAM agent. `Agent.step` reads as the algorithm: track, maybe start a submap, map, detect loops."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from kernels import se3
+from kernels.camera import PinholeCamera
+
+from .config import SlamConfig
+from .frames import RGBD, make_rgbd
+from .gaussian_map import GaussianMap, GaussianParams
+from .loop_closure import LoopCloser
+from .mapper import MapKeyframe, Mapper
+from .render import render, viewmat_from_pose
+from .submaps import Keyframe, needs_new_submap, start_submap, world_pose
+from .tracker import Tracker
+
+
+@dataclass
+class FramePose:
+    frame_index: int
+    timestamp: float
+    submap_id: int
+    T_local_cam: np.ndarray  # [4, 4] in its submap's frame
+
+
+@dataclass
+class Timings:
+    tracking: float = 0.0
+    mapping: float = 0.0
+    loop_closure: float = 0.0
+    frames: int = 0
+    skipped: list[int] = field(default_factory=list)
+
+
+class Agent:
+    def __init__(self, camera: PinholeCamera, cfg: SlamConfig | None = None, *, name: str = "agent",
+                 reference: bool = False):
+        self.cfg = cfg or SlamConfig()
+        self.name = name
+        self.camera = camera
+        self.gmap = GaussianMap()
+        self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth, reference=reference)
+        self.mapper = Mapper(self.cfg.mapping, reference=reference)
+        self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
+        self.keyframes: list[Keyframe] = []
+        self.poses: list[FramePose] = []
+        self.time = Timings()
+        self._last_kf_pose: np.ndarray | None = None  # T_local_cam of the last keyframe (active submap)
+
+    # ---- the algorithm ----------------------------------------------------------------------------------------
+
+    def step(self, index: int, timestamp: float, color: np.ndarray, depth: np.ndarray | None) -> FramePose | None:
+        """Process one RGB-D frame; returns its pose record, or None when the frame was skipped."""
+        frame = self._prepare(index, color, depth)
+        if frame is None:
+            return None
+        t0 = time.perf_counter()
+        T_local_cam = self._track(frame)
+        t1 = time.perf_counter()
+        if self._is_keyframe(T_local_cam):
+            T_local_cam = self._maybe_start_submap(T_local_cam)
+            kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
+            self._map(kf)
+            t2 = time.perf_counter()
+            self._detect_loops(kf)
+            self.time.mapping += t2 - t1
+            self.time.loop_closure += time.perf_counter() - t2
+        self.time.tracking += t1 - t0
+        self.time.frames += 1
+        rec = FramePose(index, timestamp, self.gmap.active.id, T_local_cam)
+        self.poses.append(rec)
+        return rec
+
+    # ---- the steps ------------------------------------------------------------------------------------------
+
+    def _prepare(self, index: int, color: np.ndarray, depth: np.ndarray | None) -> RGBD | None:
+        img = self.cfg.image
+        f = make_rgbd(color, depth, self.camera, min_depth=img.min_depth, max_depth=img.max_depth)
+        if f.valid_fraction() < img.min_valid_fraction:
+            warnings.warn(f"{self.name}: frame {index} skipped: only {100 * f.valid_fraction():.1f}% of its depth is "
+                          f"valid (need {100 * img.min_valid_fraction:.0f}%)", RuntimeWarning, stacklevel=3)
+            self.time.skipped.append(index)
+            return None
+        return f.resized(img.max_width)
+
+    def _track(self, frame: RGBD) -> np.ndarray:
+        params = self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()
+        return self.tracker.track(frame, params).T_local_cam
+
+    def _is_keyframe(self, T_local_cam: np.ndarray) -> bool:
+        k = self.cfg.keyframes
+        if self._last_kf_pose is None or not self.poses:
+            return True
+        since = self.poses[-1].frame_index - self.keyframes[-1].frame_index + 1
+        D = se3.inverse(self._last_kf_pose) @ T_local_cam
+        return (since >= k.every or np.linalg.norm(D[:3, 3]) > k.max_translation
+                or np.degrees(se3.rotation_angle(D[:3, :3])) > k.max_rotation_deg)
+
+    def _maybe_start_submap(self, T_local_cam: np.ndarray) -> np.ndarray:
+        """Start a new submap at this keyframe if needed; returns the frame's pose in the (new) active submap."""
+        if self.gmap.submaps and not needs_new_submap(self.cfg.submaps, T_local_cam, len(self.gmap.active.keyframe_ids)):
+            return T_local_cam
+        T_world_cam = self.gmap.active.T_world_local @ T_local_cam if self.gmap.submaps else np.eye(4)
+        start_submap(self.gmap, T_world_cam, self.keyframes)
+        self.tracker.reset_frame(se3.inverse(T_local_cam))
+        return np.eye(4)
+
+    def _add_keyframe(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> Keyframe:
+        s = self.gmap.active
+        kf = Keyframe(len(self.keyframes), index, timestamp, s.id, T_local_cam.copy(),
+                      frame.resized(self.cfg.mapping.max_width), frame.resized(self.cfg.submaps.keep_keyframe_width))
+        self.keyframes.append(kf)
+        s.keyframe_ids.append(kf.id)
+        self._last_kf_pose = T_local_cam.copy()
+        return kf
+
+    def _map(self, kf: Keyframe) -> None:
+        s = self.gmap.active
+        kfs = [self.keyframes[i] for i in s.keyframe_ids]
+        iters = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
+        self.mapper.map(self.gmap, s, [MapKeyframe(k.T_local_cam, k.map_rgbd) for k in kfs], iters)
+
+    def _detect_loops(self, kf: Keyframe) -> None:
+        self.loops.add_keyframe(kf, self.keyframes, self.gmap)
+        if self.cfg.loop_closure.enabled and self.loops.detect(kf, self.keyframes, self.gmap):
+            self.loops.optimise(self.keyframes, self.gmap)
+
+    # ---- results ----------------------------------------------------------------------------------------------
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps [N], T_world_cam [N, 4, 4]) of every tracked frame, with the current submap frames."""
+        if not self.poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ p.T_local_cam for p in self.poses])
+        return np.array([p.timestamp for p in self.poses]), T
+
+    def keyframe_world_poses(self) -> np.ndarray:
+        return np.stack([world_pose(self.gmap, k) for k in self.keyframes]) if self.keyframes else np.zeros((0, 4, 4))
+
+    def render_keyframe(self, kf: Keyframe, camera: PinholeCamera) -> tuple[torch.Tensor, torch.Tensor]:
+        """Render `kf`'s own submap at its pose: (color [H, W, 3], depth [H, W]) — the training-view render."""
+        s = self.gmap.submaps[kf.submap_id]
+        with torch.no_grad():
+            out = render(s.params, viewmat_from_pose(kf.T_local_cam), camera)
+        return out.color.clamp(0, 1), out.depth

@@ -1,0 +1,122 @@
+"""Mapping (GRAND-SLAM §III-B): seed Gaussians where the active submap is sparse, then optimise every Gaussian of
+the active submap over its keyframes with the eq.-3 loss, then prune.
+
+Seeding: render the submap at the new keyframe; where rendered alpha < α_min and depth is valid, back-project
+pixels on a regular grid (one per stride x stride block: uniform sampling of the sparse region) to new Gaussians
+whose radius matches the pixel footprint at their depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .config import MappingConfig
+from .frames import RGBD
+from .gaussian_map import GaussianMap, GaussianParams, Submap
+from .render import render, rgbd_loss, viewmat_from_pose
+
+
+@dataclass
+class MapKeyframe:
+    """What mapping needs of a keyframe: its pose in the submap frame and its images at mapping resolution."""
+
+    T_local_cam: np.ndarray  # [4, 4]
+    rgbd: RGBD
+
+
+@dataclass
+class MappingStats:
+    added: int
+    pruned: int
+    iterations: int
+    loss_first: float
+    loss_last: float
+
+
+def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, generator: torch.Generator,
+                   reference: bool = False) -> GaussianParams:
+    """New Gaussians (submap-local frame) for the parts of `kf` the submap does not cover yet."""
+    f = kf.rgbd
+    cam = f.camera
+    depth = f.depth
+    if len(submap.params):
+        with torch.no_grad():
+            out = render(submap.params.detached(), viewmat_from_pose(kf.T_local_cam), cam, reference=reference)
+            alpha = out.alpha.cpu().numpy()
+    else:
+        alpha = np.zeros_like(depth)
+    s = cfg.seed_stride
+    # A random offset per call so successive keyframes do not all sample the same pixel lattice.
+    oy, ox = (int(x) for x in torch.randint(0, s, (2,), generator=generator))
+    grid = np.zeros_like(depth, dtype=bool)
+    grid[oy::s, ox::s] = True
+    cand = grid & (depth > 0) & (alpha < cfg.alpha_seed)
+    vs, us = np.nonzero(cand)
+    if len(vs) > cfg.max_new_gaussians:
+        pick = torch.randperm(len(vs), generator=generator)[: cfg.max_new_gaussians].numpy()
+        vs, us = vs[pick], us[pick]
+    if len(vs) == 0:
+        return GaussianParams.empty()
+    z = depth[vs, us].astype(np.float64)
+    pts_cam = np.stack([(us - cam.cx) / cam.fx * z, (vs - cam.cy) / cam.fy * z, z], axis=1)
+    T = kf.T_local_cam
+    pts = pts_cam @ T[:3, :3].T + T[:3, 3]
+    radius = cfg.init_scale_factor * 0.5 * s * z / cam.fx
+    rgb = f.color[vs, us].astype(np.float32) / 255.0
+    return GaussianParams.from_points(torch.as_tensor(pts, dtype=torch.float32), torch.as_tensor(rgb),
+                                      torch.as_tensor(radius, dtype=torch.float32), cfg.init_opacity)
+
+
+class Mapper:
+    def __init__(self, cfg: MappingConfig, *, reference: bool = False):
+        self.cfg = cfg
+        self.reference = reference
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+
+    def map(self, gmap: GaussianMap, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> MappingStats:
+        """Seed from the newest keyframe (the last of `keyframes`), optimise, prune."""
+        new = seed_gaussians(submap, keyframes[-1], self.cfg, generator=self.gen, reference=self.reference)
+        added = gmap.add(submap, new)
+        first, last, it = self.optimise(submap, keyframes, iterations)
+        pruned = gmap.prune(submap, min_opacity=self.cfg.prune_min_opacity, max_scale=self.cfg.prune_max_scale)
+        return MappingStats(added, pruned, it, first, last)
+
+    def optimise(self, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> tuple[float, float, int]:
+        """Adam on all Gaussians of `submap` for `iterations` steps, each on one keyframe: the newest with
+        probability `current_keyframe_fraction`, otherwise one drawn uniformly from the submap's keyframes.
+        Returns (first loss, mean loss of the last 5 steps, iterations)."""
+        cfg = self.cfg
+        if iterations <= 0 or len(submap.params) == 0:
+            return float("nan"), float("nan"), 0
+        p = submap.params.detached().requires_grad_(True)
+        opt = torch.optim.Adam([
+            {"params": [p.means], "lr": cfg.lr_means},
+            {"params": [p.log_scales], "lr": cfg.lr_log_scales},
+            {"params": [p.quats], "lr": cfg.lr_quats},
+            {"params": [p.logit_opacities], "lr": cfg.lr_opacities},
+            {"params": [p.colors], "lr": cfg.lr_colors},
+        ], eps=1e-15)
+        targets = [(viewmat_from_pose(k.T_local_cam), k.rgbd.color_tensor(), k.rgbd.depth_tensor(), k.rgbd.camera)
+                   for k in keyframes]
+        losses = []
+        for _ in range(iterations):
+            if len(targets) == 1 or float(torch.rand(1, generator=self.gen)) < cfg.current_keyframe_fraction:
+                j = len(targets) - 1
+            else:
+                j = int(torch.randint(0, len(targets), (1,), generator=self.gen))
+            vm, color, depth, cam = targets[j]
+            opt.zero_grad(set_to_none=True)
+            out = render(p, vm, cam, reference=self.reference)
+            loss = rgbd_loss(out, color, depth, lambda_color=cfg.lambda_color, alpha_power=cfg.alpha_power,
+                             inlier_k=cfg.inlier_k)
+            if cfg.isotropic_regulariser > 0:
+                s = p.scales
+                loss = loss + cfg.isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+        submap.params = p.detached()
+        return losses[0], float(np.mean(losses[-5:])), iterations

@@ -1,0 +1,71 @@
+"""Render a set of Gaussians from a camera pose through `kernels.rasterize` (or its twin), and the eq.-3 loss
+that mapping and tracking share."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from kernels.camera import PinholeCamera
+
+from .gaussian_map import GaussianParams
+
+NEAR, FAR = 0.01, 100.0
+
+
+def viewmat_from_pose(T_local_cam: np.ndarray, device="cpu", dtype=torch.float32) -> torch.Tensor:
+    """[4, 4] world(local)-to-camera matrix the rasteriser takes, from a camera-to-local pose."""
+    from kernels import se3
+
+    return torch.as_tensor(se3.inverse(T_local_cam), dtype=dtype, device=device)
+
+
+def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera, *, reference: bool = False,
+           background: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+    """Rasterise `params` seen through `viewmat` [4, 4] (local-to-camera; may carry a pose gradient).
+
+    Returns the rasteriser's RenderOutput (color [H, W, 3], depth [H, W] alpha-weighted metres, alpha [H, W], ...).
+    `reference=True` uses the slow torch twin (tests).
+    """
+    if reference:
+        from kernels.reference import rasterize_reference as rasterize
+    else:
+        from kernels import rasterize
+    dev, dt = params.means.device, params.means.dtype
+    K = torch.as_tensor(camera.K, dtype=dt, device=dev)
+    return rasterize(params.means, params.quats, params.scales, params.opacities, params.colors.clamp(0.0, 1.0),
+                     viewmat.to(dt), K, int(camera.width), int(camera.height),
+                     background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR)
+
+
+def rgbd_loss(out, color: torch.Tensor, depth: torch.Tensor, *, lambda_color: float, alpha_power: float,
+              alpha_min: float = 0.0, inlier_k: float | None = None, normalise: bool = False) -> torch.Tensor:
+    """Eq. 3: sum M_in M_alpha (λ_c |Î - I|_1 + (1 - λ_c) |D̂ - D|_1), normalised by the mask's weight.
+
+    color [H, W, 3] in [0, 1]; depth [H, W] metres with 0 = invalid (no depth term there). M_alpha = alpha^p
+    (detached, so the mask does not push alpha down); pixels with alpha < alpha_min are dropped. M_in drops pixels
+    whose colour or depth error exceeds inlier_k x that frame's median error. `normalise` compares colour / alpha
+    and depth / alpha (black background assumed), so the soft edge of the model does not bias a pose.
+    """
+    alpha = out.alpha.detach()
+    valid_d = depth > 0
+    if normalise:
+        a = out.alpha.clamp_min(1e-3)
+        r_c, r_d = out.color / a[..., None], out.depth_normalised
+    else:
+        r_c, r_d = out.color, out.depth
+    e_c = (r_c - color).abs().mean(-1)
+    e_d = (r_d - depth).abs() * valid_d
+    m = alpha.clamp(0.0, 1.0) ** alpha_power if alpha_power > 0 else torch.ones_like(alpha)
+    if alpha_min > 0:
+        m = m * (alpha >= alpha_min)
+    if inlier_k is not None:
+        with torch.no_grad():
+            sel = m > 0
+            if bool(sel.any()):
+                mc = e_c.detach()[sel].median()
+                md = e_d.detach()[sel & valid_d].median() if bool((sel & valid_d).any()) else torch.tensor(0.0)
+                inl = (e_c.detach() <= inlier_k * mc + 1e-6) & (e_d.detach() <= inlier_k * md + 1e-6)
+                m = m * inl
+    w = m.sum().clamp_min(1.0)
+    return (m * (lambda_color * e_c + (1.0 - lambda_color) * e_d)).sum() / w

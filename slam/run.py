@@ -1,0 +1,154 @@
+"""Run one agent over one RGB-D sequence and write everything a user needs next to each other:
+trajectory (TUM), Gaussian map (3DGS PLY), metrics.json, loops.csv, plots, and the config actually used."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from kernels.errors import InputError
+from kernels.fileio import atomic_write_text
+
+from .agent import Agent
+from .config import SlamConfig
+
+
+def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
+                 frames: int | None = None, progress: bool = True, reference: bool = False) -> dict:
+    """Track and map `dataset_path` (any layout `slam.datasets.load_sequence` reads) with one agent.
+
+    frames: process at most this many (None: config.max_frames, 0 meaning all). Returns the metrics dict that is
+    also written to `out_dir/metrics.json`.
+    """
+    import kernels
+    from .datasets import load_sequence
+
+    cfg = config or SlamConfig()
+    kernels.use(cfg.kernels.backend, cfg.kernels.device)
+    if cfg.kernels.torch_threads:
+        torch.set_num_threads(cfg.kernels.torch_threads)
+    seq = load_sequence(dataset_path)
+    n = len(seq)
+    limit = frames if frames is not None else cfg.max_frames
+    if limit:
+        n = min(n, int(limit))
+    if n == 0:
+        raise InputError(f"{dataset_path}: the sequence has no frames")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())
+
+    agent = Agent(seq.camera, cfg, name=seq.name, reference=reference)
+    t0 = time.perf_counter()
+    for i in range(n):
+        f = seq[i]
+        agent.step(f.index, f.timestamp, f.color, f.depth)
+        if progress:
+            el = time.perf_counter() - t0
+            print(f"\r[{seq.name}] frame {i + 1}/{n}  {len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps  "
+                  f"{(i + 1) / el:.2f} fps", end="", file=sys.stderr, flush=True)
+    wall = time.perf_counter() - t0
+    if progress:
+        print(file=sys.stderr)
+    return write_results(agent, seq, out, wall_s=wall, n_frames=n)
+
+
+def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int) -> dict:
+    from slam.trajectory import write_tum
+
+    from .ply import save_ply
+
+    stamps, T_est = agent.trajectory()
+    if len(stamps):
+        write_tum(out / "trajectory.txt", stamps, T_est)
+    save_ply(out / "map.ply", agent.gmap.merged())
+    _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
+    t = agent.time
+    metrics = {
+        "agent": agent.name,
+        "frames": n_frames,
+        "frames_tracked": len(stamps),
+        "skipped_frames": list(t.skipped),
+        "keyframes": len(agent.keyframes),
+        "submaps": len(agent.gmap.submaps),
+        "gaussians": len(agent.gmap),
+        "loop_candidates": len(agent.loops.log),
+        "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
+        "pose_graph_optimisations": agent.loops.optimisations,
+        "fps": n_frames / wall_s if wall_s > 0 else float("nan"),
+        "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
+        "kernels": agent.cfg.kernels.model_dump(),
+    }
+    metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
+    metrics.update(_render_metrics(agent, seq))
+    atomic_write_text(out / "metrics.json", json.dumps(_finite(metrics), indent=2))
+    return metrics
+
+
+def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path) -> dict:
+    from .metrics import ate
+    from .plots import plot_trajectories
+
+    gt = seq.gt_poses
+    if gt is None or len(stamps) == 0:
+        return {"ate_rmse": None}
+    ok = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+    res = ate(seq.timestamps[ok], gt[ok], stamps, T_est, align="se3", max_diff=1e-3)
+    plot_trajectories(out / "trajectory.png", {seq.name: res.pairs.T_gt[:, :3, 3]},
+                      {seq.name: res.T_est_aligned[:, :3, 3]}, errors={seq.name: res.errors},
+                      title=f"{seq.name}: ATE RMSE {100 * res.rmse:.2f} cm")
+    return {"ate_rmse": res.rmse, "ate": res.to_dict()}
+
+
+def _render_metrics(agent: Agent, seq) -> dict:
+    """Training-view rendering quality: every keyframe rendered from its own submap at the mapping resolution,
+    against its input frame (PSNR and SSIM on colour, L1 on valid depth)."""
+    from .frames import make_rgbd
+    from .metrics import depth_l1, psnr, ssim
+
+    cfg = agent.cfg
+    ps, ss, dl = [], [], []
+    for kf in agent.keyframes:
+        f = seq[kf.frame_index]
+        ref = make_rgbd(f.color, f.depth, seq.camera, min_depth=cfg.image.min_depth, max_depth=cfg.image.max_depth)
+        ref = ref.resized(cfg.image.max_width).resized(cfg.mapping.max_width)
+        color, depth = agent.render_keyframe(kf, ref.camera)
+        gt_c = ref.color_tensor()
+        ps.append(psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
+        ss.append(ssim(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
+        if (ref.depth > 0).any():
+            dl.append(depth_l1(depth, torch.as_tensor(ref.depth)))
+    mean = lambda v: float(np.mean(v)) if v else None  # noqa: E731
+    return {"psnr": mean(ps), "ssim": mean(ss), "depth_l1": mean(dl), "render_views": len(ps)}
+
+
+def _write_loops_csv(path: Path, rows: list[dict]) -> None:
+    cols = ["query_kf", "match_kf", "query_frame", "match_frame", "similarity", "accepted", "reason", "fitness",
+            "inlier_rmse", "correction_m"]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: r.get(k) for k in cols})
+    atomic_write_text(path, buf.getvalue())
+
+
+def _finite(x):
+    """JSON has no NaN/Inf: write them as null."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x

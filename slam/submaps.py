@@ -1,0 +1,52 @@
+"""Submap life cycle (GRAND-SLAM §III-B.1): when to start a new submap, and retiring the old one so memory stays
+bounded by the active submap plus the stored (frozen) Gaussians and small keyframe copies."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels import se3
+
+from .config import SubmapConfig
+from .frames import RGBD
+from .gaussian_map import GaussianMap, Submap
+
+
+@dataclass
+class Keyframe:
+    """A keyframe of the agent. Its world pose is `T_world_local` of its submap composed with `T_local_cam`, so
+    moving the submap (pose-graph optimisation, eq. 14) moves the keyframe with it."""
+
+    id: int
+    frame_index: int
+    timestamp: float
+    submap_id: int
+    T_local_cam: np.ndarray  # [4, 4]
+    map_rgbd: RGBD | None  # mapping resolution; dropped when the submap is retired
+    small: RGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
+    descriptor: np.ndarray | None = None  # [D] unit vector
+
+
+def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: int) -> bool:
+    """True when the keyframe is further than d_max or θ_max from the active submap's first keyframe (the local
+    origin), or the submap already holds `max_keyframes`."""
+    moved = float(np.linalg.norm(T_local_cam[:3, 3]))
+    turned = float(np.degrees(se3.rotation_angle(T_local_cam[:3, :3])))
+    return moved > cfg.d_max or turned > cfg.theta_max_deg or n_keyframes >= cfg.max_keyframes
+
+
+def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe]) -> Submap:
+    """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies) and start a
+    new one whose local frame is the camera at T_world_cam."""
+    if gmap.submaps:
+        old = gmap.active.id
+        for kf in keyframes:
+            if kf.submap_id == old:
+                kf.map_rgbd = None
+    return gmap.new_submap(T_world_cam)
+
+
+def world_pose(gmap: GaussianMap, kf: Keyframe) -> np.ndarray:
+    return gmap.submaps[kf.submap_id].T_world_local @ kf.T_local_cam

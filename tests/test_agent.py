@@ -1,0 +1,111 @@
+"""The agent end to end: skipped frames, intra-agent loop closure against injected drift, a tiny sequence through
+`run_sequence` and the `swarmsplat run` command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import kernels
+from kernels import se3
+from slam.agent import Agent
+from slam.config import SlamConfig
+from slam.frames import make_rgbd
+from slam.gaussian_map import GaussianMap
+from slam.loop_closure import LoopCloser
+from slam.submaps import Keyframe, world_pose
+
+import slam_scene
+
+QUICK = {  # small and fast: tiny images, a handful of iterations
+    "image": {"max_width": 160},
+    "tracking": {"iterations": 8, "refine_max_width": 80, "pyramid_levels": 1, "coarse_max_width": 160},
+    "mapping": {"max_width": 80, "iterations": 8, "first_iterations": 20, "seed_stride": 2},
+    "submaps": {"keep_keyframe_width": 80},
+}
+
+@pytest.fixture(scope="module")
+def warp_cpu():
+    # One torch thread, as `swarmsplat run` uses: the per-call tensors are small (see KernelsConfig.torch_threads).
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield kernels.use("warp", "cpu")
+    torch.set_num_threads(n)
+
+
+def test_frame_without_valid_depth_is_skipped_with_a_warning(warp_cpu):
+    cam = slam_scene.camera(48, 36)
+    agent = Agent(cam, SlamConfig().override(QUICK))
+    poses = slam_scene.trajectory(2)
+    c, d = slam_scene.render(poses[0], cam)
+    assert agent.step(0, 0.0, c, d) is not None
+    with pytest.warns(RuntimeWarning, match="frame 1 skipped"):
+        assert agent.step(1, 0.1, c, np.zeros_like(d)) is None
+    with pytest.warns(RuntimeWarning, match="frame 2 skipped"):
+        assert agent.step(2, 0.2, c, np.full_like(d, np.nan)) is None
+    c1, d1 = slam_scene.render(poses[1], cam)
+    assert agent.step(3, 0.3, c1, d1) is not None
+    stamps, T = agent.trajectory()
+    assert list(stamps) == [0.0, 0.3] and np.all(np.isfinite(T))
+    assert agent.time.skipped == [1, 2]
+
+
+def test_loop_closure_corrects_injected_drift():
+    """Six keyframes in six submaps along a short path that returns to its start; tracking drift is injected as
+    a growing error of the submap frames. The loop between the last and the first keyframe must be found,
+    verified by registration and pull the last keyframe back."""
+    cam = slam_scene.camera(160, 120)
+    cfg = SlamConfig().override({"loop_closure": {"min_index_gap": 3, "tau_sim": 0.5}}).loop_closure
+    a = np.radians(np.array([0, 6, 12, 12, 6, 1.0]))
+    true = [se3.make(se3.so3_exp(np.array([0.0, ai, 0.0])), np.array([0.4 * np.sin(ai), 0.0, 0.0])) for ai in a]
+    drift_step = se3.exp(np.array([0.0, 0.004, 0.002, 0.006, -0.003, 0.004]))
+    gm, kfs, closer = GaussianMap(), [], LoopCloser(cfg)
+    drift = np.eye(4)
+    for k, T in enumerate(true):
+        s = gm.new_submap(drift @ T)  # the estimated frame of this keyframe carries the drift so far
+        rgbd = make_rgbd(*slam_scene.render(T, cam), cam, min_depth=0.1, max_depth=10.0)
+        kf = Keyframe(k, 10 * k, float(k), s.id, np.eye(4), None, rgbd)
+        s.keyframe_ids.append(k)
+        kfs.append(kf)
+        closer.add_keyframe(kf, kfs, gm)
+        drift = drift_step @ drift
+    err = lambda k: np.linalg.norm(world_pose(gm, kfs[k])[:3, 3] - true[k][:3, 3])  # noqa: E731
+    before = err(5)
+    accepted = closer.detect(kfs[5], kfs, gm)
+    assert accepted and accepted[0].match_kf in (0, 1), [(c.match_kf, c.reason) for c in closer.log]
+    closer.optimise(kfs, gm)
+    assert err(0) < 1e-6  # the anchor stays
+    assert before > 0.02 and err(5) < 0.35 * before, (before, err(5))
+    rows = closer.log_rows()
+    assert all(r["reason"] for r in rows) and any(r["accepted"] for r in rows)
+
+
+def test_tiny_sequence_end_to_end(tmp_path, warp_cpu):
+    from slam.cli import main
+    from slam.ply import load_ply
+    from slam.synthetic import GeneratorConfig, generate
+    from slam.trajectory import read_tum
+
+    ds = generate(tmp_path / "ds", GeneratorConfig.preset("tiny", agents=1, frames=6, seed=1))
+    seq = next(p for p in ds.iterdir() if p.is_dir())
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(SlamConfig().override(QUICK).to_yaml())
+    out = tmp_path / "out"
+    assert main(["run", str(seq), "--out", str(out), "--config", str(cfg), "--frames", "4", "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("ate_rmse", "psnr", "ssim", "depth_l1", "fps", "time_s"):
+        assert m[key] is not None, key
+    assert m["frames"] == 4 and m["keyframes"] >= 1 and m["gaussians"] > 0
+    assert set(m["time_s"]) >= {"tracking", "mapping", "loop_closure"}
+    stamps, T = read_tum(out / "trajectory.txt")
+    assert len(stamps) == 4 and np.all(np.isfinite(T))
+    assert m["ate_rmse"] < 0.05  # tiny and fast, not accurate: 48 px wide, a handful of iterations
+    assert len(load_ply(out / "map.ply")) == m["gaussians"]
+    assert SlamConfig.from_yaml(out / "config.yaml") == SlamConfig.from_yaml(cfg)
+    assert (out / "trajectory.png").is_file() and (out / "loops.csv").is_file()
+    # a user error is one line and a non-zero exit, not a traceback
+    assert main(["run", str(tmp_path / "missing"), "--out", str(out)]) != 0
