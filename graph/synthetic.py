@@ -8,7 +8,8 @@ measurement is what MASt3R would give:
 rotation with ~1 deg noise, translation with noise, in the network's own unit — the true translation divided by
 a scale that is correlated in space (log-normal per `scale_cell` x `scale_cell` cell, like one image domain)
 with a small per-loop jitter. The eq. 6 scale the front-end would compute (odometry-pair translation over the
-network's odometry-pair translation) is the loop's scale times an independent log-normal error. A few loops are
+network's odometry-pair translation) is the loop's scale times the robot's odometry scale error times an
+independent log-normal error. A few loops are
 outliers (perceptual aliasing: a wrong pose), and correspondence ratios (eq. 1) are drawn lower for them; the
 confidence p (eq. 2) follows from the ratio.
 """
@@ -109,11 +110,13 @@ def make_team(cfg: TeamConfig | None = None) -> Team:
     gt_T = {}
     graph = PoseGraph()
     odo_info = np.diag([1 / cfg.odo_sigma_rot**2] * 3 + [1 / cfg.odo_sigma_trans**2] * 3)
+    odo_scale = {}
     for name in names:
         P, lane = _route(rng, cfg)
         T = _poses_along(P, lane)
         bias = rng.uniform(-1, 1) * cfg.odo_yaw_bias
         scale = 1.0 + rng.normal() * cfg.odo_scale_error
+        odo_scale[name] = scale
         est = np.eye(4)
         for i in range(len(T)):
             gt_T[robot_key(name, i)] = T[i]
@@ -168,7 +171,9 @@ def make_team(cfg: TeamConfig | None = None) -> Team:
             ratio = rng.uniform(0.4, 1.6)
         meas[:3, 3] /= s_true
         p = loop_confidence(ratio, k=cfg.k)
-        odom_scale = s_true * float(np.exp(rng.normal() * cfg.odom_scale_log_sigma))
+        # eq. 6 divides robot a's metric odometry (with that robot's scale error) by the network's odometry-pair
+        # translation (a different image pair: its scale agrees with the loop's only up to the log-normal error)
+        odom_scale = s_true * odo_scale[chr(ki >> 56)] * float(np.exp(rng.normal() * cfg.odom_scale_log_sigma))
         graph.add_loop(ki, kj, meas, loop_info, up_to_scale=True, confidence=p, odom_scale=odom_scale)
         n = len(graph.edges) - 1
         team.gt_scales[n] = s_true
