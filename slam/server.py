@@ -1,0 +1,293 @@
+"""GRAND-SLAM's server side (§III-D–E): it receives every agent's keyframes (descriptor, small RGB-D copy, pose)
+and reads their submaps, finds intra- and inter-agent loop closures, keeps one multi-agent pose graph over all
+keyframe poses, and moves submaps to the optimised poses (eqs. 14–15).
+
+Frames. Each agent tracks in its own world frame (its first camera). The server keeps, per agent,
+`T_global_world`: where that frame sits in its *component's* frame. A component is a set of agents linked by
+accepted inter-agent loops; its frame is that of its lowest-numbered agent. Agents start alone (identity); an
+agent joins another's frame when the first inter-agent loop between their components is accepted. Agents whose
+views never overlap are never linked, and each keeps its own frame (the pose graph anchors one key per
+connected component, `graph.PoseGraph.anchors`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from kernels import se3
+
+from .agent import Agent
+from .gaussian_map import GaussianParams, transform_params
+from .loop_log import INTER, LoopRecord, from_intra
+from .submaps import Keyframe, world_pose
+
+
+class ServerConfig(BaseModel):
+    """Settings of the server role. The registration gates (τ_f, τ_ρ, ICP distance, max correction) are the
+    agents' `loop_closure` section, so intra and inter loops pass the same tests."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    intra_loops: bool = Field(True, description="look for loops inside each agent's own keyframes")
+    inter_loops: bool = Field(True, description="look for loops between agents")
+    tau_sim: float = Field(0.85, ge=-1, le=1, description="inter-agent cosine similarity gate")
+    top_k: int = Field(2, ge=1, description="inter-agent candidates checked per new keyframe (best first)")
+    global_fallback: bool = Field(True, description="FPFH + RANSAC start when agents are not yet in one frame "
+                                                    "(or the guess fails the gates)")
+    solver: Literal["lm", "gnc"] = Field("lm", description="pose-graph solver; gnc rejects inconsistent loops")
+    loop_sigma_rot: float = Field(0.01, gt=0, description="loop-closure edge std (rad)")
+    loop_sigma_trans: float = Field(0.01, gt=0, description="loop-closure edge std (m)")
+
+
+@dataclass
+class InterLoop:
+    agent_i: int  # match (target) agent and keyframe
+    kf_i: int
+    agent_j: int  # query (source) agent and keyframe
+    kf_j: int
+    T_ij: np.ndarray  # [4, 4] pose of keyframe j's camera in keyframe i's camera
+    record: LoopRecord
+
+
+@dataclass
+class AgentSlot:
+    """What the server knows about one agent."""
+
+    agent: Agent
+    robot: str  # one-character pose-graph robot id
+    T_global_world: np.ndarray = field(default_factory=lambda: np.eye(4))  # [4, 4] agent world -> component frame
+    component: int = 0  # index of the lowest agent of its component
+    intra_logged: int = 0  # how many of agent.loops.log are already in the server's records
+    intra_accepted: list = field(default_factory=list)  # records of agent.loops.loops, edge n <-> record n
+
+
+class Server:
+    def __init__(self, agents: list[Agent], config: ServerConfig | None = None):
+        self.cfg = config or ServerConfig()
+        self.slots = [AgentSlot(a, chr(ord("a") + i), component=i) for i, a in enumerate(agents)]
+        self.inter: list[InterLoop] = []
+        self.records: list[LoopRecord] = []
+        self.rejected_edges: set[tuple] = set()  # GNC outliers, left out of later graphs
+        self.optimisations = 0
+        self.time = {"intra": 0.0, "inter": 0.0, "optimisation": 0.0}
+        self.last_graph = None  # (PoseGraph, optimised poses) of the last optimisation
+
+    # ---- the server loop: one call per keyframe an agent sends --------------------------------------------------
+
+    def on_keyframe(self, a: int, kf: Keyframe, step: int = 0) -> list[LoopRecord]:
+        """Look for loops of agent `a`'s new keyframe (its own, then the other agents'); optimise and move submaps
+        when one is accepted. Returns the new candidate records."""
+        t0 = time.perf_counter()
+        new = self._intra(a, kf, step) if self.cfg.intra_loops else []
+        t1 = time.perf_counter()
+        if self.cfg.inter_loops:
+            new += [self.verify_inter(a, kf, b, m, sim, step) for b, m, sim in self.inter_candidates(a, kf, step)]
+        t2 = time.perf_counter()
+        self.time["intra"] += t1 - t0
+        self.time["inter"] += t2 - t1
+        if any(r.accepted for r in new):
+            self.optimise()
+        return new
+
+    def _intra(self, a: int, kf: Keyframe, step: int) -> list[LoopRecord]:
+        slot = self.slots[a]
+        ag = slot.agent
+        ag.loops.detect(kf, ag.keyframes, ag.gmap)
+        new = [from_intra(ag.name, c, step) for c in ag.loops.log[slot.intra_logged:]]
+        slot.intra_logged = len(ag.loops.log)
+        slot.intra_accepted += [r for r in new if r.accepted]
+        self.records += new
+        return new
+
+    # ---- inter-agent candidates and their verification ---------------------------------------------------------
+
+    def inter_candidates(self, a: int, kf: Keyframe, step: int = 0) -> list[tuple[int, Keyframe, float]]:
+        """The `top_k` most similar keyframes of the other agents with similarity ≥ τ_sim. The best one below
+        the gate is logged (reason `similarity`), so a pair of agents that never matches is visible in loops.csv."""
+        if kf.descriptor is None:
+            return []
+        scored = []
+        for b, slot in enumerate(self.slots):
+            if b == a:
+                continue
+            for m in slot.agent.keyframes:
+                if m.descriptor is not None:
+                    scored.append((float(np.dot(kf.descriptor, m.descriptor)), b, m))
+        scored.sort(key=lambda s: -s[0])
+        out = [(b, m, s) for s, b, m in scored[: self.cfg.top_k] if s >= self.cfg.tau_sim]
+        if not out and scored:
+            s, b, m = scored[0]
+            self.records.append(self._record(a, kf, b, m, s, step).reject(
+                "similarity", f"similarity {s:.3f} < tau_sim {self.cfg.tau_sim}"))
+        return out
+
+    def _record(self, a: int, q: Keyframe, b: int, m: Keyframe, sim: float, step: int) -> LoopRecord:
+        return LoopRecord(INTER, self.slots[a].agent.name, q.id, q.frame_index, self.slots[b].agent.name, m.id,
+                          m.frame_index, float(sim), step=step)
+
+    def verify_inter(self, a: int, q: Keyframe, b: int, m: Keyframe, sim: float, step: int = 0) -> LoopRecord:
+        """Register agent a's keyframe q (source) to agent b's keyframe m (target): coarse RGB-D, then ICP, then
+        the fitness / RMSE gates. Agents already in one frame start from their current relative pose (eq. 6) and
+        must also pass the correction gate; agents in different frames start from identity with the FPFH + RANSAC
+        fallback. An accepted loop either links two components (the join) or is a pose-graph edge."""
+        from registration.rgbd import register_rgbd
+
+        lc = self.slots[a].agent.cfg.loop_closure
+        rec = self._record(a, q, b, m, sim, step)
+        self.records.append(rec)
+        same = self.slots[a].component == self.slots[b].component
+        T_init = se3.inverse(self.global_pose(b, m)) @ self.global_pose(a, q) if same else np.eye(4)
+        if q.small.camera.K.tolist() != m.small.camera.K.tolist() or q.small.color.shape != m.small.color.shape:
+            rec.registration = "camera models differ"
+            return rec.reject("registration", "registration failed: the two keyframes have different cameras")
+        r = register_rgbd(q.small.color, q.small.depth, m.small.color, m.small.depth, q.small.camera, T_init,
+                          max_distance=lc.icp_max_distance, min_fitness=lc.fitness_min, max_rmse=lc.rmse_max,
+                          global_fallback=self.cfg.global_fallback,
+                          depth_max=self.slots[a].agent.cfg.image.max_depth)
+        rec.registration, rec.fitness, rec.inlier_rmse = r.reason, float(r.fitness), float(r.inlier_rmse)
+        if not r.success and r.reason != "poor alignment":
+            return rec.reject("registration", f"registration failed: {r.reason}")
+        if r.fitness <= lc.fitness_min:
+            return rec.reject("fitness", f"fitness {r.fitness:.3f} <= tau_f {lc.fitness_min}")
+        if r.inlier_rmse >= lc.rmse_max:
+            return rec.reject("rmse", f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {lc.rmse_max}")
+        if not r.success:
+            return rec.reject("registration", f"registration failed: {r.reason}")
+        if same:
+            rec.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
+            if rec.correction_m > lc.max_correction:
+                return rec.reject("correction", f"correction {rec.correction_m:.3f} m > max_correction "
+                                                f"{lc.max_correction}")
+        else:
+            self._join(b, m, a, q, r.T_target_source)
+            rec.joined = True
+        rec.accepted, rec.reason_code = True, "accepted"
+        rec.reason = "accepted" + (" (joined frames)" if rec.joined else "") + f" [{r.method}]"
+        self.inter.append(InterLoop(b, m.id, a, q.id, r.T_target_source.copy(), rec))
+        return rec
+
+    def _join(self, b: int, m: Keyframe, a: int, q: Keyframe, T_m_q: np.ndarray) -> None:
+        """Bring the components of agents a and b into one frame, the one of the lower-numbered root."""
+        ca, cb = self.slots[a].component, self.slots[b].component
+        if cb < ca:  # a's component moves into b's frame: G_a(q) must become G_b(m) T_m_q
+            C = self.global_pose(b, m) @ T_m_q @ se3.inverse(self.global_pose(a, q))
+            moving, root = ca, cb
+        else:
+            C = self.global_pose(a, q) @ se3.inverse(T_m_q) @ se3.inverse(self.global_pose(b, m))
+            moving, root = cb, ca
+        for s in self.slots:
+            if s.component == moving:
+                s.T_global_world = C @ s.T_global_world
+                s.component = root
+
+    # ---- poses, the pose graph and the submap moves -------------------------------------------------------------
+
+    def global_pose(self, a: int, kf: Keyframe) -> np.ndarray:
+        """T [4, 4] of a keyframe camera in its component's frame."""
+        s = self.slots[a]
+        return s.T_global_world @ world_pose(s.agent.gmap, kf)
+
+    def key(self, a: int, kf_id: int) -> int:
+        from graph.pose_graph import robot_key
+
+        return robot_key(self.slots[a].robot, kf_id)
+
+    def build_graph(self):
+        """One multi-agent PoseGraph: every agent's keyframes, tracking edges, intra and inter loops (minus GNC
+        outliers). Returns (graph, edge tags) with a tag per edge: None for odometry, else ("intra", a, n) or
+        ("inter", n)."""
+        from graph.pose_graph import PoseGraph
+
+        def info(sr, st):
+            return np.diag([sr ** -2] * 3 + [st ** -2] * 3)
+
+        g, tags = PoseGraph(), []
+        for a, s in enumerate(self.slots):
+            for kf in s.agent.keyframes:
+                g.add_pose(self.key(a, kf.id), self.global_pose(a, kf))
+            for e in s.agent.loops.odometry:
+                g.add_odometry(self.key(a, e.i), self.key(a, e.j), e.T_ij, info(e.sigma_rot, e.sigma_trans))
+                tags.append(None)
+            for n, e in enumerate(s.agent.loops.loops):
+                if ("intra", a, n) not in self.rejected_edges:
+                    g.add_loop(self.key(a, e.i), self.key(a, e.j), e.T_ij, info(e.sigma_rot, e.sigma_trans))
+                    tags.append(("intra", a, n))
+        for n, L in enumerate(self.inter):
+            if ("inter", n) not in self.rejected_edges:
+                g.add_loop(self.key(L.agent_i, L.kf_i), self.key(L.agent_j, L.kf_j), L.T_ij,
+                           info(self.cfg.loop_sigma_rot, self.cfg.loop_sigma_trans))
+                tags.append(("inter", n))
+        return g, tags
+
+    def optimise(self) -> dict:
+        """LM (or GNC) over the whole team's keyframe poses, then every submap moved to the optimised pose of its
+        first keyframe (eq. 14), expressed back in its agent's own world frame."""
+        from graph.formulations import build_problem
+        from graph.solvers import solve
+
+        t0 = time.perf_counter()
+        g, tags = self.build_graph()
+        res = solve(build_problem(g, "base"), self.cfg.solver)
+        if res.rejected:
+            self._mark_gnc(g, tags, res.rejected)
+        moved = []
+        for a, s in enumerate(self.slots):
+            kfs = s.agent.keyframes
+            W_from_G = se3.inverse(s.T_global_world)
+            for sm in s.agent.gmap.submaps:
+                if not sm.keyframe_ids:
+                    continue
+                first = kfs[sm.keyframe_ids[0]]
+                T_new = W_from_G @ res.poses[self.key(a, first.id)] @ se3.inverse(first.T_local_cam)
+                D = T_new @ se3.inverse(sm.T_world_local)
+                s.agent.gmap.transform_submap(sm, D)
+                moved.append(float(np.linalg.norm(D[:3, 3])))
+        self.optimisations += 1
+        self.last_graph = (g, res.poses)
+        self.time["optimisation"] += time.perf_counter() - t0
+        return {"submaps_moved": len(moved), "max_shift_m": max(moved, default=0.0), "solver": res.solver,
+                "rejected": len(res.rejected)}
+
+    def _mark_gnc(self, g, tags, rejected: list[int]) -> None:
+        for e in rejected:
+            tag = tags[e]
+            if tag is None:
+                continue
+            self.rejected_edges.add(tag)
+            if tag[0] == "inter":
+                rec = self.inter[tag[1]].record
+            else:
+                acc = self.slots[tag[1]].intra_accepted
+                rec = acc[tag[2]] if tag[2] < len(acc) else None
+            if rec is not None:
+                rec.reject("gnc", "rejected by GNC as inconsistent with the other loops and odometry")
+
+    # ---- results ---------------------------------------------------------------------------------------------
+
+    def components(self) -> dict[int, list[int]]:
+        out: dict[int, list[int]] = {}
+        for a, s in enumerate(self.slots):
+            out.setdefault(s.component, []).append(a)
+        return out
+
+    def global_trajectory(self, a: int) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps [N], T [N, 4, 4]) of agent a's frames in its component's frame."""
+        s = self.slots[a]
+        stamps, T = s.agent.trajectory()
+        return stamps, (s.T_global_world[None] @ T if len(T) else T)
+
+    def merged_map(self, component: int = 0) -> GaussianParams:
+        """All Gaussians of the agents in `component`, in that component's frame (eq. 15 per submap)."""
+        parts = []
+        for s in self.slots:
+            if s.component != component:
+                continue
+            for sm in s.agent.gmap.submaps:
+                if len(sm):
+                    parts.append(transform_params(sm.params, s.T_global_world @ sm.T_world_local))
+        return GaussianParams.concat(parts)

@@ -1,0 +1,168 @@
+"""A team of GRAND-SLAM agents and the server (§III-D–E, §IV): each agent runs the per-agent pipeline (track,
+submaps, map) on its own sequence; every keyframe it makes goes to the server, which closes intra- and
+inter-agent loops on one multi-agent pose graph and moves the submaps (slam.server).
+
+The agents run in one process, round-robin one frame each, as if they recorded at the same time; an agent whose
+sequence ends leaves the rotation and the others carry on. Loop closures are the server's job, so each agent's
+own optimisation is switched off (it would undo the inter-agent corrections); the agent's LoopCloser still
+provides descriptors, tracking edges and intra-agent verification.
+
+    from slam.team import run_team
+    metrics = run_team("data/synth", "results/team", SlamConfig())
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from kernels import se3
+from kernels.errors import InputError
+
+from .agent import Agent
+from .config import SlamConfig
+from .loop_log import LoopRecord
+from .server import Server, ServerConfig
+
+
+class Team:
+    """N agents and one server. `step(a, frame)` feeds agent a one frame; `run(...)` feeds whole sequences."""
+
+    def __init__(self, cameras: Sequence, names: Sequence[str], config: SlamConfig | None = None,
+                 server: ServerConfig | None = None, *, reference: bool = False):
+        if len(cameras) != len(names) or not names:
+            raise InputError(f"a team needs one camera per agent name, got {len(cameras)} and {len(names)}")
+        if len(names) > 26:
+            raise InputError(f"at most 26 agents (one pose-graph letter each), got {len(names)}")
+        self.cfg = config or SlamConfig()
+        scfg = (server or ServerConfig()).model_copy()
+        scfg.intra_loops = scfg.intra_loops and self.cfg.loop_closure.enabled
+        scfg.inter_loops = scfg.inter_loops and self.cfg.loop_closure.enabled
+        agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
+        self.agents = [Agent(c, agent_cfg, name=n, reference=reference) for c, n in zip(cameras, names)]
+        self.server = Server(self.agents, scfg)
+        # Per agent, each submap's origin as tracking alone placed it: the trajectory without loop closures.
+        self._origins_no_lc: list[list[np.ndarray]] = [[] for _ in self.agents]
+        self.rounds = 0
+        self.frames_done = [0] * len(self.agents)
+
+    # ---- running ---------------------------------------------------------------------------------------------
+
+    def step(self, a: int, index: int, timestamp: float, color: np.ndarray, depth: np.ndarray | None
+             ) -> list[LoopRecord]:
+        """One frame of agent a; when it becomes a keyframe the server looks for loops. Returns new loop records."""
+        ag = self.agents[a]
+        n_kf, n_sm = len(ag.keyframes), len(ag.gmap.submaps)
+        ag.step(index, timestamp, color, depth)
+        self.frames_done[a] += 1
+        if len(ag.gmap.submaps) > n_sm:
+            self._record_origin(a)
+        if len(ag.keyframes) > n_kf:
+            return self.server.on_keyframe(a, ag.keyframes[-1], self.rounds)
+        return []
+
+    def _record_origin(self, a: int) -> None:
+        """A new submap's origin relative to the previous one is pure tracking (it is set from the active submap
+        and the tracked pose); chaining those relatives gives the submap origins a run without loops would have."""
+        sms = self.agents[a].gmap.submaps
+        origins = self._origins_no_lc[a]
+        if not origins:
+            origins.append(sms[0].T_world_local.copy())
+            return
+        k = len(sms) - 1
+        rel = se3.inverse(sms[k - 1].T_world_local) @ sms[k].T_world_local
+        origins.append(origins[k - 1] @ rel)
+
+    def run(self, sequences: Sequence, *, limits: Sequence[int] | None = None,
+            progress: Callable[[str], None] | None = None) -> float:
+        """Feed every agent its sequence, one frame per agent per round, until all have ended. `limits[a]` caps
+        agent a's frames. Returns the wall time in seconds."""
+        n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
+             for a, s in enumerate(sequences)]
+        t0 = time.perf_counter()
+        for i in range(max(n, default=0)):
+            self.rounds = i
+            for a, seq in enumerate(sequences):
+                if i < n[a]:  # an agent whose sequence has ended simply leaves the rotation
+                    f = seq[i]
+                    self.step(a, f.index, f.timestamp, f.color, f.depth)
+            if progress:
+                progress(self.status(i + 1, max(n), time.perf_counter() - t0))
+        return time.perf_counter() - t0
+
+    def finish(self) -> dict | None:
+        """A last global optimisation over every keyframe (those added since the last loop included)."""
+        if any(r.accepted for r in self.server.records):
+            return self.server.optimise()
+        return None
+
+    def status(self, done: int, total: int, elapsed: float) -> str:
+        loops = self.server.records
+        acc_i = sum(r.accepted and r.kind == "intra" for r in loops)
+        acc_x = sum(r.accepted and r.kind == "inter" for r in loops)
+        groups = len(self.server.components())
+        return (f"round {done}/{total}  keyframes {sum(len(a.keyframes) for a in self.agents)}  "
+                f"Gaussians {sum(len(a.gmap) for a in self.agents)}  loops {acc_i} intra / {acc_x} inter "
+                f"of {len(loops)}  frames {groups}  {elapsed:.0f}s")
+
+    # ---- results ---------------------------------------------------------------------------------------------
+
+    def trajectory(self, a: int) -> tuple[np.ndarray, np.ndarray]:
+        """Agent a's frames in its component's frame, with loop closures."""
+        return self.server.global_trajectory(a)
+
+    def trajectory_no_lc(self, a: int) -> tuple[np.ndarray, np.ndarray]:
+        """Agent a's frames as tracking alone placed them (its own world frame)."""
+        ag = self.agents[a]
+        o = self._origins_no_lc[a]
+        if not ag.poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        return (np.array([p.timestamp for p in ag.poses]),
+                np.stack([o[p.submap_id] @ p.T_local_cam for p in ag.poses]))
+
+    def keyframe_pose_no_lc(self, a: int, kf) -> np.ndarray:
+        return self._origins_no_lc[a][kf.submap_id] @ kf.T_local_cam
+
+
+def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
+             server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
+             progress: bool = True, reference: bool = False, render_views: int = 8) -> dict:
+    """Run the team on a multi-agent RGB-D dataset (any layout `slam.datasets.load_dataset` reads) and write
+    every output to `out_dir` (see slam.team_results). Returns the metrics written to metrics.json.
+    `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from slam.split.split_sequence).
+
+    frames: at most this many frames per agent (None: config.max_frames, 0 = all); limits: per-agent caps.
+    render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all).
+    """
+    import kernels
+
+    from .datasets import MultiAgentDataset, load_dataset
+    from .team_results import write_team_results
+
+    cfg = config or SlamConfig()
+    ds = dataset_path if isinstance(dataset_path, MultiAgentDataset) else load_dataset(dataset_path)
+    if ds.kind != "rgbd":
+        raise InputError(f"{ds.root}: the GRAND-SLAM team needs RGB-D sequences, this dataset is {ds.kind}")
+    kernels.use(cfg.kernels.backend, cfg.kernels.device)
+    cap = frames if frames is not None else cfg.max_frames
+    caps = []
+    for a in range(len(ds.agents)):  # the smaller of the global and the agent's own cap; 0 = no cap
+        c = [int(x) for x in (cap, limits[a] if limits else None) if x]
+        caps.append(min(c) if c else 0)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server, reference=reference)
+    show = (lambda msg: print(f"\r[team] {msg}   ", end="", file=sys.stderr, flush=True)) if progress else None
+    cpu0 = time.process_time()
+    wall = team.run(ds.agents, limits=caps, progress=show)
+    t_fin = time.perf_counter()
+    team.finish()
+    wall += time.perf_counter() - t_fin
+    if progress:
+        print(file=sys.stderr)
+    return write_team_results(team, ds, out, wall_s=wall, cpu_s=time.process_time() - cpu0,
+                              render_views=render_views, progress=progress)

@@ -1,0 +1,132 @@
+"""The GRAND-SLAM team: two agents end to end (a split of one generated sequence, so they share views but start
+in unknown relative frames), agents with disjoint views never merged, an injected false inter-agent candidate
+rejected by the gates, and an agent whose sequence ends early not stopping the others."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from slam.config import SlamConfig
+from slam.datasets import MultiAgentDataset, load_dataset
+from slam.server import ServerConfig
+from slam.split import split_sequence, sub_sequence
+from slam.team import Team, run_team
+
+# Few iterations: these tests check the team's logic, not the map's quality.
+FAST = {
+    "mapping": {"iterations": 8, "first_iterations": 25},
+    "tracking": {"iterations": 15},
+    "keyframes": {"every": 2},
+    "loop_closure": {"min_index_gap": 2},
+}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from slam.synthetic import GeneratorConfig, generate
+
+    root = tmp_path_factory.mktemp("team")
+    return {s: generate(root / f"seed{s}", GeneratorConfig.preset("tiny", seed=s, agents=1, frames=8)) for s in (0, 1)}
+
+
+@pytest.fixture(scope="module")
+def split_run(tiny, tmp_path_factory):
+    """Agent 0 sees frames 0-4 and agent 1 frames 2-7 of one recording: overlapping views, separate frames."""
+    seq = load_dataset(tiny[0]).agents[0]
+    ds = split_sequence(seq, [(0, 5), (2, 8)])
+    out = tmp_path_factory.mktemp("split_out")
+    cfg = SlamConfig().override(FAST)
+    m = run_team(ds, out, cfg, server=ServerConfig(tau_sim=0.5), progress=False, render_views=2)
+    return out, m
+
+
+def test_two_agents_end_to_end(split_run):
+    out, m = split_run
+    for f in ("config.yaml", "server.yaml", "pose_graph_initial.g2o", "pose_graph_optimized.g2o", "map.ply",
+              "loops.csv", "metrics.json", "report.md", "trajectory.png", "renders.png",
+              "trajectories/agent_0.txt", "trajectories/agent_1.txt", "trajectories_no_lc/agent_1.txt"):
+        assert (out / f).is_file(), f
+    saved = json.loads((out / "metrics.json").read_text())
+    assert [a["name"] for a in saved["agents"]] == ["agent_0", "agent_1"]
+    assert [a["frames_tracked"] for a in saved["agents"]] == [5, 6]
+    # The shared frames 2-4 give inter-agent loops; the first one brings agent 1 into agent 0's frame.
+    inter = [r for r in csv.DictReader(open(out / "loops.csv")) if r["kind"] == "inter"]
+    accepted = [r for r in inter if r["accepted"] == "True"]
+    assert accepted, f"no inter-agent loop accepted: {[r['reason'] for r in inter]}"
+    assert accepted[0]["joined"] == "True"
+    assert saved["components"] == {"agent_0": ["agent_0", "agent_1"]}
+    assert all(a["in_global_frame"] for a in saved["agents"])
+    # One map in one frame: the team ATE under one alignment is small, so the join put agent 1 where it belongs.
+    assert saved["ate_rmse_team"] is not None and saved["ate_rmse_team"] < 0.05
+    for a in saved["agents"]:
+        assert a["ate_rmse"] is not None and a["ate_rmse_no_lc"] is not None
+    assert saved["psnr"] is not None and saved["psnr"] > 15
+    assert len(list(csv.DictReader(open(out / "loops.csv")))) == saved["loop_candidates"]
+    assert "| agent_1 |" in (out / "report.md").read_text()
+
+
+@pytest.fixture(scope="module")
+def disjoint_team(tiny):
+    """Two agents in two different generated worlds (disjoint views); agent 1's sequence ends after 2 frames."""
+    import kernels
+
+    seqs = [sub_sequence(load_dataset(tiny[s]).agents[0], 0, 4, f"agent_{s}") for s in (0, 1)]
+    cfg = SlamConfig().override(FAST)
+    kernels.use(cfg.kernels.backend, cfg.kernels.device)
+    # Similarity gate off: every best-matching keyframe pair of the two worlds goes to registration.
+    team = Team([s.camera for s in seqs], [s.name for s in seqs], cfg, ServerConfig(tau_sim=-1.0))
+    team.run(seqs, limits=[4, 2])
+    return team, seqs
+
+
+def test_agent_ending_early_does_not_stop_the_others(disjoint_team):
+    team, _ = disjoint_team
+    assert team.frames_done == [4, 2]
+    assert len(team.agents[0].poses) == 4 and len(team.agents[1].poses) == 2
+    stamps, T = team.trajectory(0)
+    assert len(stamps) == 4 and np.all(np.isfinite(T))
+
+
+def test_disjoint_agents_never_merged(disjoint_team):
+    team, _ = disjoint_team
+    srv = team.server
+    inter = [r for r in srv.records if r.kind == "inter"]
+    assert inter, "the similarity gate was off, so candidates must have reached registration"
+    assert not any(r.accepted for r in inter)
+    assert srv.components() == {0: [0], 1: [1]}
+    assert np.allclose(srv.slots[1].T_global_world, np.eye(4))
+    assert len(srv.merged_map(0)) == len(team.agents[0].gmap)
+
+
+def test_injected_false_inter_candidate_rejected_by_gates(disjoint_team):
+    team, _ = disjoint_team
+    srv = team.server
+    q, m = team.agents[1].keyframes[-1], team.agents[0].keyframes[0]
+    rec = srv.verify_inter(1, q, 0, m, sim=1.0)
+    assert not rec.accepted
+    assert rec.reason_code in ("registration", "fitness", "rmse"), rec.reason
+    assert not srv.inter and srv.components() == {0: [0], 1: [1]}
+
+
+def test_join_moves_the_later_agent_into_the_lower_frame():
+    """The frame algebra of a join, without SLAM: agent 1's keyframe q seen at T_m_q from agent 0's keyframe m."""
+    from kernels import se3
+    from slam.server import Server
+
+    class _Stub:
+        def __init__(self, name):
+            self.name, self.keyframes, self.gmap = name, [], None
+
+    srv = Server([_Stub("a0"), _Stub("a1")])
+    T_w0_m = se3.exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, 0.5]))
+    T_w1_q = se3.exp(np.array([-0.3, 0.1, 0.2, -1.0, 0.4, 0.2]))
+    T_m_q = se3.exp(np.array([0.05, 0.02, -0.1, 0.3, 0.0, 0.1]))
+    srv.global_pose = lambda a, kf: T_w0_m if a == 0 else srv.slots[1].T_global_world @ T_w1_q
+    srv._join(0, None, 1, None, T_m_q)
+    assert srv.components() == {0: [0, 1]}
+    assert np.allclose(srv.slots[1].T_global_world @ T_w1_q, T_w0_m @ T_m_q)
+    assert np.allclose(srv.slots[0].T_global_world, np.eye(4))
