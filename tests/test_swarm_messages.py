@@ -100,6 +100,13 @@ def test_rejects_bad_values():
     lb = _samples()[4]
     lb.confidence = np.array([0.5, 1.5])
     _bad(M.encode(lb, 0, 1))
+    sub = _samples()[5]
+    sub.odometry = sub.odometry.copy()
+    sub.odometry[1, :3, :3] *= 2.0  # not a rotation: a solver would choke on it
+    _bad(M.encode(sub, 0, 1))
+    desc = _samples()[1]
+    desc.descriptors[0, 0] = np.inf
+    _bad(M.encode(desc, 0, 1))
     rep = M.EncodingReply.pack(1, [1, 1, 1, 1, 1, 1], {1: b"abc"})
     rep.offsets = np.array([0, 5])
     _bad(M.encode(rep, 0, 1))

@@ -187,7 +187,11 @@ def test_malformed_bytes_are_dropped():
         if tick in (2, 13):
             net.inject(0, b"\x00garbage")
             net.inject(1, M.encode(M.EncodingRequest(owner=1), 2, 1)[:-3])
+            # valid bytes from a robot with another place-recognition model: accepted as a message, not stored
+            net.inject(0, M.encode(M.Descriptors(owner=9, indices=np.arange(2),
+                                                 descriptors=np.ones((2, 5), np.float32)), 9, 1))
 
     nodes, _ = run(on_tick=hook)
+    assert 9 not in nodes[0].desc
     assert nodes[0].tx.stats.rejected == 2 and nodes[1].tx.stats.rejected == 2
     assert nodes[0].estimate is not None and nodes[0].estimate.robots.tolist() == [0, 1, 2]

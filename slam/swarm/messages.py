@@ -55,6 +55,17 @@ class Message:
         return type(self).__name__
 
 
+def _check_poses(T: np.ndarray, what: str) -> None:
+    """MessageError unless T [N, 4, 4] are finite rigid transforms (rotation orthonormal, det +1, last row 0001)."""
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+        raise MessageError(f"{what}: poses must be finite [N, 4, 4]")
+    if len(T):
+        R = T[:, :3, :3]
+        if np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max() > 1e-6 or np.any(np.linalg.det(R) < 0) \
+                or np.abs(T[:, 3] - [0, 0, 0, 1]).max() > 0:
+            raise MessageError(f"{what}: poses are not rigid transforms")
+
+
 def _i64(x) -> np.ndarray:
     return np.asarray(x, dtype=np.int64).reshape(-1)
 
@@ -100,6 +111,11 @@ class Descriptors(Message):
     owner: int = 0
     indices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+
+    def validate(self) -> None:
+        if len(self.descriptors) != len(self.indices) or not np.all(np.isfinite(self.descriptors)) \
+                or np.any(self.indices < 0):
+            raise MessageError("Descriptors: one finite descriptor per non-negative keyframe index expected")
 
 
 @dataclass
@@ -169,6 +185,10 @@ class LoopBatch(Message):
         n = len(self.query_robot)
         if any(len(getattr(self, k)) != n for k in self.ARRAYS) or self.T_query_match.shape[1:] != (4, 4):
             raise MessageError("LoopBatch: arrays of different lengths")
+        _check_poses(self.T_query_match, "LoopBatch")
+        if np.any(self.query_index < 0) or np.any(self.match_index < 0) or np.any(self.query_robot < 0) \
+                or np.any(self.match_robot < 0) or np.any(self.query_robot > 25) or np.any(self.match_robot > 25):
+            raise MessageError("LoopBatch: robot ids must be in 0..25 and keyframe indices >= 0")
         if not (np.all(np.isfinite(self.T_query_match)) and np.all((self.confidence > 0) & (self.confidence <= 1))
                 and np.all(np.isfinite(self.odom_scale)) and np.all(self.odom_scale > 0)):
             raise MessageError("LoopBatch: non-finite pose, confidence outside (0, 1] or non-positive scale")
@@ -197,8 +217,7 @@ class GraphSubmission(Message):
         return LoopBatch(version=list(self.version), **{k: getattr(self, k) for k in LoopBatch.ARRAYS})
 
     def validate(self) -> None:
-        if self.odometry.shape[1:] != (4, 4) or not np.all(np.isfinite(self.odometry)):
-            raise MessageError("GraphSubmission: odometry must be finite [N, 4, 4]")
+        _check_poses(self.odometry, "GraphSubmission")
         self.loops().validate()
 
 
@@ -235,8 +254,7 @@ class Estimate(Message):
         if len(self.robots) != len(self.counts) or np.any(self.counts < 0) or \
                 int(self.counts.sum()) != len(self.poses) or self.poses.shape[1:] != (4, 4):
             raise MessageError("Estimate: robots, counts and poses disagree")
-        if not np.all(np.isfinite(self.poses)):
-            raise MessageError("Estimate: non-finite poses")
+        _check_poses(self.poses, "Estimate")
         if not all(isinstance(x, int) for x in self.stamp):
             raise MessageError("Estimate: stamp must be a list of integers")
 

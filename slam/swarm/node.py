@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from kernels.errors import InputError, SwarmsplatError
 
 from . import messages as M
 from .election import elect, is_optimiser
@@ -181,8 +181,8 @@ class RobotNode:
                 self.hello[sender] = msg
             self.last_seen[sender] = max(self.last_seen.get(sender, -1), self.tick)
         elif isinstance(msg, M.Descriptors):
-            if msg.owner == self.id or msg.descriptors.shape[0] != len(msg.indices):
-                return
+            if msg.owner == self.id or msg.descriptors.shape[1] != int(self.recognizer.dim):
+                return  # another place-recognition model: not comparable
             d = self.desc.setdefault(msg.owner, {})
             new = [int(i) for i in msg.indices if int(i) not in d]
             for i, v in zip(msg.indices.tolist(), msg.descriptors):
@@ -285,7 +285,10 @@ class RobotNode:
             self.tx.send(peer, M.EncodingRequest(owner=peer, indices=np.array(ask, np.int64)))
         for (i, j), s in sorted(cands.items()):
             if (peer, i, j) not in self.registered and (c, j) in self.front._enc:
-                self.registered[(peer, i, j)] = self.front.evaluate((self.char, i), (c, j), s)
+                try:
+                    self.registered[(peer, i, j)] = self.front.evaluate((self.char, i), (c, j), s)
+                except SwarmsplatError:  # e.g. an encoding from another backend: this pair is not a loop
+                    self.registered[(peer, i, j)] = None
         loops = {}
         for (i, j) in sorted(cands):
             m = self.registered.get((peer, i, j))
@@ -317,7 +320,11 @@ class RobotNode:
         basis = {str(r): list(self.subs[r].version) for r in group}
         if len(group) < 2 or basis == self.solved_basis:
             return
-        sol = solve_group({r: self.subs[r] for r in group}, self.cfg.solve)
+        try:
+            sol = solve_group({r: self.subs[r] for r in group}, self.cfg.solve)
+        except SwarmsplatError:  # a graph the solver refuses: keep the current estimate, try with the next change
+            self.solved_basis = basis
+            return
         self.solved_basis, self.last_solution = basis, sol
         self.n_solves += 1
         est = M.Estimate(leader=self.id, anchor=min(group),
