@@ -12,12 +12,14 @@ computed once per keyframe and cached, as each robot would keep its own.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Callable
 
 import numpy as np
 
 from graph.confidence import K_DEFAULT, R_THR_DEFAULT, correspondence_ratio, loop_confidence
 from kernels.camera import PinholeCamera
+from kernels.errors import InputError
 from registration.pair.base import Encoding, PairRegistrar, PairResult
 
 KeyframeId = tuple[str, int]  # (agent, keyframe index)
@@ -67,6 +69,21 @@ class LoopFrontend:
             self._enc[kf] = self.registrar.encode(self.image_of(*kf))
             self.encode_calls += 1
         return self._enc[kf]
+
+    def has_encoding(self, kf: KeyframeId) -> bool:
+        """True when keyframe `kf` is encoded here (computed or received)."""
+        return kf in self._enc
+
+    def put_encoding(self, kf: KeyframeId, encoding: Encoding) -> None:
+        """Store an encoding received from the robot that owns keyframe `kf` (it is never re-encoded here)."""
+        if not isinstance(encoding, Encoding):
+            raise InputError(f"put_encoding({kf}): expected an Encoding, got {type(encoding).__name__}")
+        self._enc[kf] = encoding
+
+    @property
+    def encodings(self) -> dict:
+        """Read-only view of the cache: keyframe -> Encoding."""
+        return MappingProxyType(self._enc)
 
     def odometry_pair(self, agent: str, i: int) -> tuple[tuple[int, int] | None, PairResult | None]:
         """Register (I_{i-1}, I_i) of `agent` (for i = 0 the next keyframe stands in: (I_0, I_1)); cached."""

@@ -136,7 +136,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
         if have_gt and meas.accepted and rows[-1]["t_err_m_gt_scale"] <= 2.0:
             n_in += 1
     _write_csv(out, rows)
-    enc_bytes = [e.nbytes for e in front._enc.values()]
+    enc_bytes = [e.nbytes for e in front.encodings.values()]
     ap = {sc: inlier_precision_recall(rows, sc)["ap"] for sc in ("similarity", "n_correspondences", "ratio")} \
         if have_gt else {}
     return PairsSummary(Path(out), sum(map(len, kf.values())), len(cands), n_reg, n_acc, n_in if have_gt else None,

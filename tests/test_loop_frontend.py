@@ -71,6 +71,14 @@ def test_frontend_ratio_gate_and_confidence_use_graph_confidence():
     bad = fe.evaluate(("a", 2), ("b", 1), similarity=0.2)  # another room
     assert not bad.accepted and bad.p is None and bad.reason
     assert fe.encode_calls == 4  # a1, a2, b0, b1: a2 and the odometry pair are encoded once, then cached
+    # an encoding received from its owner is used as is, never recomputed
+    other = _frontend(images)
+    other.put_encoding(("b", 0), fe.encodings[("b", 0)])
+    assert other.has_encoding(("b", 0)) and not other.has_encoding(("b", 1))
+    again = other.evaluate(("a", 2), ("b", 0))
+    assert other.encode_calls == 2 and again.loop.n_correspondences == good.loop.n_correspondences
+    with pytest.raises(InputError, match="expected an Encoding"):
+        other.put_encoding(("b", 1), b"bytes")
     first = fe.evaluate(("a", 0), ("b", 0))
     assert first.odom_pair == (0, 1)  # the first keyframe borrows the next one
     # a tighter gate rejects what a permissive one accepts, with the reason
