@@ -12,6 +12,12 @@ Each tick a node
 A node keeps its odometry (its own frame) and the newest global estimate that includes it (`Estimate` stamps:
 more keyframes, then more robots, then more loops, then later), so a late or repeated estimate never replaces a
 newer one, and a robot that returns catches up from any neighbour's newer estimate.
+
+A pair's loops are the accepted registrations of the *current* candidate set (best match per keyframe among
+all descriptors known), each registration computed once and cached: the outcome depends on what is known, not
+on the order it arrived in, which is why a Zenoh run ends with the same estimates as the in-process one.
+Remote encodings are put into the front-end's per-keyframe encoding cache (`LoopFrontend._enc`), so a robot
+never needs another robot's images.
 """
 
 from __future__ import annotations
