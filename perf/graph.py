@@ -88,6 +88,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
              f"odometry-scale initialisation, chordal initial poses; kernels backends not used (GTSAM, CPU)",
              "'x built-in LM' = median time / median time of GTSAM's LM on the base graph, same process; cpu_s = "
              "process CPU time per solve (all threads), which a shared machine's load does not inflate",
+             "final_error: GTSAM's 0.5 sum of squared whitened residuals; our GNC rows of the final weighted graph, "
+             "GTSAM's GNC row of the unweighted graph at its solution (its weights are not exposed the same way); "
+             "iterations of GNC rows = inner LM iterations summed",
              "CustomFactor under GTSAM's LM: pybind11 copies the whole Values for every callback because LM's "
              "Values are C++-owned; the same CustomFactors evaluated on Python-held Values are not copied"]
     cols = ["case", "implementation", "loops as", "iterations", "median_s", "cpu_s", "runs", "x built-in LM",
