@@ -95,6 +95,8 @@ class Mast3rRegistrar(PairRegistrar):
         nw, nh = max(p, round(w * s)), max(p, round(h * s))
         img = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_CUBIC)
         cw, ch = (nw // p) * p, (nh // p) * p
+        if cw == ch:  # as the official loader: square images are cropped to 4:3, the aspect MASt3R was trained on
+            ch = max(p, (cw * 3 // 4) // p * p)
         x0, y0 = (nw - cw) // 2, (nh - ch) // 2
         img = img[y0 : y0 + ch, x0 : x0 + cw]
         x = torch.from_numpy(np.ascontiguousarray(img)).float().div_(127.5).sub_(1.0).permute(2, 0, 1)[None]
