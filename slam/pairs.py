@@ -61,7 +61,8 @@ def gt_errors(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
 def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical", place: str = "bow",
               checkpoint: str | None = None, place_checkpoint: str | None = None, threshold: float | None = 0.1,
               top_k: int = 1, stride: int = 1, r_thr: float | None = None, k: float | None = None,
-              vocabulary_out: str | None = None, device: str = "cpu", progress: bool = True) -> PairsSummary:
+              vocabulary_out: str | None = None, device: str = "cpu", trust_checkpoint: bool = False,
+              progress: bool = True) -> PairsSummary:
     """Run the front-end over `dataset` and write one CSV row per candidate to `out` (atomically).
 
     backend: pair registration (classical | mast3r | lightglue); checkpoint: its weights (mast3r).
@@ -69,6 +70,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
         vocabulary, one is trained on the dataset's keyframes (deterministic) and saved to `vocabulary_out` if given.
     threshold: cosine similarity threshold (None: every nearest neighbour); top_k: neighbours per keyframe;
     stride: use every stride-th frame as a keyframe. r_thr, k: the gate and logistic of eqs. (1)-(2).
+    trust_checkpoint: let the MASt3R loader unpickle more than tensors (only for files from a trusted source).
     """
     from tqdm import tqdm
 
@@ -88,7 +90,8 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
         raise InputError(f"{dataset}: agent names are not unique: {names}")
     seqs = dict(zip(names, ds.agents))
     kf = {a: list(range(0, len(s), stride)) for a, s in seqs.items()}  # keyframe index -> frame index
-    registrar = make_registrar(backend, checkpoint=checkpoint, device=device)  # fail fast (no checkpoint, ...)
+    extra = {"trust_checkpoint": True} if (trust_checkpoint and backend == "mast3r") else {}
+    registrar = make_registrar(backend, checkpoint=checkpoint, device=device, **extra)  # fail fast (no weights, ...)
 
     def image_of(agent: str, i: int) -> np.ndarray:
         return seqs[agent][kf[agent][i]].color

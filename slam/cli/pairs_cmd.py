@@ -32,6 +32,8 @@ def register(sub) -> None:
     p.add_argument("--r-thr", type=float, default=None, help="correspondence-ratio gate R_thr (default: 0.3)")
     p.add_argument("--k", type=float, default=None, help="logistic steepness k of eq. (2) (default: graph's)")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="torch device of learned backends")
+    p.add_argument("--trust-checkpoint", action="store_true",
+                   help="let the MASt3R loader unpickle more than tensors (only for a checkpoint from a trusted source)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -42,6 +44,6 @@ def run(args: argparse.Namespace) -> int:
     summary = run_pairs(args.dataset, args.out, backend=args.backend, place=args.place, checkpoint=args.checkpoint,
                         place_checkpoint=args.place_checkpoint, threshold=args.threshold, top_k=args.top_k,
                         stride=args.stride, r_thr=args.r_thr, k=args.k, vocabulary_out=args.save_vocabulary,
-                        device=args.device, progress=not args.quiet)
+                        device=args.device, trust_checkpoint=args.trust_checkpoint, progress=not args.quiet)
     print(summary.line())
     return 0
