@@ -108,20 +108,21 @@ class LoopCloser:
         cfg = self.cfg
         q, j = keyframes[c.query_kf], keyframes[c.match_kf]
         T_init = se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q)  # eq. 6: T_j^-1 T_q
-        r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, max_depth=self.max_depth)
+        r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, min_fitness=cfg.fitness_min,
+                          max_rmse=cfg.rmse_max, max_depth=self.max_depth)
         c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
         c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
-        if not r.success:
-            c.reason = f"registration failed: {r.reason}"
-        elif r.fitness <= cfg.fitness_min:
+        if r.fitness <= cfg.fitness_min:
             c.reason = f"fitness {r.fitness:.3f} <= tau_f {cfg.fitness_min}"
         elif r.inlier_rmse >= cfg.rmse_max:
             c.reason = f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {cfg.rmse_max}"
+        elif not r.success:
+            c.reason = f"registration failed: {r.reason}"
         elif c.correction_m > cfg.max_correction:
             c.reason = f"correction {c.correction_m:.3f} m > max_correction {cfg.max_correction}"
         else:
             c.accepted = True
-            c.reason = "accepted" + (f" ({r.reason})" if r.reason else "")
+            c.reason = "accepted"
             self.loops.append(_Edge(j.id, q.id, r.T_target_source, cfg.odometry_sigma_rot, cfg.odometry_sigma_trans))
         self.log.append(c)
         return c
