@@ -220,7 +220,8 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         "Pair: synthetic room, 640x480, 54 mm / 2.7 deg apart; ICP rows start from the same guess 3 cm / 1 deg off.",
         "Open3D per iteration = (time of 1+k forced iterations - time of 1) / k, so tree building and the first "
         "and last searches cancel; its cloud is every valid pixel (307k) with normals from a 5 cm / 30-NN search.",
-        "Ours per iteration = one fused projective association + point-to-plane reduction (Huber), float64 sums.",
+        "Ours per iteration = one fused projective association + point-to-plane reduction (Huber): float32 sums "
+        "over runs of 64 points, flushed into float64.",
         "The 'process CPU time' row compares work (CPU seconds summed over threads), which a busy machine distorts "
         "less than wall time.",
         "torch is held to 1 thread during the run; Warp's CPU backend runs a launch on one thread, Taichi on all cores.",
