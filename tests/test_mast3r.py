@@ -12,9 +12,8 @@ import torch
 
 from kernels.errors import InputError
 from registration.pair import Encoding, make_registrar
-from registration.pair.base import direction_error_deg, rotation_error_deg
 from registration.pair.mast3r.matching import fast_reciprocal_nns, pose_from_matches
-from registration.pair.mast3r.model import EncodedImage, Mast3rConfig, Mast3rNet
+from registration.pair.mast3r.model import Mast3rConfig, Mast3rNet
 from registration.pair.mast3r.registrar import Mast3rRegistrar, load_mast3r_checkpoint
 from registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
 
