@@ -99,7 +99,7 @@ def test_clean_run_merges_maps(clean):
         assert 2 <= rows <= 2 * N_KF
     # each encoding travelled once: the bytes received are those of the distinct encodings held, plus headers
     for n in nodes:
-        remote = [e for (a, _), e in n.front._enc.items() if a != n.char]
+        remote = [e for (a, _), e in n.front.encodings.items() if a != n.char]
         st = n.tx.stats
         if remote:
             assert st.recv_bytes["EncodingReply"] <= sum(e.nbytes for e in remote) + 300 * st.recv_count["EncodingReply"]

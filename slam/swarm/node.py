@@ -16,8 +16,8 @@ newer one, and a robot that returns catches up from any neighbour's newer estima
 A pair's loops are the accepted registrations of the *current* candidate set (best match per keyframe among
 all descriptors known), each registration computed once and cached: the outcome depends on what is known, not
 on the order it arrived in, which is why a Zenoh run ends with the same estimates as the in-process one.
-Remote encodings are put into the front-end's per-keyframe encoding cache (`LoopFrontend._enc`), so a robot
-never needs another robot's images.
+Remote encodings are put into the front-end's per-keyframe encoding cache (`LoopFrontend.put_encoding`), so a
+robot never needs another robot's images.
 """
 
 from __future__ import annotations
@@ -225,9 +225,9 @@ class RobotNode:
         self.cameras[msg.owner] = PinholeCamera(fx, fy, cx, cy, int(w), int(h))
         c = robot_char(msg.owner)
         for i, data in msg.items().items():
-            if (c, i) not in self.front._enc:
+            if not self.front.has_encoding((c, i)):
                 try:
-                    self.front._enc[(c, i)] = Encoding.from_bytes(data)
+                    self.front.put_encoding((c, i), Encoding.from_bytes(data))
                 except InputError:
                     continue
         self._dirty.add(msg.owner)
@@ -282,7 +282,7 @@ class RobotNode:
             if sim[i, jj] >= self.cfg.threshold:
                 cands[(i, js[jj])] = float(sim[i, jj])
         c = robot_char(peer)
-        need = sorted({j for (_, j) in cands if (c, j) not in self.front._enc})
+        need = sorted({j for (_, j) in cands if not self.front.has_encoding((c, j))})
         (self._pending.add if need else self._pending.discard)(peer)
         # ask for each encoding once; again only if it has not come `resend` ticks later (lost on the way)
         ask = [j for j in need if self.tick - self._asked.get((peer, j), -10**9) >= self.cfg.resend]
@@ -290,7 +290,7 @@ class RobotNode:
             self._asked.update({(peer, j): self.tick for j in ask})
             self.tx.send(peer, M.EncodingRequest(owner=peer, indices=np.array(ask, np.int64)))
         for (i, j), s in sorted(cands.items()):
-            if (peer, i, j) not in self.registered and (c, j) in self.front._enc:
+            if (peer, i, j) not in self.registered and self.front.has_encoding((c, j)):
                 try:
                     self.registered[(peer, i, j)] = self.front.evaluate((self.char, i), (c, j), s)
                 except SwarmsplatError:  # e.g. an encoding from another backend: this pair is not a loop
