@@ -141,6 +141,9 @@ def test_killed_robot_others_keep_running():
     def hook(tick, net, nodes):
         if tick == 11:
             net.kill(2)
+        if tick == 12:
+            net.advance(tick)
+            assert nodes[0].tx.neighbours() == [1] and nodes[2].tx.neighbours() == []
 
     nodes, net = run(on_tick=hook)
     e0, e1 = nodes[0].estimate, nodes[1].estimate

@@ -57,7 +57,9 @@ def test_delivery_and_schedule_gating():
         assert a.send(1, M.Hello(tick=1)) > 0 and a.send(None, M.Hello(tick=2)) > 0
         got = _drain(b, 2)
         assert sorted(m.tick for _, m in got) == [1, 2] and all(h.sender == 0 for h, _ in got)
+        assert a.neighbours() == [1]
         tick["t"] = 7  # out of range: nothing leaves a, nothing from a is accepted by b
+        assert a.neighbours() == []
         assert a.send(1, M.Hello(tick=3)) == 0 and a.send(None, M.Hello(tick=4)) == 0
         tick["t"] = 3
         b.send(0, M.Hello(tick=5))

@@ -78,6 +78,10 @@ class Transport(ABC):
         return out
 
     @abstractmethod
+    def neighbours(self) -> list[int]:
+        """Robots this one can reach now, as the link layer sees it (nodes rely on heartbeats instead)."""
+
+    @abstractmethod
     def _send_bytes(self, dest: int | None, data: bytes) -> None: ...
 
     @abstractmethod
@@ -197,6 +201,9 @@ class InProcessTransport(Transport):
     def __init__(self, network: InProcessNetwork, robot: int):
         super().__init__(robot)
         self.network = network
+
+    def neighbours(self) -> list[int]:
+        return [] if self.robot in self.network.killed else self.network.neighbours(self.robot)
 
     def _send_bytes(self, dest: int | None, data: bytes) -> None:
         self.network._post(self.robot, dest, data)

@@ -71,6 +71,10 @@ class ZenohTransport(Transport):
             time.sleep(0.05)
         return n
 
+    def neighbours(self) -> list[int]:
+        """Robots linked now by the schedule (all of them without one); Zenoh keeps the sessions themselves."""
+        return [r for r in self.robots if r != self.robot and self._linked(r)]
+
     def _linked(self, other: int) -> bool:
         return self.schedule is None or self.schedule.linked(self.clock(), self.robot, other)
 
