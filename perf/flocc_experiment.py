@@ -52,13 +52,14 @@ def scaled_initial_poses(graph, scales: dict[int, float]):
     return chordal_initialization(g)
 
 
-def run_backbone(backbone: str, quick: bool, gnc: bool = True, seed: int = 0, log=print) -> dict:
+def run_backbone(backbone: str, quick: bool, gnc: bool = True, seed: int = 0, log=print, config=None) -> dict:
+    """All rows x scale initialisations for one odometry backbone; `config` (a TeamConfig) overrides the team."""
     from graph.formulations import build_problem, initial_scales
     from graph.metrics import ate
     from graph.solvers import solve
     from graph.synthetic import make_team
 
-    team = make_team(team_config(backbone, quick, seed))
+    team = make_team(config or team_config(backbone, quick, seed))
     g = team.graph
     inliers = [n for n in team.gt_scales if n not in team.outliers]
     out = {"backbone": backbone, "poses": len(g.poses), "loops": len(g.loops()), "outliers": len(team.outliers),
