@@ -9,6 +9,9 @@ in the same process on the same scene; ratios are of medians after warm-up.
 from __future__ import annotations
 
 import math
+import os
+import sys
+import time
 
 import torch
 
@@ -17,7 +20,8 @@ from perf.common import time_fn
 DESCRIPTION = "kernels.rasterize (colour+depth+alpha, 3DGS rules): forward and forward+backward vs a tile-based torch peer"
 
 TILE = 16
-PEER_MAX_N = 50_000
+PEER_MAX_N = 50_000  # the peer takes minutes above this
+PEER_BUDGET_S = 900.0  # wall-time budget for all peer runs
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0):
@@ -151,52 +155,73 @@ def _peer(scene, backward: bool):
     return c
 
 
+def _log(msg: str) -> None:
+    print(f"[perf raster] {msg}", file=sys.stderr, flush=True)
+
+
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import kernels
 
-    sizes = [(320, 240)] if quick else [(320, 240), (640, 480)]
-    counts = [10_000] if quick else [10_000, 50_000, 200_000]
-    rows, notes = [], []
+    sizes = [(320, 240)] if quick else [(640, 480), (320, 240)]
+    counts = [10_000] if quick else [50_000, 10_000, 200_000]
     repeat = 3 if quick else 5
-    for width, height in sizes:
-        for n in counts:
-            scene = make_scene(n, width, height)
-            if device == "cuda":
-                scene = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
-            # The peer is written for the CPU (on CUDA the backends are compared with each other only) and takes
-            # minutes at 200k Gaussians, so it runs up to PEER_MAX_N.
-            peer_ok = device == "cpu" and n <= PEER_MAX_N
-            if peer_ok:
-                peer_f = time_fn(lambda: _peer(scene, False), repeat=1, warmup=0)
-                peer_fb = time_fn(lambda: _peer(scene, True), repeat=1, warmup=0)
-            for name in backends:
-                kernels.use(name, device)
-                f = time_fn(lambda: _ours(scene, False), repeat=repeat, warmup=1, device=device)
-                fb = time_fn(lambda: _ours(scene, True), repeat=repeat, warmup=1, device=device)
-                o = _ours(scene, False)
-                touched = int(o.n_touched.sum())
-                row = {"backend": name, "image": f"{width}x{height}", "N": n, "visible": int((o.radii > 0).sum()),
-                       "pairs_M": touched / 1e6, "fwd_ms": 1e3 * f["median_s"], "fwd_bwd_ms": 1e3 * fb["median_s"],
-                       "Gpairs_per_s_fwd": touched / f["median_s"] / 1e9}
-                if peer_ok:
-                    row.update(peer_fwd_ms=1e3 * peer_f["median_s"], peer_fwd_bwd_ms=1e3 * peer_fb["median_s"],
-                               speedup_fwd=peer_f["median_s"] / f["median_s"],
-                               speedup_fwd_bwd=peer_fb["median_s"] / fb["median_s"])
-                    if n == counts[0]:
-                        ref = _peer(scene, False)
-                        notes.append(f"{name} {width}x{height} N={n}: max |colour - peer colour| = "
-                                     f"{(o.color.cpu() - ref).abs().max().item():.2e}")
-                rows.append(row)
+    rows, notes = [], [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
+    # Ours first on every size, then the peer (tens of seconds to minutes per call) on the most important sizes
+    # first, within PEER_BUDGET_S of wall time, so a busy machine still yields the 640x480 / 50k comparison.
+    cases = [(w, h, n) for (w, h) in sizes for n in counts]
+    for width, height, n in cases:
+        scene = make_scene(n, width, height)
+        if device == "cuda":
+            scene = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
+        for name in backends:
+            kernels.use(name, device)
+            f = time_fn(lambda: _ours(scene, False), repeat=repeat, warmup=1, device=device)
+            c0 = time.process_time()
+            fb = time_fn(lambda: _ours(scene, True), repeat=repeat, warmup=1, device=device)
+            fb_cpu = (time.process_time() - c0) / (fb["runs"] + 1)  # CPU seconds of all threads per call
+            o = _ours(scene, False)
+            touched = int(o.n_touched.sum())
+            rows.append({"backend": name, "image": f"{width}x{height}", "N": n, "visible": int((o.radii > 0).sum()),
+                         "pairs_M": touched / 1e6, "fwd_ms": 1e3 * f["median_s"], "fwd_bwd_ms": 1e3 * fb["median_s"],
+                         "Gpairs_per_s_fwd": touched / f["median_s"] / 1e9, "fwd_bwd_cpu_ms": 1e3 * fb_cpu,
+                         "_color": o.color.cpu()})
+            _log(f"{name} {width}x{height} N={n}: fwd {1e3 * f['median_s']:.0f} ms, fwd+bwd {1e3 * fb['median_s']:.0f} ms")
+    skipped = []
+    start = time.perf_counter()
+    for width, height, n in cases if device == "cpu" else []:  # the peer is written for the CPU
+        if n > PEER_MAX_N or time.perf_counter() - start > PEER_BUDGET_S:
+            skipped.append(f"{width}x{height} N={n}")
+            continue
+        scene = make_scene(n, width, height)
+        peer_f = time_fn(lambda: _peer(scene, False), repeat=1, warmup=0)
+        peer_fb = time_fn(lambda: _peer(scene, True), repeat=1, warmup=0)
+        _log(f"peer {width}x{height} N={n}: fwd {peer_f['median_s']:.1f} s, fwd+bwd {peer_fb['median_s']:.1f} s")
+        ref = _peer(scene, False) if n == min(counts) else None
+        for row in rows:
+            if (row["image"], row["N"]) == (f"{width}x{height}", n):
+                row.update(peer_fwd_ms=1e3 * peer_f["median_s"], peer_fwd_bwd_ms=1e3 * peer_fb["median_s"],
+                           speedup_fwd=peer_f["median_s"] * 1e3 / row["fwd_ms"],
+                           speedup_fwd_bwd=peer_fb["median_s"] * 1e3 / row["fwd_bwd_ms"])
+                if ref is not None:
+                    notes.append(f"{row['backend']} {width}x{height} N={n}: max |colour - peer colour| = "
+                                 f"{(row['_color'] - ref).abs().max().item():.2e}")
+    for row in rows:
+        row.pop("_color")
+    notes.append(f"load average at end: {os.getloadavg()[0]:.1f}; fwd_bwd_cpu_ms is process CPU time per "
+                 "forward+backward (all threads), less sensitive to other users than wall time")
     notes += [
         "pairs_M: Gaussian-pixel pairs composited (sum of n_touched, after culling, the 1/255 skip and the 1e-4 stop); "
         "Gpairs_per_s_fwd = pairs / forward time.",
         "peer: perf/raster.py torch_tiles_rasterize (tile-based vectorised torch, autograd backward), one timed run "
-        "each, same process and scene; ours: median of repeats after one warm-up.",
-        f"the peer is not run above N={PEER_MAX_N} (minutes per call); its cost grows at least linearly in N.",
+        "each (forward without autograd, then forward+backward), same process and scene; ours: median of repeats "
+        "after one warm-up; loss = sum(colour) + 0.1 sum(depth) + sum(alpha).",
         "Warp on the CPU: tile chunks launched from a thread pool (each launch runs on one OS thread and releases "
         "the GIL); Taichi parallelises the tile loop itself.",
     ]
-    columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "Gpairs_per_s_fwd"]
+    if skipped:
+        notes.append(f"peer not run (N > {PEER_MAX_N} or past the {PEER_BUDGET_S:.0f} s peer budget): "
+                     + ", ".join(skipped))
+    columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_bwd_cpu_ms", "Gpairs_per_s_fwd"]
     if device == "cpu":
         columns += ["peer_fwd_ms", "peer_fwd_bwd_ms", "speedup_fwd", "speedup_fwd_bwd"]
     return {"rows": rows, "columns": columns, "notes": notes}

@@ -4,6 +4,7 @@ Work is split per 16x16 tile: one kernel thread owns a tile, its pixels and its 
 backward writes per-entry gradients without atomics and the caller reduces them. Warp's CPU backend runs one
 launch on one OS thread, but the launch releases the GIL (ctypes), so on the CPU the tiles are cut into chunks
 launched from a small thread pool — race-free because chunks share no tile. On CUDA one launch covers all tiles.
+The pool has os.cpu_count() workers unless the environment variable SWARMSPLAT_WARP_CPU_THREADS says otherwise.
 The layout of `packed` rows is kernels.raster.PACKED: mean2d x, y, conic a, b, c, opacity, r, g, b, z.
 """
 
