@@ -149,4 +149,4 @@ class Agent:
         s = self.gmap.submaps[kf.submap_id]
         with torch.no_grad():
             out = render(s.params, viewmat_from_pose(kf.T_local_cam), camera)
-        return out.color.clamp(0, 1), out.depth
+        return out.color.clamp(0, 1), out.depth_normalised

@@ -32,10 +32,12 @@ class ImageConfig(_Section):
 
 class TrackingConfig(_Section):
     coarse: Literal["rgbd_odometry", "none"] = "rgbd_odometry"
-    coarse_max_width: int = Field(160, ge=16, description="resolution of the coarse frame-to-frame odometry")
+    coarse_max_width: int = Field(320, ge=16, description="resolution of the coarse frame-to-frame odometry")
     coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
                                                             "distrusted: constant velocity is used instead")
-    refine: bool = True
+    refine: bool = Field(False, description="frame-to-model refinement after the coarse stage (§III-C). Off by "
+                                           "default: measured here it costs ~3x the time and, with the map at "
+                                           "mapping.max_width, moved poses away from the truth (see README)")
     refine_max_width: int = Field(160, ge=16, description="resolution of the frame-to-model refinement "
                                                           "(coarsest pyramid level is half of it)")
     pyramid_levels: int = Field(2, ge=1, le=4)
@@ -49,6 +51,9 @@ class TrackingConfig(_Section):
     converge_rot: float = Field(2e-5, gt=0, description="stop when an Adam step rotates less than this (rad) ...")
     converge_trans: float = Field(2e-5, gt=0, description="... and translates less than this (m) for `patience` steps")
     patience: int = Field(3, ge=1)
+    min_relative_gain: float = Field(0.1, ge=0, lt=1, description="keep the coarse pose unless the refined one "
+                                     "lowers the tracking loss by this fraction (the map, not the odometry, is "
+                                     "then the weaker estimate)")
 
 
 class KeyframeConfig(_Section):
@@ -59,8 +64,8 @@ class KeyframeConfig(_Section):
 
 class MappingConfig(_Section):
     max_width: int = Field(160, ge=16, description="resolution of the mapping renders")
-    iterations: int = Field(20, ge=0, description="optimisation iterations per new keyframe")
-    first_iterations: int = Field(60, ge=0, description="iterations for a submap's first keyframe")
+    iterations: int = Field(30, ge=0, description="optimisation iterations per new keyframe")
+    first_iterations: int = Field(100, ge=0, description="iterations for a submap's first keyframe")
     current_keyframe_fraction: float = Field(0.4, ge=0, le=1, description="share of iterations on the newest keyframe")
     alpha_seed: float = Field(0.6, ge=0, le=1, description="α_min: seed Gaussians where rendered alpha is below this")
     seed_stride: int = Field(1, ge=1, description="one seed per stride x stride pixels in sparse regions")

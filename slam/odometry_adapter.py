@@ -24,6 +24,18 @@ class Registration:
     information: np.ndarray = field(default_factory=lambda: np.eye(6))  # [6, 6], twist order [omega, v]
 
 
+def rigid(T: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform (rotation re-orthonormalised by SVD): products of many poses drift off SE(3)
+    by rounding, and the registration checks its initial guess strictly."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    T[:3, :3], T[3] = R, (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
 def _view(r) -> Registration:
     ok = bool(r.success)
     return Registration(np.asarray(r.T_target_source, dtype=np.float64), ok, "" if ok else str(r.reason),
@@ -37,7 +49,7 @@ def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, 
     from registration.rgbd import rgbd_odometry
 
     r = rgbd_odometry(source.color, source.depth, target.color, target.depth, source.camera,
-                      np.eye(4) if init is None else np.asarray(init, np.float64), method="hybrid", depth_max=max_depth)
+                      np.eye(4) if init is None else rigid(init), method="hybrid", depth_max=max_depth)
     return _view(r)
 
 
@@ -48,6 +60,6 @@ def register_loop(source: RGBD, target: RGBD, init: np.ndarray, *, max_distance:
     record why a candidate was rejected; fitness and RMSE are filled in even on failure."""
     from registration.rgbd import register_rgbd
 
-    r = register_rgbd(source.color, source.depth, target.color, target.depth, source.camera, np.asarray(init, np.float64),
+    r = register_rgbd(source.color, source.depth, target.color, target.depth, source.camera, rigid(init),
                       max_distance=max_distance, min_fitness=min_fitness, max_rmse=max_rmse, depth_max=max_depth)
     return _view(r)

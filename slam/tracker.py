@@ -35,14 +35,31 @@ def refine_pose(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarray, cf
                 *, reference: bool = False) -> tuple[np.ndarray, int, float]:
     """Frame-to-model refinement over a resolution pyramid (coarsest first). Returns (pose, iterations, loss)."""
     frozen = params.detached()
-    T = np.asarray(T_local_cam, dtype=np.float64)
+    T_start = T = np.asarray(T_local_cam, dtype=np.float64)
     total_it, loss = 0, float("nan")
     for level in reversed(range(cfg.pyramid_levels)):
         f = frame.resized(max(16, cfg.refine_max_width >> level))
         iters = cfg.iterations if level == 0 else max(1, cfg.iterations // 2)
         T, it, loss = _refine_level(frozen, f, T, cfg, iters, reference)
         total_it += it
+    if cfg.min_relative_gain > 0 and np.isfinite(loss):
+        loss0 = tracking_loss(frozen, frame.resized(cfg.refine_max_width), T_start, cfg, reference)
+        if not loss < (1.0 - cfg.min_relative_gain) * loss0:
+            return T_start, total_it, loss0
     return T, total_it, loss
+
+
+def tracking_loss(params: GaussianParams, f: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig,
+                  reference: bool = False) -> float:
+    """The eq.-5 tracking loss of `f` rendered at T_local_cam (no gradient)."""
+    with torch.no_grad():
+        out = render(params, torch.as_tensor(se3.inverse(T_local_cam), dtype=torch.float32), f.camera,
+                     reference=reference)
+        if float(out.alpha.max()) < cfg.alpha_min:
+            return float("inf")
+        return float(rgbd_loss(out, f.color_tensor(), f.depth_tensor(), lambda_color=cfg.lambda_color,
+                               alpha_power=cfg.alpha_power, alpha_min=cfg.alpha_min, inlier_k=cfg.inlier_k,
+                               normalise=True))
 
 
 def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: TrackingConfig, iters: int,
