@@ -46,10 +46,17 @@ def _view(r) -> Registration:
 def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, *, max_depth: float = 10.0) -> Registration:
     """Hybrid colour-depth RGB-D odometry (projective point-to-plane + intensity over a pyramid):
     T_target_source between two frames of the same camera."""
+    from registration.icp import default_strides
     from registration.rgbd import rgbd_odometry
 
+    kw = {}
+    if source.camera.width <= 200:
+        # Small frames: registration's default pyramid drops its finest level and keeps only one (80 px), too
+        # little to converge on a few-cm step; use every level down to 40 px, including the finest.
+        strides = default_strides(source.camera.width, 40)
+        kw = dict(strides=strides, iterations=[15] * len(strides))
     r = rgbd_odometry(source.color, source.depth, target.color, target.depth, source.camera,
-                      np.eye(4) if init is None else rigid(init), method="hybrid", depth_max=max_depth)
+                      np.eye(4) if init is None else rigid(init), method="hybrid", depth_max=max_depth, **kw)
     return _view(r)
 
 

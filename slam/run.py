@@ -101,11 +101,18 @@ def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path) -
     if gt is None or len(stamps) == 0:
         return {"ate_rmse": None}
     ok = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-    res = ate(seq.timestamps[ok], gt[ok], stamps, T_est, align="se3", max_diff=1e-3)
+    align = "se3"
+    try:
+        res = ate(seq.timestamps[ok], gt[ok], stamps, T_est, align=align, max_diff=1e-3)
+    except InputError:
+        # Too few or collinear positions for a rigid alignment (very short runs): anchor at the first frame instead.
+        align = "first_pose"
+        g0 = gt[ok][int(np.argmin(np.abs(seq.timestamps[ok] - stamps[0])))]
+        res = ate(seq.timestamps[ok], gt[ok], stamps, g0 @ np.linalg.inv(T_est[0]) @ T_est, align="none", max_diff=1e-3)
     plot_trajectories(out / "trajectory.png", {seq.name: res.pairs.T_gt[:, :3, 3]},
                       {seq.name: res.T_est_aligned[:, :3, 3]}, errors={seq.name: res.errors},
                       title=f"{seq.name}: ATE RMSE {100 * res.rmse:.2f} cm")
-    return {"ate_rmse": res.rmse, "ate": res.to_dict()}
+    return {"ate_rmse": res.rmse, "ate": {**res.to_dict(), "align": align}}
 
 
 def _render_metrics(agent: Agent, seq) -> dict:
