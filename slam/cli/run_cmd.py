@@ -9,7 +9,9 @@ from slam.cli import add_backend_flags
 
 def register(sub) -> None:
     p = sub.add_parser("run", help="run RGB-D Gaussian-splatting SLAM on a sequence (one agent)",
-                       description=__doc__.splitlines()[0])
+                       description="One agent's GRAND-SLAM over one RGB-D sequence: writes trajectory.txt (TUM), "
+                                   "map.ply (3DGS), metrics.json, loops.csv, trajectory.png and config.yaml to --out. "
+                                   "--kernels/--device override the config file's kernels section.")
     p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood, Replica)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="YAML file overriding the default settings")
