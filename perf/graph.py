@@ -19,7 +19,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
     from perf.common import time_fn
     from perf.flocc_experiment import scaled_initial_poses
 
-    cfg = TeamConfig(length_m=250.0, target_loops=600) if quick else TeamConfig()
+    cfg = TeamConfig(length_m=250.0, target_loops=600, grid_nodes=3) if quick else TeamConfig()
     team = make_team(cfg)
     g = team.graph
     P = scaled_initial_poses(g, initial_scales(g, "odometry"))
