@@ -97,7 +97,8 @@ class LoopClosureConfig(_Section):
     enabled: bool = True
     descriptor: Literal["auto", "colour_histogram"] = "auto"
     top_k: int = Field(3, ge=1)
-    tau_sim: float = Field(0.9, ge=-1, le=1, description="cosine similarity gate")
+    tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate (measured on generated data: "
+                                                          "revisits 0.90-0.98, other views <= 0.77)")
     min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
     min_baseline: float = Field(0.0, ge=0, description="optional spatial gap between keyframe poses (m)")
     fitness_min: float = Field(0.5, ge=0, le=1, description="τ_f: accept when ICP fitness is above")
