@@ -29,7 +29,7 @@ from .loop_log import summarise, write_loops_csv
 
 
 def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, render_views: int = 8,
-                       progress: bool = False) -> dict:
+                       progress: bool = False, run_info: dict | None = None) -> dict:
     from graph.g2o import write_g2o
 
     from .ply import save_ply
@@ -89,7 +89,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "loop_candidates": len(srv.records), "pose_graph_optimisations": srv.optimisations,
         "time_s": {"wall": wall_s, "cpu": cpu_s, "server": dict(srv.time),
                    "evaluation": time.perf_counter() - t_eval},
-        "kernels": team.cfg.kernels.model_dump(),
+        "kernels": team.cfg.kernels.model_dump(), "run": run_info or {},
     }
     metrics["time_s"]["evaluation"] = time.perf_counter() - t_eval
     atomic_write_text(out / "metrics.json", json.dumps(_finite(metrics), indent=2))

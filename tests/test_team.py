@@ -19,7 +19,7 @@ from slam.team import Team, run_team
 # Few iterations: these tests check the team's logic, not the map's quality.
 FAST = {
     "mapping": {"iterations": 8, "first_iterations": 25},
-    "tracking": {"iterations": 15},
+    "tracking": {"refine": False},
     "keyframes": {"every": 2},
     "loop_closure": {"min_index_gap": 2},
 }
