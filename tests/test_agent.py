@@ -109,3 +109,22 @@ def test_tiny_sequence_end_to_end(tmp_path, warp_cpu):
     assert (out / "trajectory.png").is_file() and (out / "loops.csv").is_file()
     # a user error is one line and a non-zero exit, not a traceback
     assert main(["run", str(tmp_path / "missing"), "--out", str(out)]) != 0
+
+
+def test_redwood_five_frames_within_a_centimetre(tmp_path, warp_cpu):
+    """Real noisy depth (Augmented ICL-NUIM living room 1, 640x480): every frame's pose relative to frame 0 within
+    1 cm of trajectory.log. Mapping is cut to a few iterations; it does not steer the default tracker."""
+    from conftest import shared_data
+    from slam.datasets import load_sequence
+    from slam.run import run_sequence
+    from slam.trajectory import read_tum
+
+    path = shared_data("redwood_livingroom1_rgbd5")
+    cfg = SlamConfig().override({"mapping": {"max_width": 80, "iterations": 3, "first_iterations": 5}})
+    m = run_sequence(path, tmp_path, cfg, progress=False)
+    _, T = read_tum(tmp_path / "trajectory.txt")
+    gt = load_sequence(path).gt_poses
+    assert len(T) == len(gt) == 5 and m["skipped_frames"] == []
+    for i in range(1, 5):
+        E = se3.inverse(se3.inverse(gt[0]) @ gt[i]) @ (se3.inverse(T[0]) @ T[i])
+        assert np.linalg.norm(E[:3, 3]) < 0.01 and np.degrees(se3.rotation_angle(E[:3, :3])) < 0.5, i
