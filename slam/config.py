@@ -38,6 +38,8 @@ class TrackingConfig(_Section):
     refine: bool = Field(False, description="frame-to-model refinement after the coarse stage (§III-C). Off by "
                                            "default: measured here it costs ~3x the time and, with the map at "
                                            "mapping.max_width, moved poses away from the truth (see README)")
+    refine_on_coarse_failure: bool = Field(True, description="run the refinement anyway when the coarse stage "
+                                                            "fails (then it starts from constant velocity)")
     refine_max_width: int = Field(160, ge=16, description="resolution of the frame-to-model refinement "
                                                           "(coarsest pyramid level is half of it)")
     pyramid_levels: int = Field(2, ge=1, le=4)

@@ -129,7 +129,8 @@ class Tracker:
                 T_prev_cur = r.T_target_source
         T_coarse = self._prev_pose @ T_prev_cur
         T, it, loss = T_coarse, 0, float("nan")
-        if self.cfg.refine and self.cfg.iterations > 0 and len(params) > 0:
+        refine = self.cfg.refine or (self.cfg.refine_on_coarse_failure and not coarse_ok)
+        if refine and self.cfg.iterations > 0 and len(params) > 0:
             T, it, loss = refine_pose(params, frame, T_coarse, self.cfg, reference=self.reference)
         self._velocity = se3.inverse(self._prev_pose) @ T
         self._remember(frame, T)
