@@ -137,13 +137,16 @@ class _RasterFn(torch.autograd.Function):
 
 
 def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, dev):
+    """Shapes, dtypes and devices per argument; values (finite, opacity range, quaternion length) in one fused
+    pass over the [N]-sized tensors — every small torch op costs thread wake-ups on a busy CPU — and per
+    argument only on the error path, to name the culprit."""
     f32, f = (torch.float32,), (torch.float32, torch.float64)
-    check_tensor("means", means, (None, 3), dtypes=f32, device=dev)
+    check_tensor("means", means, (None, 3), dtypes=f32, device=dev, finite=False)
     n = means.shape[0]
-    check_tensor("quats", quats, (n, 4), dtypes=f32, device=dev)
-    check_tensor("scales", scales, (n, 3), dtypes=f32, device=dev)
-    check_tensor("opacities", opacities, (n,), dtypes=f32, device=dev)
-    check_tensor("colors", colors, (n, 3), dtypes=f32, device=dev)
+    per_gaussian = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
+                    "opacities": (opacities, (n,)), "colors": (colors, (n, 3))}
+    for name, (x, shape) in per_gaussian.items():
+        check_tensor(name, x, shape, dtypes=f32, device=dev, finite=False)
     check_tensor("viewmat", viewmat, (4, 4), dtypes=f, device=dev)
     check_tensor("K", K, (3, 3), dtypes=f, device=dev)
     if background is not None:
@@ -153,12 +156,23 @@ def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, b
             raise InputError(f"argument '{name}': expected a positive int, got {v!r}")
     if not (0.0 < float(near) < float(far)):
         raise InputError(f"arguments 'near', 'far': expected 0 < near < far, got near={near}, far={far}")
-    if n and bool(((opacities < 0) | (opacities > 1)).any()):
-        raise InputError("argument 'opacities': expected values in [0, 1]")
-    if n and bool(((quats * quats).sum(-1) < 1e-20).any()):
-        raise InputError("argument 'quats': contains a zero-length quaternion")
     if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
         raise InputError("argument 'K': focal lengths K[0,0], K[1,1] must be positive")
+    if n == 0:
+        return
+    with torch.no_grad():
+        table = torch.cat([means, quats, scales, opacities[:, None], colors], 1)  # [N, 14]
+        qlen2 = (table[:, 3:7] * table[:, 3:7]).sum(-1)
+        # sum(x * 0) is NaN exactly when some x is NaN or Inf; one reduction instead of one per argument
+        ok = bool(torch.isfinite((table * 0).sum())) and bool((qlen2 >= 1e-20).all())
+        ok = ok and bool(((opacities >= 0) & (opacities <= 1)).all())
+    if ok:
+        return
+    for name, (x, shape) in per_gaussian.items():
+        check_tensor(name, x, shape, dtypes=f32, device=dev)  # names the non-finite argument
+    if not bool(((opacities >= 0) & (opacities <= 1)).all()):
+        raise InputError("argument 'opacities': expected values in [0, 1]")
+    raise InputError("argument 'quats': contains a zero-length quaternion")
 
 
 def rasterize(
