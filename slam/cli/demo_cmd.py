@@ -8,11 +8,13 @@ from slam.cli import add_backend_flags
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="generate a 3-agent dataset, run the team, evaluate and write a report",
-                       description=__doc__.splitlines()[0])
+                       description="Generate the synthetic 3-agent RGB-D dataset (cached in DIR/dataset), run the "
+                                   "GRAND-SLAM team on it, evaluate, and write DIR/results/report.md with the "
+                                   "trajectories, merged map, loop closures and metrics.")
     p.add_argument("--out", default="swarmsplat_demo", help="output folder (default: ./swarmsplat_demo); the "
                                                             "dataset is cached in DIR/dataset")
     p.add_argument("--preset", choices=["default", "tiny"], default="default",
-                   help="default: 3 agents x 120 frames; tiny: 2 agents x 10 frames (seconds)")
+                   help="default: 3 agents x 120 frames; tiny: 2 agents x 10 frames (a quick check)")
     p.add_argument("--seed", type=int, help="generator seed (default: the preset's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_backend_flags(p)
