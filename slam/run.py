@@ -122,7 +122,7 @@ def _render_metrics(agent: Agent, seq) -> dict:
     from .metrics import depth_l1, psnr, ssim
 
     cfg = agent.cfg
-    ps, ss, dl = [], [], []
+    ps, ss, dl, pv = [], [], [], []
     for kf in agent.keyframes:
         f = seq[kf.frame_index]
         ref = make_rgbd(f.color, f.depth, seq.camera, min_depth=cfg.image.min_depth, max_depth=cfg.image.max_depth)
@@ -133,8 +133,11 @@ def _render_metrics(agent: Agent, seq) -> dict:
         ss.append(ssim(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
         if (ref.depth > 0).any():
             dl.append(depth_l1(depth, torch.as_tensor(ref.depth)))
+            # Pixels without valid depth get no Gaussians; this PSNR leaves them out.
+            pv.append(psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1), mask=torch.as_tensor(ref.depth > 0)))
     mean = lambda v: float(np.mean(v)) if v else None  # noqa: E731
-    return {"psnr": mean(ps), "ssim": mean(ss), "depth_l1": mean(dl), "render_views": len(ps)}
+    return {"psnr": mean(ps), "ssim": mean(ss), "depth_l1": mean(dl), "psnr_valid_depth": mean(pv),
+            "render_views": len(ps)}
 
 
 def _write_loops_csv(path: Path, rows: list[dict]) -> None:
