@@ -157,26 +157,32 @@ class LoopCloser:
 
 def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[_Edge], loops: list[_Edge], *,
                         fixed: int) -> dict[int, np.ndarray]:
-    """Levenberg–Marquardt over keyframe poses (eq. 13): between-factors for tracking and loop edges, the first
-    keyframe fixed. Interim direct GTSAM use, kept behind this one function until `graph/` offers the same."""
-    import gtsam
+    """Levenberg–Marquardt over keyframe poses (eq. 13) with `graph/`: tracking and loop edges as relative-pose
+    constraints, information diag(1/sigma^2) in twist order [omega, v]; the graph anchors its first pose (the
+    first keyframe, `fixed`)."""
+    from graph.formulations import build_problem
+    from graph.pose_graph import PoseGraph
+    from graph.solvers import solve
 
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    for k, T in initial.items():
-        values.insert(k, gtsam.Pose3(T))
-    graph.add(gtsam.PriorFactorPose3(fixed, gtsam.Pose3(initial[fixed]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    for e, is_loop in [(e, False) for e in odometry] + [(e, True) for e in loops]:
-        sig = np.array([e.sigma_rot] * 3 + [e.sigma_trans] * 3)
-        noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
-        if is_loop:
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345), noise)
-        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_ij), noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
+    from kernels.errors import SwarmsplatError
+
+    g = PoseGraph()
+    for k in sorted(initial):
+        g.add_pose(k, initial[k])
+
+    def info(e: _Edge) -> np.ndarray:
+        return np.diag([1.0 / e.sigma_rot**2] * 3 + [1.0 / e.sigma_trans**2] * 3)
+
+    for e in odometry:
+        g.add_odometry(e.i, e.j, e.T_ij, info(e))
+    for e in loops:
+        g.add_loop(e.i, e.j, e.T_ij, info(e))
     try:
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    except RuntimeError as err:  # an indeterminate system: keep the tracked poses
+        res = solve(build_problem(g, "base"), "lm")
+    except (SwarmsplatError, RuntimeError) as err:  # an indeterminate system: keep the tracked poses
         warnings.warn(f"pose-graph optimisation failed ({err}); poses left as tracked", stacklevel=2)
         return dict(initial)
-    return {k: result.atPose3(k).matrix() for k in initial}
+    out = {k: np.asarray(res.poses[k], dtype=np.float64) for k in initial}
+    # The graph anchors each component at its own choice of pose; re-anchor at `fixed` so that frame stays put.
+    D = initial[fixed] @ np.linalg.inv(out[fixed])
+    return {k: D @ T for k, T in out.items()}
