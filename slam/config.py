@@ -7,7 +7,6 @@ at `image.max_width`, 320 by default, to suit a CPU).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -183,7 +182,3 @@ def _validate(data: dict, where: str) -> SlamConfig:
         err = e.errors()[0]
         field = ".".join(str(p) for p in err["loc"]) or "(top level)"
         raise InputError(f"{where}: field '{field}': {err['msg']}") from None
-
-
-def deg(x: float) -> float:
-    return math.radians(x)
