@@ -35,6 +35,10 @@ class ServerConfig(BaseModel):
 
     intra_loops: bool = Field(True, description="look for loops inside each agent's own keyframes")
     inter_loops: bool = Field(True, description="look for loops between agents")
+    descriptor: Literal["agent", "bow", "vlad"] = Field(
+        "agent", description="inter-agent place descriptor: the agent's own keyframe descriptor, or a bag of "
+                             "words / VLAD over RootSIFT (registration.place_recognition) with `vocabulary`")
+    vocabulary: str | None = Field(None, description="vocabulary .npz for descriptor bow / vlad")
     tau_sim: float = Field(0.85, ge=-1, le=1, description="inter-agent cosine similarity gate")
     top_k: int = Field(2, ge=1, description="inter-agent candidates checked per new keyframe (best first)")
     global_fallback: bool = Field(True, description="FPFH + RANSAC start when agents are not yet in one frame "
@@ -76,6 +80,15 @@ class Server:
         self.optimisations = 0
         self.time = {"intra": 0.0, "inter": 0.0, "optimisation": 0.0}
         self.last_graph = None  # (PoseGraph, optimised poses) of the last optimisation
+        self.descriptors: dict[tuple[int, int], np.ndarray] = {}  # (agent, keyframe id) -> unit vector
+        self.recognizer = None
+        if self.cfg.descriptor != "agent":
+            from kernels.errors import InputError
+            from registration.place_recognition import make_recognizer
+
+            if not self.cfg.vocabulary:
+                raise InputError(f"server.descriptor {self.cfg.descriptor!r} needs server.vocabulary (a .npz file)")
+            self.recognizer = make_recognizer(self.cfg.descriptor, checkpoint=self.cfg.vocabulary)
 
     # ---- the server loop: one call per keyframe an agent sends --------------------------------------------------
 
@@ -83,6 +96,7 @@ class Server:
         """Look for loops of agent `a`'s new keyframe (its own, then the other agents'); optimise and move submaps
         when one is accepted. Returns the new candidate records."""
         t0 = time.perf_counter()
+        self.descriptors[a, kf.id] = self._describe(kf)
         new = self._intra(a, kf, step) if self.cfg.intra_loops else []
         t1 = time.perf_counter()
         if self.cfg.inter_loops:
@@ -93,6 +107,11 @@ class Server:
         if any(r.accepted for r in new):
             self.optimise()
         return new
+
+    def _describe(self, kf: Keyframe) -> np.ndarray | None:
+        if self.recognizer is None:
+            return kf.descriptor
+        return self.recognizer.describe(kf.small.color)
 
     def _intra(self, a: int, kf: Keyframe, step: int) -> list[LoopRecord]:
         slot = self.slots[a]
@@ -109,15 +128,17 @@ class Server:
     def inter_candidates(self, a: int, kf: Keyframe, step: int = 0) -> list[tuple[int, Keyframe, float]]:
         """The `top_k` most similar keyframes of the other agents with similarity ≥ τ_sim. The best one below
         the gate is logged (reason `similarity`), so a pair of agents that never matches is visible in loops.csv."""
-        if kf.descriptor is None:
+        d = self.descriptors.get((a, kf.id))
+        if d is None:
             return []
         scored = []
         for b, slot in enumerate(self.slots):
             if b == a:
                 continue
             for m in slot.agent.keyframes:
-                if m.descriptor is not None:
-                    scored.append((float(np.dot(kf.descriptor, m.descriptor)), b, m))
+                e = self.descriptors.get((b, m.id))
+                if e is not None:
+                    scored.append((float(np.dot(d, e)), b, m))
         scored.sort(key=lambda s: -s[0])
         out = [(b, m, s) for s, b, m in scored[: self.cfg.top_k] if s >= self.cfg.tau_sim]
         if not out and scored:
