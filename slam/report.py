@@ -31,7 +31,7 @@ def _f(x, fmt: str) -> str:
 def render_report(m: dict, files: set[str] | None = None) -> str:
     """Markdown text for metrics dict `m` (as written to metrics.json); `files` names the figures present."""
     files = files or set()
-    L = [f"# swarmsplat team run: {Path(m.get('dataset', '')).name or 'dataset'}", ""]
+    L = [f"# swarmsplat team run: {m.get('dataset_name') or Path(m.get('dataset', '')).name}", ""]
     ag = m["agents"]
     L += [f"{len(ag)} agents, {sum(a['frames_tracked'] for a in ag)} frames tracked, "
           f"{sum(a['keyframes'] for a in ag)} keyframes, {m['gaussians']} Gaussians; "
@@ -45,7 +45,8 @@ def render_report(m: dict, files: set[str] | None = None) -> str:
           "| Agent | frames | keyframes | w/o loop closures | with loop closures | frame |",
           "|---|---:|---:|---:|---:|---|"]
     for a in ag:
-        where = "global" if a["in_global_frame"] else f"own (with {a['component']})"
+        where = ("global" if a["in_global_frame"] else
+                 "own" if a["component"] == a["name"] else f"{a['component']}'s")
         L.append(f"| {a['name']} | {a['frames_tracked']} | {a['keyframes']} | {_cm(a.get('ate_rmse_no_lc'))} | "
                  f"{_cm(a.get('ate_rmse'))} | {where} |")
     vals = [a for a in ag if a.get("ate_rmse") is not None]
@@ -101,7 +102,8 @@ def _loop_section(m: dict) -> list[str]:
     else:
         L.append("All agents were brought into one global frame.")
     inter = m["loops"].get("inter", {})
-    if inter.get("candidates", 0) == 0:
+    registered = sum(v for k, v in inter.get("by_reason", {}).items() if k != "similarity")
+    if registered == 0:
         L.append("No inter-agent candidate reached registration: no pair of keyframes of different agents was "
                  "similar enough (see `loops.csv`, reason `similarity`).")
     elif inter.get("accepted", 0) == 0:

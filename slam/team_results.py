@@ -80,7 +80,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         })
     summary = summarise(srv.records)
     metrics = {
-        "dataset": str(ds.root), "agents": agents,
+        "dataset": str(ds.root), "dataset_name": ds.name, "agents": agents,
         "ate_rmse_team": traj["team"], "psnr": render["psnr"], "ssim": render["ssim"],
         "depth_l1": render["depth_l1"], "render_views": render["views"],
         "components": {names[r]: [names[m] for m in ms] for r, ms in comps.items()}, "maps": map_files,
@@ -135,7 +135,7 @@ def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict
             est_pos[n] = T[:, :3, 3]
             errs[n] = np.linalg.norm(est_pos[n] - j.per_agent[n].pairs.T_gt[:, :3, 3], axis=1)
     if gt_pos:
-        title = (f"with loop closures: team ATE {100 * team_rmse:.2f} cm (agents in the global frame, one alignment)"
+        title = (f"with loop closures: global-frame ATE {100 * team_rmse:.2f} cm (one alignment)"
                  if team_rmse is not None else "with loop closures")
         plot_trajectories(out / "trajectory.png", gt_pos, est_pos, errors=errs, title=title)
         plot_trajectories(out / "trajectory_no_lc.png", gt_pos, nolc_pos, errors=nolc_err,
