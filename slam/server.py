@@ -27,6 +27,16 @@ from .loop_log import INTER, LoopRecord, from_intra
 from .submaps import Keyframe, world_pose
 
 
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """T with its rotation projected back onto SO(3) (SVD). Poses composed from many tracked and moved frames
+    drift from orthonormality; registration refuses an initial guess that is more than 1e-4 off."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
 class ServerConfig(BaseModel):
     """Settings of the server role. The registration gates (τ_f, τ_ρ, ICP distance, max correction) are the
     agents' `loop_closure` section, so intra and inter loops pass the same tests."""
@@ -162,7 +172,7 @@ class Server:
         rec = self._record(a, q, b, m, sim, step)
         self.records.append(rec)
         same = self.slots[a].component == self.slots[b].component
-        T_init = se3.inverse(self.global_pose(b, m)) @ self.global_pose(a, q) if same else np.eye(4)
+        T_init = _rigid(se3.inverse(self.global_pose(b, m)) @ self.global_pose(a, q)) if same else np.eye(4)
         if q.small.camera.K.tolist() != m.small.camera.K.tolist() or q.small.color.shape != m.small.color.shape:
             rec.registration = "camera models differ"
             return rec.reject("registration", "registration failed: the two keyframes have different cameras")
@@ -203,7 +213,7 @@ class Server:
             moving, root = cb, ca
         for s in self.slots:
             if s.component == moving:
-                s.T_global_world = C @ s.T_global_world
+                s.T_global_world = _rigid(C @ s.T_global_world)
                 s.component = root
 
     # ---- poses, the pose graph and the submap moves -------------------------------------------------------------
@@ -230,17 +240,17 @@ class Server:
         g, tags = PoseGraph(), []
         for a, s in enumerate(self.slots):
             for kf in s.agent.keyframes:
-                g.add_pose(self.key(a, kf.id), self.global_pose(a, kf))
+                g.add_pose(self.key(a, kf.id), _rigid(self.global_pose(a, kf)))
             for e in s.agent.loops.odometry:
-                g.add_odometry(self.key(a, e.i), self.key(a, e.j), e.T_ij, info(e.sigma_rot, e.sigma_trans))
+                g.add_odometry(self.key(a, e.i), self.key(a, e.j), _rigid(e.T_ij), info(e.sigma_rot, e.sigma_trans))
                 tags.append(None)
             for n, e in enumerate(s.agent.loops.loops):
                 if ("intra", a, n) not in self.rejected_edges:
-                    g.add_loop(self.key(a, e.i), self.key(a, e.j), e.T_ij, info(e.sigma_rot, e.sigma_trans))
+                    g.add_loop(self.key(a, e.i), self.key(a, e.j), _rigid(e.T_ij), info(e.sigma_rot, e.sigma_trans))
                     tags.append(("intra", a, n))
         for n, L in enumerate(self.inter):
             if ("inter", n) not in self.rejected_edges:
-                g.add_loop(self.key(L.agent_i, L.kf_i), self.key(L.agent_j, L.kf_j), L.T_ij,
+                g.add_loop(self.key(L.agent_i, L.kf_i), self.key(L.agent_j, L.kf_j), _rigid(L.T_ij),
                            info(self.cfg.loop_sigma_rot, self.cfg.loop_sigma_trans))
                 tags.append(("inter", n))
         return g, tags
@@ -264,7 +274,7 @@ class Server:
                 if not sm.keyframe_ids:
                     continue
                 first = kfs[sm.keyframe_ids[0]]
-                T_new = W_from_G @ res.poses[self.key(a, first.id)] @ se3.inverse(first.T_local_cam)
+                T_new = _rigid(W_from_G @ res.poses[self.key(a, first.id)] @ se3.inverse(first.T_local_cam))
                 D = T_new @ se3.inverse(sm.T_world_local)
                 s.agent.gmap.transform_submap(sm, D)
                 moved.append(float(np.linalg.norm(D[:3, 3])))
