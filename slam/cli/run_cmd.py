@@ -12,7 +12,8 @@ def register(sub) -> None:
                        description="One agent's GRAND-SLAM over one RGB-D sequence: writes trajectory.txt (TUM), "
                                    "map.ply (3DGS), metrics.json, loops.csv, trajectory.png and config.yaml to --out. "
                                    "--kernels/--device override the config file's kernels section.")
-    p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood, Replica)")
+    p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood, Replica) or a multi-agent "
+                                   "dataset (dataset.yaml, Multiagent Replica), which runs as a team")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="YAML file overriding the default settings")
     p.add_argument("--frames", type=int, help="process at most N frames")
@@ -32,6 +33,20 @@ def run(args) -> int:
         from kernels.errors import InputError
 
         raise InputError(f"--frames must be at least 1, got {args.frames}")
+    from slam.datasets import load_dataset
+
+    ds = load_dataset(args.dataset)
+    if len(ds) > 1:
+        # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map (issue 7).
+        from slam.team import run_team
+
+        m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet)
+        summary = {
+            "agents": [{k: a.get(k) for k in ("name", "ate_rmse", "ate_rmse_no_lc", "psnr")} for a in m["agents"]],
+            "ate_rmse_team": m.get("ate_rmse_team"), "psnr": m.get("psnr"), "loops_accepted": m.get("loops_accepted"),
+        }
+        print(json.dumps(summary, indent=1))
+        return 0
     m = run_sequence(args.dataset, args.out, cfg, frames=args.frames, progress=not args.quiet)
     keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
