@@ -10,27 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from kernels.se3 import hat, inverse  # already batched over leading dimensions
+
 _SMALL = 1e-4  # below this angle (rad) the closed forms lose digits; Taylor series are exact to ~1e-16 there
-
-
-def hat(w: np.ndarray) -> np.ndarray:
-    """[..., 3] -> [..., 3, 3] skew-symmetric: hat(w) @ x == cross(w, x)."""
-    out = np.zeros(w.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
-    return out
-
-
-def inverse(T: np.ndarray) -> np.ndarray:
-    """[..., 4, 4] -> [..., 4, 4] rigid inverse."""
-    R = T[..., :3, :3]
-    Rt = np.swapaxes(R, -1, -2)
-    out = np.zeros_like(T)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def between(Ta: np.ndarray, Tb: np.ndarray) -> np.ndarray:

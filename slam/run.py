@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -19,6 +17,7 @@ from kernels.fileio import atomic_write_text
 
 from .agent import Agent
 from .config import SlamConfig
+from .jsonio import write_json
 
 
 def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
@@ -89,7 +88,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
     }
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
     metrics.update(_render_metrics(agent, seq))
-    atomic_write_text(out / "metrics.json", json.dumps(_finite(metrics), indent=2))
+    write_json(out / "metrics.json", metrics)
     return metrics
 
 
@@ -149,16 +148,3 @@ def _write_loops_csv(path: Path, rows: list[dict]) -> None:
     for r in rows:
         w.writerow({k: r.get(k) for k in cols})
     atomic_write_text(path, buf.getvalue())
-
-
-def _finite(x):
-    """JSON has no NaN/Inf: write them as null."""
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x

@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -25,6 +24,7 @@ import yaml
 
 from kernels.fileio import atomic_write_text
 
+from .jsonio import write_json
 from .loop_log import summarise, write_loops_csv
 
 
@@ -92,7 +92,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "kernels": team.cfg.kernels.model_dump(), "run": run_info or {},
     }
     metrics["time_s"]["evaluation"] = time.perf_counter() - t_eval
-    atomic_write_text(out / "metrics.json", json.dumps(_finite(metrics), indent=2))
+    write_json(out / "metrics.json", metrics)
     write_report(out, metrics)
     return metrics
 
@@ -209,16 +209,3 @@ def _render_grid(path: Path, rows: list) -> None:
 def _mean(v: list) -> float | None:
     v = [x for x in v if x is not None and math.isfinite(x)]
     return float(np.mean(v)) if v else None
-
-
-def _finite(x):
-    """JSON has no NaN/Inf: write them as null."""
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, (np.integer, np.bool_)):
-        return x.item()
-    return x

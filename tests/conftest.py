@@ -30,3 +30,17 @@ def shared_data(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared dataset not present: {p}")
     return p
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Hold torch to one intra-op thread for a module of tiny tensors (thread wake-ups cost more than the work).
+
+    Use with `pytestmark = pytest.mark.usefixtures("one_torch_thread")`.
+    """
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

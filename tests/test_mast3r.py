@@ -26,13 +26,8 @@ TINY_STRING = ("AsymmetricMASt3R(enc_depth=2, dec_depth=4, enc_embed_dim=32, dec
                "desc_conf_mode=('exp', 0, inf), feature_dim=16, layer_dims=(8, 8, 16, 16))")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Tiny networks: thread start-up and contention on a shared 2-core box cost more than the work itself."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Tiny tensors: torch's intra-op threads only add wake-up latency on a busy 2-core machine.
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class Odd:

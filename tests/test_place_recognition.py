@@ -12,13 +12,8 @@ from registration.place_recognition.vlad import VLADRecognizer
 from registration.synthetic_views import TexturedRoom, default_camera, look_pose
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Tiny networks: thread start-up and contention on a shared 2-core box cost more than the work itself."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Tiny tensors: torch's intra-op threads only add wake-up latency on a busy 2-core machine.
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -25,13 +25,8 @@ W, H = 32, 24  # 2 x 2 tiles, the second column and row partly outside the image
 K = torch.tensor([[30.0, 0.0, 15.3], [0.0, 28.0, 11.6], [0.0, 0.0, 1.0]])
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    # The tensors here are tiny; torch's intra-op threads only add wake-up latency on a busy 2-core machine.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Tiny tensors: torch's intra-op threads only add wake-up latency on a busy 2-core machine.
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(autouse=True)
