@@ -97,7 +97,10 @@ class SubmapConfig(_Section):
 
 class LoopClosureConfig(_Section):
     enabled: bool = True
-    descriptor: Literal["auto", "colour_histogram"] = "auto"
+    descriptor: Literal["thumbnail", "bow", "vlad", "auto"] = Field(
+        "thumbnail", description="keyframe descriptor from registration.place_recognition; 'thumbnail' needs no "
+                                 "weights or vocabulary, 'bow'/'vlad' need `vocabulary`; 'auto' = thumbnail")
+    vocabulary: str | None = Field(None, description="BoW/VLAD vocabulary (.npz) for descriptor bow/vlad")
     top_k: int = Field(3, ge=1)
     tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate (measured on generated data: "
                                                           "revisits 0.90-0.98, other views <= 0.77)")

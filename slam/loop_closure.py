@@ -9,10 +9,10 @@ from __future__ import annotations
 import warnings
 from dataclasses import asdict, dataclass
 
-import cv2
 import numpy as np
 
 from kernels import se3
+from kernels.errors import InputError
 
 from .config import LoopClosureConfig
 from .gaussian_map import GaussianMap
@@ -20,19 +20,14 @@ from .odometry_adapter import register_loop
 from .submaps import Keyframe, world_pose
 
 
-def thumbnail_descriptor(color: np.ndarray) -> np.ndarray:
-    """Fallback keyframe descriptor that needs no training or weights: a 16x12 patch-normalised grey thumbnail
-    plus a coarse colour histogram, L2-normalised (cosine similarity = dot product).
+def _make_recognizer(cfg: LoopClosureConfig):
+    """The keyframe descriptor named in the config, from registration.place_recognition."""
+    from registration.place_recognition import make_recognizer
 
-    Used until `registration.place_recognition` offers a ready default without a fitted vocabulary.
-    """
-    grey = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    thumb = cv2.resize(grey, (16, 12), interpolation=cv2.INTER_AREA).ravel()
-    thumb = (thumb - thumb.mean()) / (thumb.std() + 1e-6)
-    hist = cv2.calcHist([color], [0, 1, 2], None, [4, 4, 4], [0, 256, 0, 256, 0, 256]).ravel()
-    hist = np.sqrt(hist / max(hist.sum(), 1.0))
-    d = np.concatenate([thumb / np.sqrt(len(thumb)), hist - hist.mean()])
-    return (d / (np.linalg.norm(d) + 1e-12)).astype(np.float32)
+    name = "thumbnail" if cfg.descriptor == "auto" else cfg.descriptor
+    if name in ("bow", "vlad") and not cfg.vocabulary:
+        raise InputError(f"loop_closure.descriptor {name!r} needs loop_closure.vocabulary (a .npz vocabulary file)")
+    return make_recognizer(name, checkpoint=cfg.vocabulary if name != "thumbnail" else None)
 
 
 @dataclass
@@ -66,12 +61,13 @@ class LoopCloser:
         self.loops: list[_Edge] = []
         self.log: list[LoopCandidate] = []
         self.optimisations = 0
+        self._recognizer = _make_recognizer(cfg)
 
     # ---- the keyframe chain ---------------------------------------------------------------------------------
 
     def add_keyframe(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> None:
         """Record the tracking constraint between the previous keyframe and `kf`, as tracked now."""
-        kf.descriptor = thumbnail_descriptor(kf.small.color)
+        kf.descriptor = self._recognizer.describe(kf.small.color)
         if kf.id > 0:
             prev = keyframes[kf.id - 1]
             T = se3.inverse(world_pose(gmap, prev)) @ world_pose(gmap, kf)

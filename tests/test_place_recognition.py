@@ -180,3 +180,17 @@ def test_bow_scores_are_nonnegative_and_rank_revisits_first(views, tmp_path):
     np.testing.assert_array_equal(make_recognizer("bow", checkpoint=str(path)).describe(a[0]), da[0])
     with pytest.raises(InputError, match="is a bow vocabulary"):
         make_recognizer("vlad", checkpoint=str(path))
+
+
+def test_thumbnail_descriptor_needs_no_vocabulary_and_tells_revisits_apart():
+    from registration.place_recognition import make_recognizer
+
+    rec = make_recognizer("thumbnail")
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 255, size=(48, 64, 3), dtype=np.uint8)
+    a_noisy = np.clip(a.astype(int) + rng.integers(-8, 9, size=a.shape), 0, 255).astype(np.uint8)
+    b = rng.integers(0, 255, size=(48, 64, 3), dtype=np.uint8)
+    da, dn, db = rec.describe(a), rec.describe(a_noisy), rec.describe(b)
+    assert da.shape == (rec.dim,) and da.dtype == np.float32 and rec.descriptor_bytes == 4 * rec.dim
+    assert abs(np.linalg.norm(da) - 1) < 1e-5
+    assert float(da @ dn) > 0.95 > float(da @ db)

@@ -1,17 +1,21 @@
-"""Place recognition: global descriptors (BoW default, VLAD, CosPlace, NetVLAD) and cosine matching (`PlaceDatabase`)."""
+"""Place recognition: global descriptors (thumbnail and BoW need no weights, VLAD, CosPlace, NetVLAD) and cosine matching (`PlaceDatabase`)."""
 
 from __future__ import annotations
 
 from .base import PAPER_THRESHOLD, PlaceDatabase, PlaceMatch, PlaceRecognizer, l2_normalise
 
-BACKENDS = ("bow", "vlad", "cosplace", "netvlad")
+BACKENDS = ("thumbnail", "bow", "vlad", "cosplace", "netvlad")
 
 
 def make_recognizer(name: str, *, checkpoint: str | None = None, device: str = "cpu", **options) -> PlaceRecognizer:
-    """Build a recogniser by name. 'bow' / 'vlad' with a checkpoint load that vocabulary (.npz); without, they are
+    """Build a recogniser by name. 'thumbnail' needs nothing; 'bow' / 'vlad' with a checkpoint load that vocabulary (.npz); without, they are
     untrained (call `.fit(images)`). 'cosplace' / 'netvlad' need their published checkpoint."""
     from kernels.errors import InputError
 
+    if name == "thumbnail":
+        from .thumbnail import ThumbnailRecognizer
+
+        return ThumbnailRecognizer()
     if name in ("bow", "vlad"):
         from .vlad import BoWRecognizer, VLADRecognizer
 

@@ -23,6 +23,7 @@ class PlaceRecognizer(ABC):
 
     name: str = "base"
     dim: int = 0
+    min_side: int | None = None  # smallest image side accepted; None: registration.images.MIN_SIDE
 
     @abstractmethod
     def _describe(self, rgb: np.ndarray) -> np.ndarray:
@@ -34,9 +35,9 @@ class PlaceRecognizer(ABC):
         An image with no usable structure (blank) gives the zero vector, whose similarity to anything is 0, so it
         never becomes a candidate; a malformed image raises InputError.
         """
-        from registration.images import as_rgb8
+        from registration.images import MIN_SIDE, as_rgb8
 
-        rgb = as_rgb8(image)
+        rgb = as_rgb8(image, min_side=self.min_side or MIN_SIDE)
         return l2_normalise(np.asarray(self._describe(rgb), dtype=np.float32).reshape(-1))
 
     def describe_many(self, images) -> np.ndarray:
