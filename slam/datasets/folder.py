@@ -61,19 +61,25 @@ def read_image_list(path: str | Path) -> tuple[np.ndarray, list[Path]]:
     return np.asarray(stamps), files
 
 
-def read_calibration(path: str | Path, *, need_depth_scale: bool) -> tuple[PinholeCamera, float | None]:
-    """calibration.yaml -> (camera, depth_scale or None)."""
+def _read_yaml_mapping(path: Path, what: str, keys: str) -> dict:
+    """A YAML file that must hold a mapping; InputError naming the file for a missing file, bad YAML or wrong shape."""
     import yaml
 
-    path = Path(path)
     if not path.is_file():
-        raise InputError(f"calibration file not found: {path}")
+        raise InputError(f"{what} not found: {path}")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise InputError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a mapping with keys fx fy cx cy width height [depth_scale]")
+        raise InputError(f"{path}: expected a mapping with keys {keys}")
+    return data
+
+
+def read_calibration(path: str | Path, *, need_depth_scale: bool) -> tuple[PinholeCamera, float | None]:
+    """calibration.yaml -> (camera, depth_scale or None)."""
+    path = Path(path)
+    data = _read_yaml_mapping(path, "calibration file", "fx fy cx cy width height [depth_scale]")
     keys = ["fx", "fy", "cx", "cy", "width", "height"] + (["depth_scale"] if need_depth_scale else [])
     missing = [k for k in keys if k not in data]
     if missing:
@@ -138,18 +144,9 @@ def _poses_file(path: Path, stamps: np.ndarray) -> np.ndarray | None:
 
 def load_folder_dataset(root: str | Path) -> MultiAgentDataset:
     """Load a multi-agent root folder described by `dataset.yaml`."""
-    import yaml
-
     root = Path(root)
     meta_path = root / "dataset.yaml"
-    if not meta_path.is_file():
-        raise InputError(f"dataset description not found: {meta_path}")
-    try:
-        meta = yaml.safe_load(meta_path.read_text())
-    except yaml.YAMLError as e:
-        raise InputError(f"{meta_path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(meta, dict):
-        raise InputError(f"{meta_path}: expected a mapping with keys name, kind, agents")
+    meta = _read_yaml_mapping(meta_path, "dataset description", "name, kind, agents")
     agents = meta.get("agents")
     if not isinstance(agents, list) or not agents or not all(isinstance(a, str) and a for a in agents):
         raise InputError(f"{meta_path}: 'agents' must be a non-empty list of folder names")
