@@ -45,7 +45,9 @@ class LoopCandidate:
 
 
 @dataclass
-class _Edge:
+class Edge:
+    """A relative-pose constraint between two keyframes of one agent (odometry or an accepted loop)."""
+
     i: int  # keyframe ids
     j: int
     T_ij: np.ndarray  # [4, 4] pose of j in i's camera frame
@@ -57,8 +59,8 @@ class LoopCloser:
     def __init__(self, cfg: LoopClosureConfig, *, max_depth: float = 10.0):
         self.cfg = cfg
         self.max_depth = max_depth
-        self.odometry: list[_Edge] = []
-        self.loops: list[_Edge] = []
+        self.odometry: list[Edge] = []
+        self.loops: list[Edge] = []
         self.log: list[LoopCandidate] = []
         self.optimisations = 0
         self._recognizer = _make_recognizer(cfg)
@@ -71,7 +73,7 @@ class LoopCloser:
         if kf.id > 0:
             prev = keyframes[kf.id - 1]
             T = se3.inverse(world_pose(gmap, prev)) @ world_pose(gmap, kf)
-            self.odometry.append(_Edge(prev.id, kf.id, T, self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans))
+            self.odometry.append(Edge(prev.id, kf.id, T, self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans))
 
     # ---- detection and verification ------------------------------------------------------------------------
 
@@ -119,7 +121,7 @@ class LoopCloser:
         else:
             c.accepted = True
             c.reason = "accepted"
-            self.loops.append(_Edge(j.id, q.id, r.T_target_source, cfg.odometry_sigma_rot, cfg.odometry_sigma_trans))
+            self.loops.append(Edge(j.id, q.id, r.T_target_source, cfg.odometry_sigma_rot, cfg.odometry_sigma_trans))
         self.log.append(c)
         return c
 
@@ -151,7 +153,7 @@ class LoopCloser:
         return [asdict(c) for c in self.log]
 
 
-def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[_Edge], loops: list[_Edge], *,
+def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[Edge], loops: list[Edge], *,
                         fixed: int) -> dict[int, np.ndarray]:
     """Levenberg–Marquardt over keyframe poses (eq. 13) with `graph/`: tracking and loop edges as relative-pose
     constraints, information diag(1/sigma^2) in twist order [omega, v]; the graph anchors its first pose (the
@@ -166,7 +168,7 @@ def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[_Edge], l
     for k in sorted(initial):
         g.add_pose(k, initial[k])
 
-    def info(e: _Edge) -> np.ndarray:
+    def info(e: Edge) -> np.ndarray:
         return np.diag([1.0 / e.sigma_rot**2] * 3 + [1.0 / e.sigma_trans**2] * 3)
 
     for e in odometry:
