@@ -16,6 +16,7 @@ built with torch), twins in `kernels/_ref_icp.py`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -82,8 +83,9 @@ class NormalEquations:
     @classmethod
     def from_sums(cls, s: torch.Tensor) -> "NormalEquations":
         s = s.detach().to("cpu", torch.float64)
-        return cls(s[0:36].reshape(6, 6).clone(), s[36:42].clone(), float(s[42]), float(s[43]), int(round(float(s[44]))),
-                   float(s[45]), int(round(float(s[46]))), float(s[47]))
+        v = s.tolist()  # one conversion instead of one per scalar (this runs once per ICP iteration)
+        return cls(s[0:36].reshape(6, 6).clone(), s[36:42].clone(), v[42], v[43], int(round(v[44])), v[45],
+                   int(round(v[46])), v[47])
 
 
 @dataclass(frozen=True)
@@ -277,7 +279,7 @@ def _angle_gate(source_normals, max_angle_deg, source_points, dev, validate) -> 
     if source_normals is None or max_angle_deg is None:
         return source_points, -2.0  # the kernels skip the gate when cos_min < -1
     _check("source_normals", source_normals, (source_points.shape[0], 3), device=dev, validate=validate)
-    return source_normals.contiguous(), float(torch.cos(torch.deg2rad(torch.tensor(float(max_angle_deg)))))
+    return source_normals.contiguous(), math.cos(math.radians(float(max_angle_deg)))
 
 
 _DUMMY_IDX: dict = {}

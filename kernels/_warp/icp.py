@@ -3,6 +3,10 @@ the twins). Neighbour search uses wp.HashGrid; reductions write one float64 row 
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
 import torch
 import warp as wp
 
@@ -15,46 +19,51 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
-def _backproject(d: float, u: int, v: int, fx: float, fy: float, cx: float, cy: float):
-    return wp.vec3((float(u) - cx) / fx * d, (float(v) - cy) / fy * d, d)
+def _backproject(d: float, u: int, v: int, ifx: float, ify: float, cx: float, cy: float):
+    # ifx, ify = 1 / fx, 1 / fy: multiplications instead of the divisions that dominated this kernel.
+    return wp.vec3((float(u) - cx) * ifx * d, (float(v) - cy) * ify * d, d)
 
 
 @wp.kernel
-def _vertices_normals(depth: wp.array2d(dtype=wp.float32), fx: float, fy: float, cx: float, cy: float, jump: float,
-                      verts: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3)):
-    v, u = wp.tid()
+def _vertices_normals(depth: wp.array2d(dtype=wp.float32), ifx: float, ify: float, cx: float, cy: float, jump: float,
+                      v0: int, verts: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3)):
+    # One thread per row, looping over its pixels: a thread per pixel costs Warp's CPU loop an index division
+    # per pixel, as much as the pixel's own work.
+    v = wp.tid() + v0
     H = depth.shape[0]
     W = depth.shape[1]
-    d = depth[v, u]
-    p = wp.vec3(0.0, 0.0, 0.0)
-    if d > 0.0:
-        p = _backproject(d, u, v, fx, fy, cx, cy)
-    verts[v, u] = p
-    n = wp.vec3(0.0, 0.0, 0.0)
-    if d > 0.0 and u > 0 and v > 0 and u < W - 1 and v < H - 1:
-        dr = depth[v, u + 1]
-        dl = depth[v, u - 1]
-        dd = depth[v + 1, u]
-        du = depth[v - 1, u]
-        lim = jump * d
-        ok = dr > 0.0 and dl > 0.0 and dd > 0.0 and du > 0.0
-        ok = ok and wp.abs(dr - d) <= lim and wp.abs(dl - d) <= lim and wp.abs(dd - d) <= lim and wp.abs(du - d) <= lim
-        if ok:
-            dx = _backproject(dr, u + 1, v, fx, fy, cx, cy) - _backproject(dl, u - 1, v, fx, fy, cx, cy)
-            dy = _backproject(dd, u, v + 1, fx, fy, cx, cy) - _backproject(du, u, v - 1, fx, fy, cx, cy)
-            c = wp.cross(dx, dy)
-            ln = wp.length(c)
-            if ln > 1.0e-12:
-                n = c / ln
-                if wp.dot(n, p) > 0.0:
-                    n = -n
-    normals[v, u] = n
+    for u in range(W):
+        d = depth[v, u]
+        p = wp.vec3(0.0, 0.0, 0.0)
+        if d > 0.0:
+            p = _backproject(d, u, v, ifx, ify, cx, cy)
+        verts[v, u] = p
+        n = wp.vec3(0.0, 0.0, 0.0)
+        if d > 0.0 and u > 0 and v > 0 and u < W - 1 and v < H - 1:
+            dr = depth[v, u + 1]
+            dl = depth[v, u - 1]
+            dd = depth[v + 1, u]
+            du = depth[v - 1, u]
+            lim = jump * d
+            ok = dr > 0.0 and dl > 0.0 and dd > 0.0 and du > 0.0
+            ok = ok and wp.abs(dr - d) <= lim and wp.abs(dl - d) <= lim and wp.abs(dd - d) <= lim
+            ok = ok and wp.abs(du - d) <= lim
+            if ok:
+                dx = _backproject(dr, u + 1, v, ifx, ify, cx, cy) - _backproject(dl, u - 1, v, ifx, ify, cx, cy)
+                dy = _backproject(dd, u, v + 1, ifx, ify, cx, cy) - _backproject(du, u, v - 1, ifx, ify, cx, cy)
+                c = wp.cross(dx, dy)
+                ln = wp.length(c)
+                if ln > 1.0e-12:
+                    n = c * (1.0 / ln)
+                    if wp.dot(n, p) > 0.0:
+                        n = -n
+        normals[v, u] = n
 
 
 @wp.kernel
 def _moments(grid: wp.uint64, points: wp.array(dtype=wp.vec3), queries: wp.array(dtype=wp.vec3), radius: float,
-             out: wp.array2d(dtype=wp.float64)):
-    i = wp.tid()
+             i0: int, out: wp.array2d(dtype=wp.float64)):
+    i = wp.tid() + i0
     q = queries[i]
     r2 = radius * radius
     n = wp.float64(0.0)
@@ -130,16 +139,16 @@ def _project_assoc(p: wp.vec3, q: wp.vec3, sn_i: wp.vec3, T: wp.mat44,
 def _assoc_projective(src: wp.array(dtype=wp.vec3), T: wp.mat44,
                       tv: wp.array(dtype=wp.vec3), tn: wp.array(dtype=wp.vec3), sn: wp.array(dtype=wp.vec3),
                       H: int, W: int, fx: float, fy: float, cx: float, cy: float, max_d: float, cos_min: float,
-                      out: wp.array(dtype=wp.int32)):
-    i = wp.tid()
+                      i0: int, out: wp.array(dtype=wp.int32)):
+    i = wp.tid() + i0
     p = src[i]
     out[i] = _project_assoc(p, _xform(T, p), sn[i], T, tv, tn, H, W, fx, fy, cx, cy, max_d, cos_min)
 
 
 @wp.kernel
 def _assoc_nearest(grid: wp.uint64, points: wp.array(dtype=wp.vec3), src: wp.array(dtype=wp.vec3),
-                   T: wp.mat44, max_d: float, out: wp.array(dtype=wp.int32)):
-    i = wp.tid()
+                   T: wp.mat44, max_d: float, i0: int, out: wp.array(dtype=wp.int32)):
+    i = wp.tid() + i0
     q = _xform(T, src[i])
     best = max_d * max_d
     best_j = int(-1)
@@ -217,8 +226,8 @@ def _make_reduce(projective: bool, photo: bool):
                 t_gu: wp.array2d(dtype=wp.float32), t_gv: wp.array2d(dtype=wp.float32),
                 fx: float, fy: float, cx: float, cy: float, lam: float,
                 sn: wp.array(dtype=wp.vec3), th: int, tw: int, max_d: float, cos_min: float,
-                start_stride: int, item_stride: int, count: int, out: wp.array2d(dtype=wp.float64)):
-        b = wp.tid()
+                block0: int, start_stride: int, item_stride: int, count: int, out: wp.array2d(dtype=wp.float64)):
+        b = wp.tid() + block0
         n_pts = src.shape[0]
         acc = vec33d()
         for s in range((count + SUB - 1) // SUB):
@@ -305,13 +314,72 @@ def _sync(device: str) -> None:
         wp.synchronize_device(device)
 
 
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+_LOADED: set = set()  # (kernel, device) launched at least once: compiled and loaded, safe to launch from threads
+
+
+def _cpu_threads() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="swarmsplat-warp-cpu")
+    return _POOL
+
+
+def _launch(kernel, dim, inputs: list, offset_at: int, device: str) -> None:
+    """wp.launch over `dim` (an int, or (rows, cols) split by rows) with inputs[offset_at] = the first item.
+
+    Warp's CPU backend runs a launch on one thread and its ctypes call releases the GIL, so on the CPU the range is
+    cut into one contiguous part per core and each part launched from its own Python thread (same kernel, its
+    offset as an argument; the parts write disjoint outputs). The first launch of a kernel compiles and loads its
+    module, so it runs whole on the calling thread. CUDA: a single launch.
+    """
+    rows = dim if isinstance(dim, int) else dim[0]
+    parts = min(_cpu_threads() if device == "cpu" else 1, rows)
+    key = (kernel, device)
+    if parts <= 1 or key not in _LOADED:
+        args = list(inputs)
+        args[offset_at] = 0
+        wp.launch(kernel, dim=dim, inputs=args, device=device, record_tape=False)
+        _LOADED.add(key)
+        return
+    cuts = [rows * k // parts for k in range(parts + 1)]
+
+    def part(k: int) -> None:
+        args = list(inputs)
+        args[offset_at] = cuts[k]
+        n = cuts[k + 1] - cuts[k]
+        wp.launch(kernel, dim=n if isinstance(dim, int) else (n, *dim[1:]), inputs=args, device=device,
+                  record_tape=False)
+
+    pool = _pool(max(1, _cpu_threads() - 1))
+    futures = [pool.submit(part, k) for k in range(1, parts)]
+    part(0)
+    for f in futures:
+        f.result()
+
+
+def _arr(x: torch.Tensor, dtype=None):
+    """A tensor as a kernel argument: Warp's bare array descriptor (no wp.array object per launch; the caller
+    holds the tensor for the launch, which is synchronous on the CPU and synchronised on CUDA)."""
+    return wp.from_torch(x, dtype=dtype, requires_grad=False, return_ctype=True)
+
+
 def vertices_normals(depth: torch.Tensor, camera, jump: float, device: str):
     H, W = depth.shape
     verts = torch.empty(H, W, 3, dtype=torch.float32, device=depth.device)
     normals = torch.empty_like(verts)
-    wp.launch(_vertices_normals, dim=(H, W), device=device,
-              inputs=[wp.from_torch(depth), camera.fx, camera.fy, camera.cx, camera.cy, jump,
-                      wp.from_torch(verts, dtype=wp.vec3), wp.from_torch(normals, dtype=wp.vec3)])
+    _launch(_vertices_normals, H, [_arr(depth), 1.0 / camera.fx, 1.0 / camera.fy, camera.cx, camera.cy, jump, 0,
+                                        _arr(verts, dtype=wp.vec3), _arr(normals, dtype=wp.vec3)],
+            6, device)
     _sync(device)
     return verts, normals
 
@@ -330,8 +398,9 @@ def build_grid(points: torch.Tensor, cell: float, device: str):
 def cloud_moments(grid: _Grid, points: torch.Tensor, queries: torch.Tensor, radius: float, device: str):
     out = torch.zeros(queries.shape[0], 10, dtype=torch.float64, device=queries.device)
     if queries.shape[0]:
-        wp.launch(_moments, dim=queries.shape[0], device=device,
-                  inputs=[grid.grid.id, grid.wp_points, wp.from_torch(queries, dtype=wp.vec3), radius, wp.from_torch(out)])
+        _launch(_moments, queries.shape[0],
+                [grid.grid.id, grid.wp_points, _arr(queries, dtype=wp.vec3), radius, 0, _arr(out)],
+                4, device)
         _sync(device)
     return out
 
@@ -340,10 +409,10 @@ def associate_projective(src, T, tv, tn, sn, camera, max_d: float, cos_min: floa
     out = torch.empty(src.shape[0], dtype=torch.int32, device=src.device)
     if src.shape[0]:
         H, W = tv.shape[:2]
-        wp.launch(_assoc_projective, dim=src.shape[0], device=device,
-                  inputs=[wp.from_torch(src, dtype=wp.vec3), _mat(T), wp.from_torch(tv.reshape(-1, 3), dtype=wp.vec3),
-                          wp.from_torch(tn.reshape(-1, 3), dtype=wp.vec3), wp.from_torch(sn, dtype=wp.vec3), H, W,
-                          camera.fx, camera.fy, camera.cx, camera.cy, max_d, cos_min, wp.from_torch(out)])
+        _launch(_assoc_projective, src.shape[0],
+                [_arr(src, dtype=wp.vec3), _mat(T), _arr(tv.reshape(-1, 3), dtype=wp.vec3),
+                 _arr(tn.reshape(-1, 3), dtype=wp.vec3), _arr(sn, dtype=wp.vec3), H, W,
+                 camera.fx, camera.fy, camera.cx, camera.cy, max_d, cos_min, 0, _arr(out)], 13, device)
         _sync(device)
     return out
 
@@ -351,9 +420,9 @@ def associate_projective(src, T, tv, tn, sn, camera, max_d: float, cos_min: floa
 def associate_nearest(grid: _Grid, points, src, T, max_d: float, device: str):
     out = torch.empty(src.shape[0], dtype=torch.int32, device=src.device)
     if src.shape[0]:
-        wp.launch(_assoc_nearest, dim=src.shape[0], device=device,
-                  inputs=[grid.grid.id, grid.wp_points, wp.from_torch(src, dtype=wp.vec3), _mat(T), max_d,
-                          wp.from_torch(out)])
+        _launch(_assoc_nearest, src.shape[0],
+                [grid.grid.id, grid.wp_points, _arr(src, dtype=wp.vec3), _mat(T), max_d, 0, _arr(out)],
+                5, device)
         _sync(device)
     return out
 
@@ -382,11 +451,11 @@ def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, devic
         projective = 1
     fx, fy, cx, cy = (cam.fx, cam.fy, cam.cx, cam.cy) if cam is not None else (1.0, 1.0, 0.0, 0.0)
     if n:
-        wp.launch(_reduce_kernel(bool(projective), bool(has)), dim=blocks, device=device,
-                  inputs=[wp.from_torch(src, dtype=wp.vec3), _mat(T), wp.from_torch(tp, dtype=wp.vec3),
-                          wp.from_torch(tn, dtype=wp.vec3), wp.from_torch(idx), kind, k, wp.from_torch(s_int),
-                          wp.from_torch(t_int), wp.from_torch(gu), wp.from_torch(gv), fx, fy, cx, cy, lam,
-                          wp.from_torch(sn, dtype=wp.vec3), th, tw, max_d, cos_min,
-                          start_stride, item_stride, count, wp.from_torch(out)])
+        _launch(_reduce_kernel(bool(projective), bool(has)), blocks,
+                [_arr(src, dtype=wp.vec3), _mat(T), _arr(tp, dtype=wp.vec3),
+                 _arr(tn, dtype=wp.vec3), _arr(idx), kind, k, _arr(s_int),
+                 _arr(t_int), _arr(gu), _arr(gv), fx, fy, cx, cy, lam,
+                 _arr(sn, dtype=wp.vec3), th, tw, max_d, cos_min, 0,
+                 start_stride, item_stride, count, _arr(out)], 21, device)
         _sync(device)
     return out.sum(0)
