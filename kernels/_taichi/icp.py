@@ -79,15 +79,18 @@ def _moments(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), start: 
         c0 = ti.floor(q / h, ti.i32)
         r2 = radius * radius
         acc = ti.Vector.zero(ti.f64, 10)
-        for dx, dy, dz in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
-            cx, cy, cz = c0[0] + dx, c0[1] + dy, c0[2] + dz
-            hb = _hash(cx, cy, cz, mask)
-            for k in range(start[hb], start[hb] + cnt[hb]):
-                if scell[k, 0] == cx and scell[k, 1] == cy and scell[k, 2] == cz:
-                    p = ti.Vector([spts[k, 0], spts[k, 1], spts[k, 2]])
-                    if (p - q).norm_sqr() <= r2:
-                        x, y, z = ti.cast(p[0], ti.f64), ti.cast(p[1], ti.f64), ti.cast(p[2], ti.f64)
-                        acc += ti.Vector([1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], dt=ti.f64)
+        # Three nested loops, not ti.ndrange: its run-time bounds cost two integer divisions per cell.
+        for dx in range(-reach, reach + 1):
+            for dy in range(-reach, reach + 1):
+                for dz in range(-reach, reach + 1):
+                    cx, cy, cz = c0[0] + dx, c0[1] + dy, c0[2] + dz
+                    hb = _hash(cx, cy, cz, mask)
+                    for k in range(start[hb], start[hb] + cnt[hb]):
+                        if scell[k, 0] == cx and scell[k, 1] == cy and scell[k, 2] == cz:
+                            p = ti.Vector([spts[k, 0], spts[k, 1], spts[k, 2]])
+                            if (p - q).norm_sqr() <= r2:
+                                x, y, z = ti.cast(p[0], ti.f64), ti.cast(p[1], ti.f64), ti.cast(p[2], ti.f64)
+                                acc += ti.Vector([1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], dt=ti.f64)
         for k in ti.static(range(10)):
             out[i, k] = acc[k]
 
@@ -102,16 +105,19 @@ def _assoc_nearest(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), s
         c0 = ti.floor(q / h, ti.i32)
         best = max_d * max_d
         best_j = -1
-        for dx, dy, dz in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
-            cx, cy, cz = c0[0] + dx, c0[1] + dy, c0[2] + dz
-            hb = _hash(cx, cy, cz, mask)
-            for k in range(start[hb], start[hb] + cnt[hb]):
-                if scell[k, 0] == cx and scell[k, 1] == cy and scell[k, 2] == cz:
-                    d2 = (ti.Vector([spts[k, 0], spts[k, 1], spts[k, 2]]) - q).norm_sqr()
-                    j = sidx[k]
-                    if d2 < best or (d2 == best and (best_j < 0 or j < best_j)):
-                        best = d2
-                        best_j = j
+        # Three nested loops, not ti.ndrange: its run-time bounds cost two integer divisions per cell.
+        for dx in range(-reach, reach + 1):
+            for dy in range(-reach, reach + 1):
+                for dz in range(-reach, reach + 1):
+                    cx, cy, cz = c0[0] + dx, c0[1] + dy, c0[2] + dz
+                    hb = _hash(cx, cy, cz, mask)
+                    for k in range(start[hb], start[hb] + cnt[hb]):
+                        if scell[k, 0] == cx and scell[k, 1] == cy and scell[k, 2] == cz:
+                            d2 = (ti.Vector([spts[k, 0], spts[k, 1], spts[k, 2]]) - q).norm_sqr()
+                            j = sidx[k]
+                            if d2 < best or (d2 == best and (best_j < 0 or j < best_j)):
+                                best = d2
+                                best_j = j
         out[i] = best_j
 
 
