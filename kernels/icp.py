@@ -11,7 +11,10 @@ Conventions
   [B, 48] partial-sum table, which torch sums. No atomics; deterministic for a fixed block count.
 
 Backends: `kernels/_warp/icp.py` (wp.HashGrid for neighbours) and `kernels/_taichi/icp.py` (a uniform hash grid
-built with torch), twins in `kernels/_ref_icp.py`.
+built with torch), twins in `kernels/_ref_icp.py`. On the CPU, Taichi runs each kernel's outer loop on every core;
+Warp runs a launch on one thread, so its wrapper cuts every launch into one part per core, each launched from its
+own Python thread (Warp releases the GIL during a launch; parts write disjoint outputs, results are bitwise those
+of one launch).
 """
 
 from __future__ import annotations
