@@ -225,9 +225,10 @@ def _contrib(J: wp.spatial_vectorf, w: float, r: float, e0: float, e1: float, e2
 
 def _make_reduce(projective: bool, photo: bool):
     """The reduction kernel specialised at compile time (wp.static) for the association mode and the photometric
-    term. Two measured choices for Warp's single CPU thread: accumulators are updated unconditionally (Warp copies
-    every local assigned under a run-time branch), and each run of SUB points is summed in float32 over the upper
-    triangle only before a float64 flush (1.8x faster than a float64 6x6 outer product per point)."""
+    term. Measured choices for Warp's CPU code: no local is assigned under a run-time branch (Warp copies those;
+    unmatched points leave the loop body with `continue`), and each run of SUB points is summed in float32 over the
+    upper triangle only before a float64 flush (1.8x faster than a float64 6x6 outer product per point; a
+    float32 6x6 outer product or 8-wide row vectors were 1.3x slower)."""
 
     @wp.kernel(module="unique", enable_backward=False)
     def _reduce(src: wp.array(dtype=wp.vec3), T: wp.mat44, tp: wp.array(dtype=wp.vec3),
@@ -253,14 +254,16 @@ def _make_reduce(projective: bool, photo: bool):
                         t = _project_assoc(src[ii], p, sn[ii], T, tp, tn, th, tw, fx, fy, cx, cy, max_d, cos_min)
                     else:
                         t = idx[ii]
-                # Invalid points contribute zeros, so the accumulation needs no branch.
-                m = wp.where(t >= 0, 1.0, 0.0)
-                tt = wp.max(t, 0)
-                nq = tn[tt] * m
-                d = (p - tp[tt]) * m
+                # Skip unmatched points with `continue` (no locals assigned under a branch, which Warp would copy;
+                # measured a few % faster than accumulating zeros for them).
+                if t < 0:
+                    continue
+                m = 1.0
+                nq = tn[t]
+                d = p - tp[t]
                 r = wp.dot(nq, d)
                 c = wp.cross(p, nq)
-                w = _robust_w(r, kind, k) * m
+                w = _robust_w(r, kind, k)
                 J = wp.spatial_vectorf(c[0], c[1], c[2], nq[0], nq[1], nq[2])
                 part += _contrib(J, w, r, w * r * r, wp.length_sq(d), m, wp.abs(r), 0.0, 0.0)
                 if wp.static(photo):
