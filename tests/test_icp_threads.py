@@ -18,6 +18,7 @@ def warp_cpu(monkeypatch):
 
     def run_with(parts: int, fn):
         monkeypatch.setattr(W, "_cpu_threads", lambda: parts)
+        monkeypatch.setattr(W, "_MIN_SPLIT", 0)  # split even these small frames
         fn()  # the first launch of a kernel runs whole (it compiles / loads the module)
         return fn()
 

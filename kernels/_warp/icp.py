@@ -347,16 +347,22 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return _POOL
 
 
-def _launch(kernel, dim, inputs: list, offset_at: int, device: str) -> None:
+_MIN_SPLIT = 16384  # fewer work items than this run as one launch: a thread hand-off costs ~0.05-0.1 ms
+
+
+def _launch(kernel, dim, inputs: list, offset_at: int, device: str, work: int | None = None) -> None:
     """wp.launch over `dim` (an int, or (rows, cols) split by rows) with inputs[offset_at] = the first item.
 
     Warp's CPU backend runs a launch on one thread and its ctypes call releases the GIL, so on the CPU the range is
     cut into one contiguous part per core and each part launched from its own Python thread (same kernel, its
     offset as an argument; the parts write disjoint outputs). The first launch of a kernel compiles and loads its
-    module, so it runs whole on the calling thread. CUDA: a single launch.
+    module, so it runs whole on the calling thread, and so does a launch over fewer than _MIN_SPLIT `work` items
+    (points or pixels; default: the rows). CUDA: a single launch.
     """
     rows = dim if isinstance(dim, int) else dim[0]
     parts = min(_cpu_threads() if device == "cpu" else 1, rows)
+    if (work if work is not None else rows) < _MIN_SPLIT:
+        parts = 1
     key = (kernel, device)
     if parts <= 1 or key not in _LOADED:
         args = list(inputs)
@@ -392,7 +398,7 @@ def vertices_normals(depth: torch.Tensor, camera, jump: float, device: str):
     normals = torch.empty_like(verts)
     _launch(_vertices_normals, H, [_arr(depth), 1.0 / camera.fx, 1.0 / camera.fy, camera.cx, camera.cy, jump, 0,
                                         _arr(verts, dtype=wp.vec3), _arr(normals, dtype=wp.vec3)],
-            6, device)
+            6, device, work=H * W)
     _sync(device)
     return verts, normals
 
@@ -480,6 +486,6 @@ def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, devic
                  _arr(tn, dtype=wp.vec3), _arr(idx), kind, k, _arr(s_int),
                  _arr(t_int), _arr(gu), _arr(gv), fx, fy, cx, cy, lam,
                  _arr(sn, dtype=wp.vec3), th, tw, max_d, cos_min, 0,
-                 start_stride, item_stride, count, _arr(out)], 21, device)
+                 start_stride, item_stride, count, _arr(out)], 21, device, work=n)
         _sync(device)
     return out.sum(0)
