@@ -366,6 +366,8 @@ def fig5_row(scene: Scene, run: SpacingRun, backend: str, r_thr: float, cfg: Stu
            "ratio_wrong_max": max(wrong) if wrong else float("nan"),
            "frontend_s": run.frontend_s, "kB_per_robot": run.encoding_bytes / 1e3 / len(scene.robots),
            "descriptor_kB_per_robot": run.descriptor_bytes / 1e3 / len(scene.robots)}
+    pairs = [c.query[0] + c.match[0] for c, _ in acc if not c.correct_strict]
+    row["wrong_by_pair"] = " ".join(f"{k}:{pairs.count(k)}" for k in sorted(set(pairs))) or "-"
     row["outliers_2m"] = row["loops"] - row["correct_2m"]
     row["outliers_strict"] = row["loops"] - row["correct_strict"]
     for label, form, solver in FORMULATIONS:
@@ -452,7 +454,7 @@ def markdown(res: dict) -> str:
     head = ["backend", "spacing (m)", "keyframes", "candidates", "registered", "odometry-pair corr. (median)",
             "wrong ratio (max)", "R_thr", "loops",
             "wrong (2 m / strict)", *[f"ATE {f} (m)" for f in forms], "ATE odometry*", "front-end (s)",
-            "solve (s) " + " / ".join(forms), "encodings kB/robot", "joined"]
+            "solve (s) " + " / ".join(forms), "encodings kB/robot", "joined", "wrong loops by robot pair"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     groups: dict[tuple, list[dict]] = {}
     for r in res["fig5"]:
@@ -472,7 +474,8 @@ def markdown(res: dict) -> str:
                                         *[m(f"ate_{f}") for f in forms], m("ate_odometry"), f"{s('frontend_s'):.1f}",
                                         " / ".join(f"{s(f'time_{f}'):.2f}" for f in forms),
                                         f"{np.mean([r['kB_per_robot'] for r in rs]):.0f}",
-                                        " / ".join(r["joined"] for r in rs)]) + " |")
+                                        " / ".join(r["joined"] for r in rs),
+                                        " / ".join(r.get("wrong_by_pair", "?") for r in rs)]) + " |")
     sw_keys = sorted({k for r in res["r_thr"] for k in r if k.startswith("ate_")},
                      key=lambda k: float(k.split("@")[1][:-1]))
     h2 = ["backend", "R_thr", "loops", "precision (strict)", "recall (strict)", "precision (2 m)", *sw_keys]
