@@ -45,6 +45,19 @@ class LoopMeasurement:
         return self.loop.T_query_match
 
 
+# The eq. 1 gate per pair backend. The paper's 0.3 is tuned for MASt3R's dense reciprocal matches, whose count
+# scales with the overlapping area. Classical SIFT inliers fall off faster with viewpoint change: on the generated
+# teams the correct classical loops have ratios 0.16-0.21 at the 10th percentile and the wrong ones 0.13-0.25 at the
+# 90th. 0.15 is the lowest gate with no false merge up to 0.6 m keyframe spacing there (precision 0.97, recall 0.93;
+# 0.3 loses 15 % of the correct loops): perf/results/flocc-fig5.md. Unmeasured backends keep the paper's value.
+R_THR_BY_BACKEND = {"classical": 0.15, "mast3r": R_THR_DEFAULT}
+
+
+def default_r_thr(backend: str) -> float:
+    """The correspondence-ratio gate R_thr used for pair backend `backend` when none is given."""
+    return R_THR_BY_BACKEND.get(backend, R_THR_DEFAULT)
+
+
 @dataclass
 class LoopFrontend:
     """Registers loop candidates with one pair backend and gates them with the correspondence ratio.
@@ -58,10 +71,14 @@ class LoopFrontend:
     camera_of: Callable[[str], PinholeCamera]
     num_keyframes: Callable[[str], int]
     k: float = K_DEFAULT
-    r_thr: float = R_THR_DEFAULT
+    r_thr: float | None = None  # None: default_r_thr(registrar.name)
     _enc: dict = field(default_factory=dict, repr=False)
     _odom: dict = field(default_factory=dict, repr=False)
     encode_calls: int = 0
+
+    def __post_init__(self) -> None:
+        if self.r_thr is None:
+            self.r_thr = default_r_thr(getattr(self.registrar, "name", ""))
 
     def encoding(self, kf: KeyframeId) -> Encoding:
         """Encode keyframe `kf` once; later calls return the cached encoding."""

@@ -74,7 +74,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     """
     from tqdm import tqdm
 
-    from graph.confidence import K_DEFAULT, R_THR_DEFAULT
+    from graph.confidence import K_DEFAULT
     from registration.pair import make_registrar
     from registration.place_recognition import PlaceDatabase, make_recognizer
     from slam.datasets import load_dataset
@@ -128,7 +128,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
                     cands.append(m)
 
     front = LoopFrontend(registrar, image_of, lambda a: seqs[a].camera, lambda a: len(kf[a]),
-                         k=K_DEFAULT if k is None else k, r_thr=R_THR_DEFAULT if r_thr is None else r_thr)
+                         k=K_DEFAULT if k is None else k, r_thr=r_thr)
     rows, n_reg, n_acc, n_in = [], 0, 0, 0
     have_gt = all(s.gt_poses is not None for s in seqs.values())
     for m in tqdm(cands, desc="register", disable=not progress, leave=False):

@@ -88,6 +88,19 @@ def test_frontend_ratio_gate_and_confidence_use_graph_confidence():
     assert not res.accepted and "R_thr" in res.reason and res.ratio == pytest.approx(good.ratio)
 
 
+def test_r_thr_defaults_per_pair_backend():
+    from graph.confidence import R_THR_DEFAULT
+    from slam.frontend import default_r_thr
+
+    assert default_r_thr("classical") == 0.15  # measured: perf/results/flocc-fig5.md
+    assert default_r_thr("mast3r") == R_THR_DEFAULT == 0.3  # the paper's value, for its dense matches
+    assert default_r_thr("something-new") == R_THR_DEFAULT
+    fe = _frontend({"a": [], "b": []})
+    assert fe.r_thr == 0.15
+    explicit = LoopFrontend(fe.registrar, fe.image_of, fe.camera_of, fe.num_keyframes, r_thr=0.4)
+    assert explicit.r_thr == 0.4
+
+
 def test_frontend_single_keyframe_agent_is_rejected_cleanly():
     room = TexturedRoom(seed=7)
     images = {"a": [room.render(look_pose((0, 0, 0)), CAM)[0]], "b": [room.render(look_pose((0.2, 0, 0)), CAM)[0]]}

@@ -39,7 +39,7 @@ from .transport import Transport
 @dataclass
 class NodeConfig:
     threshold: float = 0.1  # cosine similarity of a candidate (FLOCC §IV: 0.1)
-    r_thr: float | None = None  # eq. 1 gate (None: graph.confidence default)
+    r_thr: float | None = None  # eq. 1 gate (None: slam.frontend.default_r_thr of the pair backend)
     k: float | None = None  # eq. 2 steepness
     neighbour_timeout: int = 3  # ticks without a hello before a robot counts as out of range
     resend: int = 4  # ticks before re-sending something a neighbour still lacks
@@ -78,7 +78,7 @@ class RobotNode:
 
     def __init__(self, robot: int, camera: PinholeCamera, transport: Transport, recognizer, registrar,
                  config: NodeConfig | None = None):
-        from graph.confidence import K_DEFAULT, R_THR_DEFAULT
+        from graph.confidence import K_DEFAULT
         from slam.frontend import LoopFrontend
 
         self.id, self.char = int(robot), robot_char(int(robot))
@@ -92,7 +92,7 @@ class RobotNode:
         self.cameras: dict[int, PinholeCamera] = {self.id: camera}
         self.front = LoopFrontend(registrar, self._image_of, self._camera_of, self._count_of,
                                   k=K_DEFAULT if self.cfg.k is None else self.cfg.k,
-                                  r_thr=R_THR_DEFAULT if self.cfg.r_thr is None else self.cfg.r_thr)
+                                  r_thr=self.cfg.r_thr)
         self.registered: dict[tuple, object] = {}  # (peer, i, j) -> LoopMeasurement, computed once
         self.loops: dict[int, dict[tuple, Loop]] = {}  # peer -> loop key (qa, qi, mb, mj) -> Loop
         self.loops_version: dict[int, list[int]] = {}  # peer (lower id) -> version of the set received
