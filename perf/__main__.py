@@ -22,6 +22,7 @@ SUBJECTS = {
     "graph": "perf.graph",
     "frontend": "perf.frontend",
     "slam": "perf.slam",
+    "fig5": "perf.flocc_fig5",
 }
 
 
