@@ -328,6 +328,7 @@ def _sync(device: str) -> None:
 
 
 _POOL: ThreadPoolExecutor | None = None
+_POOL_PID = -1
 _POOL_LOCK = threading.Lock()
 _LOADED: set = set()  # (kernel, device) launched at least once: compiled and loaded, safe to launch from threads
 
@@ -340,10 +341,12 @@ def _cpu_threads() -> int:
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    global _POOL
+    # One pool per process: a forked child inherits the pool object but not its threads, so it makes its own.
+    global _POOL, _POOL_PID
     with _POOL_LOCK:
-        if _POOL is None:
+        if _POOL is None or _POOL_PID != os.getpid():
             _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="swarmsplat-warp-cpu")
+            _POOL_PID = os.getpid()
     return _POOL
 
 
