@@ -204,15 +204,56 @@ def _best_overlap(world, Ta, Tb, opposite: bool) -> float:
     return best
 
 
+def _same_direction_frames(world, Ta, Tb, step: int = 6) -> int:
+    """How many of a's frames (every `step`-th) have a frame of b looking the same way (optical axes < 30 deg
+    apart) at the same surfaces: at least half of each view's surface points seen by the other. That is what an
+    inter-agent loop needs: place recognition matches similar views and registration's fitness gate (0.5)
+    counts the query's points found in the match."""
+    found = 0
+    for i in range(0, len(Ta), step):
+        for j in range(0, len(Tb), step):
+            if view_angle_deg(Ta[i], Tb[j]) < 30 and min(covisibility(world, Ta[i], Tb[j]),
+                                                          covisibility(world, Tb[j], Ta[i])) > 0.5:
+                found += 1
+                break
+    return found
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3])
+def test_every_default_agent_has_a_same_direction_partner(seed):
+    """Layout 2: in the default 3-agent dataset each agent sees some surfaces from the same place and direction
+    as another agent for a stretch of frames (layout 1's agent 1 saw them only from behind and never joined)."""
+    cfg = GeneratorConfig.preset("default", seed=seed)
+    world = generate_world(cfg.seed, cfg.world)
+    poses = agent_poses(world, cfg)
+    frames = {(a, b): _same_direction_frames(world, poses[a], poses[b]) for a in range(3) for b in range(3) if a != b}
+    for a in range(cfg.agents):
+        best = max(n for (q, _), n in frames.items() if q == a)
+        assert best >= 3, f"agent {a} has no same-direction partner: {frames}"  # >= 3 of its 20 sampled frames
+    assert frames[(0, 1)] >= 3 and frames[(1, 0)] >= 3  # the designed pair: 1 walks in front of 0
+
+
 def test_agents_overlap_including_from_opposite_directions(default_world):
     world, cfg, poses = default_world
-    assert _best_overlap(world, poses[0], poses[1], opposite=True) > 0.1  # same place, opposite views
-    assert _best_overlap(world, poses[0], poses[2], opposite=False) > 0.4  # same place, same direction
-    assert _best_overlap(world, poses[1], poses[2], opposite=True) > 0.1
+    assert _best_overlap(world, poses[0], poses[3], opposite=True) > 0.1  # same place, opposite views
+    assert _best_overlap(world, poses[2], poses[3], opposite=True) > 0.1
+    assert _best_overlap(world, poses[0], poses[1], opposite=False) > 0.4  # same place, same direction
+    assert _best_overlap(world, poses[0], poses[2], opposite=False) > 0.4
     assert _best_overlap(world, poses[4], poses[5], opposite=True) > 0.1
     # Agent k's path does not depend on how many agents there are.
     two = agent_poses(world, cfg.model_copy(update={"agents": 2}))
     np.testing.assert_array_equal(two[1], poses[1])
+
+
+def test_old_layout_datasets_do_not_match_the_current_settings():
+    """The layout version is part of dataset.yaml's generator settings, so a cache made with other paths is
+    regenerated (demo.ensure_dataset compares those settings), and only the current layout can be asked for."""
+    dump = GeneratorConfig.preset("default").model_dump(mode="json")
+    assert dump["trajectory_layout"] == 2
+    old = {k: v for k, v in dump.items() if k != "trajectory_layout"}  # what layout-1 datasets recorded
+    assert old != dump
+    with pytest.raises(InputError, match="trajectory_layout"):
+        GeneratorConfig.preset("default", trajectory_layout=1)
 
 
 @pytest.mark.parametrize("rooms", [(2, 1), (1, 2), (3, 2)])

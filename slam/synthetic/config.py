@@ -90,6 +90,9 @@ class GeneratorConfig(_Strict):
     hfov_deg: float = Field(62.8, gt=10.0, lt=170.0)  # a Kinect-like field of view (fx = 525 at 640 px)
     depth_scale: float = Field(5000.0, gt=0.0)  # uint16 value per metre, as TUM RGB-D
     mono: bool = False
+    # Version of the agent-slot layout of trajectories.py. Only the current one is generated; it is part of
+    # dataset.yaml's `generator:` so a cached dataset made with other paths no longer matches (demo.ensure_dataset).
+    trajectory_layout: Literal[2] = 2
     world: WorldConfig = WorldConfig()
     motion: MotionConfig = MotionConfig()
     depth_noise: DepthNoiseConfig = DepthNoiseConfig()

@@ -128,8 +128,7 @@ def generate_world(seed: int, config: WorldConfig | None = None) -> World:
         boxes.append(Box((r.lo[0], r.lo[1], -0.1), (r.hi[0], r.hi[1], 0.0), "floor"))
         boxes.append(Box((r.lo[0], r.lo[1], height), (r.hi[0], r.hi[1], height + 0.1), "ceiling"))
 
-    main = openings[0].rooms
-    loops = plan_loops(rooms, main, np.random.default_rng([seed, 2]), MAX_AGENTS)
+    loops = plan_loops(rooms, openings[0], np.random.default_rng([seed, 2]), MAX_AGENTS)
 
     # Materials: per room a wall, floor and ceiling material with patterns drawn without repeats across
     # neighbouring rooms; then one per furniture piece.
