@@ -1,6 +1,6 @@
-"""`swarmsplat run DATASET --out DIR [--config YAML] [--kernels ...] [--device ...] [--frames N]`: one agent's
-GRAND-SLAM over one RGB-D sequence; writes trajectory.txt (TUM), map.ply, metrics.json, loops.csv, plots and
-config.yaml to DIR."""
+"""`swarmsplat run DATASET --out DIR [--config YAML] [--kernels ...] [--device ...] [--frames N] [--split R]`:
+one agent's GRAND-SLAM over one RGB-D sequence (trajectory.txt (TUM), map.ply, metrics.json, loops.csv, plots,
+config.yaml in DIR), or a team on a multi-agent dataset or on a single sequence split into agents (--split)."""
 
 from __future__ import annotations
 
@@ -8,15 +8,22 @@ from slam.cli import add_backend_flags
 
 
 def register(sub) -> None:
-    p = sub.add_parser("run", help="run RGB-D Gaussian-splatting SLAM on a sequence (one agent)",
+    p = sub.add_parser("run", help="run RGB-D Gaussian-splatting SLAM on a sequence (one agent) or a team",
                        description="One agent's GRAND-SLAM over one RGB-D sequence: writes trajectory.txt (TUM), "
                                    "map.ply (3DGS), metrics.json, loops.csv, trajectory.png and config.yaml to --out. "
+                                   "A multi-agent dataset, or a sequence cut into agents with --split, runs as a "
+                                   "team (inter-agent loops, one global pose graph, merged map). "
                                    "--kernels/--device override the config file's kernels section.")
     p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood, Replica) or a multi-agent "
                                    "dataset (dataset.yaml, Multiagent Replica), which runs as a team")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="YAML file overriding the default settings")
-    p.add_argument("--frames", type=int, help="process at most N frames")
+    p.add_argument("--frames", type=int, help="process at most N frames (per agent)")
+    p.add_argument("--split", metavar="RANGES",
+                   help="run one sequence as a team: comma-separated half-open frame ranges START:STOP, one agent "
+                        "each, e.g. 0:3,3:5 (agent_0 frames 0-2, agent_1 frames 3-4; ranges may overlap, an empty "
+                        "START/STOP means the start/end). Each agent starts in its own frame and joins the "
+                        "global frame at its first accepted inter-agent loop")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     add_backend_flags(p)
     p.set_defaults(func=run)
@@ -25,25 +32,41 @@ def register(sub) -> None:
 def run(args) -> int:
     import json
 
+    from kernels.errors import InputError
     from slam.config import SlamConfig
     from slam.run import run_sequence
 
+    ranges = None
+    if args.split is not None:
+        from slam.split import parse_ranges
+
+        ranges = parse_ranges(args.split)  # bad syntax fails before any loading
     cfg = SlamConfig.from_yaml(args.config, overrides={"kernels": {"backend": args.kernels, "device": args.device}})
     if args.frames is not None and args.frames < 1:
-        from kernels.errors import InputError
-
         raise InputError(f"--frames must be at least 1, got {args.frames}")
     from slam.datasets import load_dataset
 
     ds = load_dataset(args.dataset)
+    if ranges is not None:
+        if len(ds) != 1:
+            raise InputError(f"--split cuts one sequence into agents, but {args.dataset} already holds {len(ds)} "
+                             f"agents' sequences")
+        from slam.split import split_sequence
+
+        try:
+            ds = split_sequence(ds.agents[0], ranges)
+        except InputError as e:
+            raise InputError(f"--split: {e}") from None
     if len(ds) > 1:
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map (issue 7).
         from slam.team import run_team
 
         m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet)
+        keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
-            "agents": [{k: a.get(k) for k in ("name", "ate_rmse", "ate_rmse_no_lc", "psnr")} for a in m["agents"]],
+            "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],
             "ate_rmse_team": m.get("ate_rmse_team"), "psnr": m.get("psnr"), "loops_accepted": m.get("loops_accepted"),
+            "loops": {kind: m.get("loops", {}).get(kind) for kind in ("intra", "inter")},
         }
         print(json.dumps(summary, indent=1))
         return 0
