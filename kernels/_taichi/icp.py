@@ -35,12 +35,13 @@ def _bp(d, u, v, ifx, ify, cx, cy):
 
 
 @ti.kernel
-def _vertices_normals(depth: f32_2, ifx: ti.f32, ify: ti.f32, cx: ti.f32, cy: ti.f32, jump: ti.f32,
+def _vertices_normals(depth: f32_2, ifx: ti.f32, ify: ti.f32, cx: ti.f32, cy: ti.f32, jump: ti.f32, chunk: ti.i32,
                       verts: f32_3, normals: f32_3):
     H, W = depth.shape[0], depth.shape[1]
-    # Parallel over rows, each row a serial loop (no index division per pixel).
-    for v in range(H):
-        for u in range(W):
+    # Parallel over (row, chunk of `chunk` pixels): whole rows on the CPU (no index division per pixel), one
+    # pixel per thread on CUDA.
+    for v, kc in ti.ndrange(H, (W + chunk - 1) // chunk):
+        for u in range(kc * chunk, ti.min(W, kc * chunk + chunk)):
             d = depth[v, u]
             p = ti.Vector([0.0, 0.0, 0.0])
             if d > 0.0:
@@ -265,7 +266,8 @@ def vertices_normals(depth: torch.Tensor, camera, jump: float, device: str):
     H, W = depth.shape
     verts = torch.empty(H, W, 3, dtype=torch.float32, device=depth.device)
     normals = torch.empty_like(verts)
-    _vertices_normals(depth, 1.0 / camera.fx, 1.0 / camera.fy, camera.cx, camera.cy, jump, verts, normals)
+    chunk = W if device == "cpu" else 1
+    _vertices_normals(depth, 1.0 / camera.fx, 1.0 / camera.fy, camera.cx, camera.cy, jump, chunk, verts, normals)
     _sync(device)
     return verts, normals
 

@@ -26,13 +26,14 @@ def _backproject(d: float, u: int, v: int, ifx: float, ify: float, cx: float, cy
 
 @wp.kernel
 def _vertices_normals(depth: wp.array2d(dtype=wp.float32), ifx: float, ify: float, cx: float, cy: float, jump: float,
-                      v0: int, verts: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3)):
-    # One thread per row, looping over its pixels: a thread per pixel costs Warp's CPU loop an index division
-    # per pixel, as much as the pixel's own work.
-    v = wp.tid() + v0
+                      chunk: int, v0: int, verts: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3)):
+    # Thread (v, k) does pixels [k * chunk, (k + 1) * chunk) of row v: on the CPU a whole row (a thread per pixel
+    # costs Warp's CPU loop an index division per pixel, as much as the pixel's own work), on CUDA one pixel.
+    v, k = wp.tid()
+    v = v + v0
     H = depth.shape[0]
     W = depth.shape[1]
-    for u in range(W):
+    for u in range(k * chunk, wp.min(W, k * chunk + chunk)):
         d = depth[v, u]
         p = wp.vec3(0.0, 0.0, 0.0)
         if d > 0.0:
@@ -399,9 +400,10 @@ def vertices_normals(depth: torch.Tensor, camera, jump: float, device: str):
     H, W = depth.shape
     verts = torch.empty(H, W, 3, dtype=torch.float32, device=depth.device)
     normals = torch.empty_like(verts)
-    _launch(_vertices_normals, H, [_arr(depth), 1.0 / camera.fx, 1.0 / camera.fy, camera.cx, camera.cy, jump, 0,
-                                        _arr(verts, dtype=wp.vec3), _arr(normals, dtype=wp.vec3)],
-            6, device, work=H * W)
+    chunk = W if device == "cpu" else 1
+    _launch(_vertices_normals, (H, W // chunk),
+            [_arr(depth), 1.0 / camera.fx, 1.0 / camera.fy, camera.cx, camera.cy, jump, chunk, 0,
+             _arr(verts, dtype=wp.vec3), _arr(normals, dtype=wp.vec3)], 7, device, work=H * W)
     _sync(device)
     return verts, normals
 
