@@ -143,8 +143,9 @@ def _summary(m: dict, results: Path) -> str:
     for a in m["agents"]:
         lines.append(f"[demo]   {a['name']}: ATE {cm(a.get('ate_rmse'))} (without loop closures "
                      f"{cm(a.get('ate_rmse_no_lc'))})")
-    psnr = m.get("psnr")
-    lines.append(f"[demo]   merged map PSNR {'n/a' if psnr is None else f'{psnr:.2f} dB'}; "
+    db = lambda x: "n/a" if x is None else f"{x:.2f} dB"  # noqa: E731
+    lines.append(f"[demo]   merged map PSNR {db(m.get('psnr'))} on keyframes (before global refinement "
+                 f"{db(m.get('psnr_before_refine'))}), {db(m.get('psnr_novel'))} on held-out frames; "
                  f"{m['loops_accepted']} loops accepted of {m['loop_candidates']} candidates")
     lines.append(f"[demo] report: {results / 'report.md'}")
     return "\n".join(lines)

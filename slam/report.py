@@ -62,15 +62,26 @@ def render_report(m: dict, files: set[str] | None = None) -> str:
         if fig in files:
             L += [f"![{cap}]({fig})", ""]
 
+    res = m.get("render_resolution")
+    at = f"{res[0]}x{res[1]}, the mapping resolution" if res else "the mapping resolution"
+    ref = m.get("map_refine") or {}
+    refined = m.get("psnr_before_refine") is not None
     L += ["## Rendering quality of the merged map", "",
-          "Keyframes rendered from the merged map of their component at their optimised pose, at the mapping "
-          "resolution, against the input frames (Table V's columns).", "",
-          "| Agent | views | PSNR [dB] ↑ | SSIM ↑ | Depth L1 [cm] ↓ |", "|---|---:|---:|---:|---:|"]
+          f"Rendered from the merged map of each agent's component at {at}, against the input frames (Table V's "
+          "columns). *Keyframes* are training views, at their optimised pose; *held-out* frames are tracked frames "
+          "that are not keyframes (no mapping or refinement step saw them), at their pose with loop closures."
+          + (" *Before refinement* is the merged map straight after the final pose-graph optimisation, before the "
+             "server's global map refinement (" + f"{ref.get('config', {}).get('iterations_per_keyframe')} steps "
+             "per keyframe)." if refined else " Global map refinement was off."), "",
+          "| Agent | keyframes | PSNR [dB] ↑ | SSIM ↑ | Depth L1 [cm] ↓ | PSNR before refinement | "
+          "held-out frames | held-out PSNR |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for a in ag:
         L.append(f"| {a['name']} | {a.get('render_views', 0)} | {_f(a.get('psnr'), '.2f')} | "
-                 f"{_f(a.get('ssim'), '.3f')} | {_cm(a.get('depth_l1'))} |")
+                 f"{_f(a.get('ssim'), '.3f')} | {_cm(a.get('depth_l1'))} | {_f(a.get('psnr_before_refine'), '.2f')} | "
+                 f"{a.get('novel_views', 0)} | {_f(a.get('psnr_novel'), '.2f')} |")
     L.append(f"| **all** | {m.get('render_views', 0)} | {_f(m.get('psnr'), '.2f')} | {_f(m.get('ssim'), '.3f')} | "
-             f"{_cm(m.get('depth_l1'))} |")
+             f"{_cm(m.get('depth_l1'))} | {_f(m.get('psnr_before_refine'), '.2f')} | {m.get('novel_views', 0)} | "
+             f"{_f(m.get('psnr_novel'), '.2f')} |")
     L.append("")
     if "renders.png" in files:
         L += ["![input vs merged-map render](renders.png)", ""]

@@ -45,6 +45,7 @@ class Team:
         agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
         self.agents = [Agent(c, agent_cfg, name=n, reference=reference) for c, n in zip(cameras, names)]
         self.server = Server(self.agents, scfg)
+        self.reference = reference
         # Per agent, each submap's origin as tracking alone placed it: the trajectory without loop closures.
         self._origins_no_lc: list[list[np.ndarray]] = [[] for _ in self.agents]
         self.rounds = 0
@@ -103,6 +104,13 @@ class Team:
             return self.server.optimise()
         return None
 
+    def refine_map(self) -> dict:
+        """The server's global map refinement (config section `map_refine`; iterations_per_keyframe 0 = off)."""
+        rc = self.cfg.map_refine
+        if rc.iterations_per_keyframe <= 0 or rc.max_iterations <= 0:
+            return {}
+        return self.server.refine_maps(rc, self.cfg.mapping, reference=self.reference)
+
     def status(self, done: int, total: int, elapsed: float) -> str:
         loops = self.server.records
         acc_i = sum(r.accepted and r.kind == "intra" for r in loops)
@@ -145,7 +153,7 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     import kernels
 
     from .datasets import MultiAgentDataset, load_dataset
-    from .team_results import write_team_results
+    from .team_results import render_metrics, write_team_results
 
     cfg = config or SlamConfig()
     ds = dataset_path if isinstance(dataset_path, MultiAgentDataset) else load_dataset(dataset_path)
@@ -168,6 +176,19 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     wall += time.perf_counter() - t_fin
     if progress:
         print(file=sys.stderr)
+    before, refined = None, {}
+    if cfg.map_refine.iterations_per_keyframe > 0 and cfg.map_refine.max_iterations > 0:
+        t_ev = time.perf_counter()
+        before = render_metrics(team, ds, render_views, novel=False)  # not counted in the run's wall time
+        if progress:
+            n = sum(len(a.keyframes) for a in team.agents)
+            print(f"[team] refining the merged map over {n} keyframes (map_refine: "
+                  f"{cfg.map_refine.iterations_per_keyframe} steps per keyframe, at most "
+                  f"{cfg.map_refine.max_iterations} per component)", file=sys.stderr)
+        t_ref = time.perf_counter()
+        refined = team.refine_map()
+        wall += time.perf_counter() - t_ref
+        before["seconds"] = t_ref - t_ev
     return write_team_results(team, ds, out, wall_s=wall, cpu_s=time.process_time() - cpu0,
-                              render_views=render_views, progress=progress,
-                              run_info={"frame_stride": stride, "frame_caps": caps})
+                              render_views=render_views, progress=progress, before_refine=before,
+                              refine=refined, run_info={"frame_stride": stride, "frame_caps": caps})

@@ -5,7 +5,8 @@
   trajectories_no_lc/<agent>.txt           TUM, tracking only, in the agent's own frame
   pose_graph_initial.g2o                   keyframe graph at the tracking-only poses (joined frames applied)
   pose_graph_optimized.g2o                 the same graph after the final optimisation
-  map.ply                                  merged 3DGS map of agent 0's component (the global frame)
+  map.ply                                  merged 3DGS map of agent 0's component (the global frame), after the
+                                           server's global refinement (config map_refine) when it is on
   map_<agent>.ply                          one per other component (agents never linked to agent 0)
   loops.csv                                every loop candidate with the reason for its outcome
   trajectory.png, trajectory_no_lc.png, renders.png, metrics.json, report.md
@@ -29,7 +30,11 @@ from .loop_log import summarise, write_loops_csv
 
 
 def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, render_views: int = 8,
-                       progress: bool = False, run_info: dict | None = None) -> dict:
+                       progress: bool = False, run_info: dict | None = None, before_refine: dict | None = None,
+                       refine: dict | None = None) -> dict:
+    """Write everything listed in the module docstring; returns the metrics. before_refine: render_metrics of
+    the merged map before the server's global refinement (None when it was off); refine: its per-component
+    statistics (Server.refine_maps)."""
     from graph.g2o import write_g2o
 
     from .ply import save_ply
@@ -67,7 +72,12 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
     traj = _trajectory_metrics(team, ds, est, est_no_lc, out)
     if progress:
         print("[team] rendering evaluation views from the merged map", file=sys.stderr)
-    render = _render_metrics(team, ds, out, render_views)
+    render = render_metrics(team, ds, render_views)
+    grid = render.pop("grid")
+    if grid:
+        _render_grid(out / "renders.png", grid)
+    before = dict(before_refine or {})
+    before.pop("grid", None)
     agents = []
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
         t = ag.time
@@ -76,6 +86,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
             "keyframes": len(ag.keyframes), "submaps": len(ag.gmap.submaps), "gaussians": len(ag.gmap),
             "component": names[srv.slots[a].component], "in_global_frame": srv.slots[a].component == 0,
             **traj["agents"][a], **render["agents"][a],
+            "psnr_before_refine": before["agents"][a]["psnr"] if before else None,
             "time_s": {"tracking": t.tracking, "mapping": t.mapping},
         })
     summary = summarise(srv.records)
@@ -83,6 +94,11 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "dataset": str(ds.root), "dataset_name": ds.name, "agents": agents,
         "ate_rmse_team": traj["team"], "psnr": render["psnr"], "ssim": render["ssim"],
         "depth_l1": render["depth_l1"], "render_views": render["views"],
+        "psnr_novel": render["psnr_novel"], "ssim_novel": render["ssim_novel"], "novel_views": render["novel_views"],
+        "psnr_before_refine": before.get("psnr"), "ssim_before_refine": before.get("ssim"),
+        "render_resolution": render["resolution"],
+        "map_refine": {"config": team.cfg.map_refine.model_dump(), "components": refine or {},
+                       "evaluation_before_s": before.get("seconds")},
         "components": {names[r]: [names[m] for m in ms] for r, ms in comps.items()}, "maps": map_files,
         "gaussians": sum(len(ag.gmap) for ag in team.agents),
         "loops": summary, "loops_accepted": summary["intra"]["accepted"] + summary["inter"]["accepted"],
@@ -143,47 +159,71 @@ def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict
     return {"agents": per, "team": team_rmse}
 
 
-def _eval_keyframes(ag, n: int) -> list:
-    kfs = ag.keyframes
-    if n <= 0 or len(kfs) <= n:
-        return list(kfs)
-    return [kfs[i] for i in np.unique(np.linspace(0, len(kfs) - 1, n).round().astype(int))]
+def _spread(items: list, n: int) -> list:
+    """At most n of `items`, evenly spread (all when n <= 0 or there are fewer)."""
+    if n <= 0 or len(items) <= n:
+        return list(items)
+    return [items[i] for i in np.unique(np.linspace(0, len(items) - 1, n).round().astype(int))]
 
 
-def _render_metrics(team, ds, out: Path, views: int) -> dict:
-    """Merged-map rendering quality: chosen keyframes of every agent rendered from the merged map of its
-    component at the keyframe's optimised pose, at the mapping resolution, against the input frame."""
+def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
+    """Merged-map rendering quality at the mapping resolution (cfg.mapping.max_width), against the input frame
+    brought to that resolution the way the pipeline does (area downsampling; no blur), colour clamped to [0, 1].
+
+    Training views: `views` keyframes per agent (evenly spread), rendered from the merged map of the agent's
+    component at the keyframe's optimised pose. Held-out views (`novel`): `views` tracked frames per agent that
+    are NOT keyframes — no mapping or refinement step ever saw them — at their pose with loop closures.
+    Returns {"agents": [...], "psnr", "ssim", "depth_l1", "views", "psnr_novel", "ssim_novel", "novel_views",
+    "resolution", "grid"} (grid: rows for renders.png)."""
     from .frames import make_rgbd
     from .metrics import depth_l1, psnr, ssim
     from .render import render, viewmat_from_pose
 
     srv, cfg = team.server, team.cfg
     maps = {root: srv.merged_map(root) for root in srv.components()}
-    per, all_p, all_s, all_d, grid = [], [], [], [], []
+    per, grid, res = [], [], None
+    acc = {k: [] for k in ("p", "s", "d", "np", "ns")}
+
+    def score(params, T, seq, index):
+        f = seq[index]
+        ref = make_rgbd(f.color, f.depth, seq.camera, min_depth=cfg.image.min_depth, max_depth=cfg.image.max_depth)
+        ref = ref.resized(cfg.image.max_width).resized(cfg.mapping.max_width)
+        with torch.no_grad():
+            o = render(params, viewmat_from_pose(T), ref.camera)
+        color = o.color.clamp(0, 1)
+        gt_c = ref.color_tensor()
+        p = psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1))
+        s = ssim(color.permute(2, 0, 1), gt_c.permute(2, 0, 1))
+        d = depth_l1(o.depth, torch.as_tensor(ref.depth)) if (ref.depth > 0).any() else None
+        return p, s, d, ref, color
+
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
-        ps, ss, dl = [], [], []
         params = maps[srv.slots[a].component]
-        for kf in _eval_keyframes(ag, views):
-            f = seq[kf.frame_index]
-            ref = make_rgbd(f.color, f.depth, seq.camera, min_depth=cfg.image.min_depth, max_depth=cfg.image.max_depth)
-            ref = ref.resized(cfg.image.max_width).resized(cfg.mapping.max_width)
-            with torch.no_grad():
-                o = render(params, viewmat_from_pose(srv.global_pose(a, kf)), ref.camera)
-            color = o.color.clamp(0, 1)
-            gt_c = ref.color_tensor()
-            ps.append(psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
-            ss.append(ssim(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
-            if (ref.depth > 0).any():
-                dl.append(depth_l1(o.depth, torch.as_tensor(ref.depth)))
+        ps, ss, dl, nps, nss = [], [], [], [], []
+        for kf in _spread(ag.keyframes, views):
+            p, s, d, ref, color = score(params, srv.global_pose(a, kf), seq, kf.frame_index)
+            ps.append(p)
+            ss.append(s)
+            if d is not None:
+                dl.append(d)
+            res = [int(ref.camera.width), int(ref.camera.height)]
             if len(grid) < 3 * (a + 1):
                 grid.append((f"{ag.name} frame {kf.frame_index}", ref.color, (color.numpy() * 255).astype(np.uint8)))
-        per.append({"psnr": _mean(ps), "ssim": _mean(ss), "depth_l1": _mean(dl), "render_views": len(ps)})
-        all_p += ps
-        all_s += ss
-        all_d += dl
-    if grid:
-        _render_grid(out / "renders.png", grid)
-    return {"agents": per, "psnr": _mean(all_p), "ssim": _mean(all_s), "depth_l1": _mean(all_d), "views": len(all_p)}
+        if novel and ag.poses:
+            kf_frames = {kf.frame_index for kf in ag.keyframes}
+            _, T_all = srv.global_trajectory(a)
+            held = [(rec.frame_index, T_all[i]) for i, rec in enumerate(ag.poses) if rec.frame_index not in kf_frames]
+            for index, T in _spread(held, views):
+                p, s, _, _, _ = score(params, T, seq, index)
+                nps.append(p)
+                nss.append(s)
+        per.append({"psnr": _mean(ps), "ssim": _mean(ss), "depth_l1": _mean(dl), "render_views": len(ps),
+                    "psnr_novel": _mean(nps), "ssim_novel": _mean(nss), "novel_views": len(nps)})
+        for k, v in zip(("p", "s", "d", "np", "ns"), (ps, ss, dl, nps, nss)):
+            acc[k] += v
+    return {"agents": per, "psnr": _mean(acc["p"]), "ssim": _mean(acc["s"]), "depth_l1": _mean(acc["d"]),
+            "views": len(acc["p"]), "psnr_novel": _mean(acc["np"]), "ssim_novel": _mean(acc["ns"]),
+            "novel_views": len(acc["np"]), "resolution": res, "grid": grid}
 
 
 def _render_grid(path: Path, rows: list) -> None:

@@ -65,6 +65,11 @@ def test_two_agents_end_to_end(split_run):
     for a in saved["agents"]:
         assert a["ate_rmse"] is not None and a["ate_rmse_no_lc"] is not None
     assert saved["psnr"] is not None and saved["psnr"] > 15
+    # Global map refinement ran on the one component and improved its training views; held-out frames measured.
+    assert saved["map_refine"]["components"]["agent_0"]["iterations"] > 0
+    assert saved["psnr_before_refine"] is not None and saved["psnr"] > saved["psnr_before_refine"]
+    assert saved["novel_views"] > 0 and saved["psnr_novel"] is not None and saved["psnr_novel"] > 10
+    assert saved["render_resolution"][0] <= SlamConfig().mapping.max_width  # evaluated at the mapping resolution
     assert len(list(csv.DictReader(open(out / "loops.csv")))) == saved["loop_candidates"]
     assert "| agent_1 |" in (out / "report.md").read_text()
 

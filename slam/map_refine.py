@@ -1,0 +1,148 @@
+"""Server-side global map refinement (GRAND-SLAM Fig. 2: the server "refines the global map").
+
+After the final pose-graph optimisation the submaps of a component sit in one frame, but each submap was only
+ever optimised for its own keyframes. Where neighbouring submaps overlap (they always do: every new submap starts
+empty and seeds the whole view again) a view renders the Gaussians of two or three submaps blended together, none
+of them fitted to that blend — measured on the default demo data this costs ~6 dB against each submap rendered
+alone. Refinement optimises the *merged* map of a component over all its keyframes at their optimised poses with
+the mapping loss (eq. 3), so the overlapping Gaussians are fitted jointly.
+
+Each step renders one keyframe (a fresh random order every pass over the keyframes, so every keyframe is visited
+equally) and back-propagates only into the Gaussians whose centre projects into that keyframe's view (with a
+margin): the rasteriser's cost grows with the number of Gaussians it is handed, and most of a room-scale map is
+outside any one view.
+
+    from slam.map_refine import RefineView, refine_map
+    refined, keep, stats = refine_map(params, views, cfg.map_refine, cfg.mapping)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from kernels.camera import PinholeCamera
+
+from .config import MappingConfig, MapRefineConfig
+from .gaussian_map import GaussianParams
+from .render import NEAR, render, rgbd_loss
+
+
+@dataclass
+class RefineView:
+    """One keyframe as refinement sees it: the map-to-camera matrix and its images."""
+
+    viewmat: torch.Tensor  # [4, 4] map frame -> camera (OpenCV axes)
+    color: torch.Tensor  # [H, W, 3] float in [0, 1]
+    depth: torch.Tensor  # [H, W] metres, 0 = invalid
+    camera: PinholeCamera
+
+
+@dataclass
+class RefineStats:
+    iterations: int
+    views: int
+    gaussians: int
+    loss_first: float  # mean loss of the first pass over the views
+    loss_last: float  # mean loss of the last pass
+    seconds: float
+
+
+def iteration_budget(cfg: MapRefineConfig, n_views: int) -> int:
+    """Steps for a component with `n_views` keyframes: iterations_per_keyframe each, capped at max_iterations."""
+    return int(min(cfg.max_iterations, cfg.iterations_per_keyframe * n_views))
+
+
+def visible_indices(means: torch.Tensor, view: RefineView, margin: float) -> torch.Tensor:
+    """Indices of the Gaussians whose centre (means [N, 3], map frame) is in front of the camera and projects
+    inside the image grown by `margin` x its size on every side. The margin covers Gaussians centred outside the
+    image whose footprint reaches into it."""
+    R, t = view.viewmat[:3, :3].to(means.dtype), view.viewmat[:3, 3].to(means.dtype)
+    with torch.no_grad():
+        pc = means @ R.T + t  # [N, 3] camera frame
+        z = pc[:, 2]
+        front = z > NEAR
+        zs = z.clamp_min(NEAR)
+        cam = view.camera
+        u = cam.fx * pc[:, 0] / zs + cam.cx
+        v = cam.fy * pc[:, 1] / zs + cam.cy
+        mu, mv = margin * cam.width, margin * cam.height
+        inside = (u > -mu) & (u < cam.width + mu) & (v > -mv) & (v < cam.height + mv)
+    return torch.nonzero(front & inside).squeeze(1)
+
+
+def contributions(params: GaussianParams, views: list[RefineView], *, reference: bool = False) -> torch.Tensor:
+    """[N] the largest total blending weight (sum over pixels of alpha x transmittance, in pixels) each Gaussian
+    has in any of `views`: the gradient of the summed rendered colour with respect to its colour."""
+    p = params.detached()
+    p.colors = p.colors.clamp(0.0, 1.0).requires_grad_(True)
+    w = torch.zeros(len(p), dtype=p.means.dtype)
+    for v in views:
+        p.colors.grad = None
+        render(p, v.viewmat, v.camera, reference=reference).color.sum().backward()
+        w = torch.maximum(w, p.colors.grad.detach().sum(dim=1) / 3.0)
+    return w
+
+
+def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
+               iterations: int | None = None, reference: bool = False
+               ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
+    """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
+    mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
+    rates x `cfg.lr_scale`.
+
+    First, Gaussians that contribute less than `cfg.min_contribution` pixels to every view are dropped: where
+    submaps overlap, the surface of one hides the same surface of another, and those hidden copies only cost
+    time (measured: half of one agent's merged map, with the same PSNR after refinement).
+
+    Returns (kept Gaussians, refined, in their original order; keep [N] bool over the input; statistics), so the
+    caller can hand each submap its own surviving Gaussians back. `iterations` overrides the budget.
+    """
+    t0 = time.perf_counter()
+    n_it = iteration_budget(cfg, len(views)) if iterations is None else int(iterations)
+    keep = torch.ones(len(params), dtype=torch.bool)
+    if n_it <= 0 or not views or len(params) == 0:
+        return params.detached(), keep, RefineStats(0, len(views), len(params), float("nan"), float("nan"), 0.0)
+    if cfg.min_contribution > 0:
+        keep = contributions(params, views, reference=reference) >= cfg.min_contribution
+    gen = torch.Generator().manual_seed(cfg.seed)
+    p = params.select(keep).requires_grad_(True)
+    lr = cfg.lr_scale
+    opt = torch.optim.Adam([
+        {"params": [p.means], "lr": mapping.lr_means * lr},
+        {"params": [p.log_scales], "lr": mapping.lr_log_scales * lr},
+        {"params": [p.quats], "lr": mapping.lr_quats * lr},
+        {"params": [p.logit_opacities], "lr": mapping.lr_opacities * lr},
+        {"params": [p.colors], "lr": mapping.lr_colors * lr},
+    ], eps=1e-15)
+    # Visibility from the starting means: refinement moves a Gaussian by millimetres, far less than the margin.
+    subsets = [visible_indices(p.means.detach(), v, cfg.view_margin) for v in views]
+    order: list[int] = []
+    losses: list[float] = []
+    for _ in range(n_it):
+        if not order:
+            order = torch.randperm(len(views), generator=gen).tolist()
+        j = order.pop()
+        idx = subsets[j]
+        if len(idx) == 0:
+            continue
+        v = views[j]
+        sub = GaussianParams(p.means[idx], p.log_scales[idx], p.quats[idx], p.logit_opacities[idx], p.colors[idx])
+        opt.zero_grad(set_to_none=True)
+        out = render(sub, v.viewmat, v.camera, reference=reference)
+        loss = rgbd_loss(out, v.color, v.depth, lambda_color=cfg.lambda_color, alpha_power=mapping.alpha_power,
+                         inlier_k=mapping.inlier_k)
+        if cfg.isotropic_regulariser > 0:
+            s = sub.scales
+            loss = loss + cfg.isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    k = max(1, min(len(views), len(losses)))
+    first = float(np.mean(losses[:k])) if losses else float("nan")
+    last = float(np.mean(losses[-k:])) if losses else float("nan")
+    return p.detached(), keep, RefineStats(len(losses), len(views), len(params), first, last,
+                                           time.perf_counter() - t0)
