@@ -49,7 +49,7 @@ def render_report(m: dict, files: set[str] | None = None) -> str:
                  "own" if a["component"] == a["name"] else f"{a['component']}'s")
         L.append(f"| {a['name']} | {a['frames_tracked']} | {a['keyframes']} | {_cm(a.get('ate_rmse_no_lc'))} | "
                  f"{_cm(a.get('ate_rmse'))} | {where} |")
-    vals = [a for a in ag if a.get("ate_rmse") is not None]
+    vals = [a for a in ag if a.get("ate_rmse") is not None and a.get("ate_rmse_no_lc") is not None]
     if vals:
         n0 = sum(a["ate_rmse_no_lc"] for a in vals) / len(vals)
         n1 = sum(a["ate_rmse"] for a in vals) / len(vals)

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import yaml
 
+from kernels.errors import InputError
 from kernels.fileio import atomic_write_text
 
 from .jsonio import write_json
@@ -128,18 +129,23 @@ def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict
     from .plots import plot_trajectories
 
     names = [ag.name for ag in team.agents]
-    per, gt_pos, est_pos, errs, nolc_pos, nolc_err = [], {}, {}, {}, {}, {}
+    per, gt_pos, est_pos, errs, nolc_pos, nolc_err, has_gt = [], {}, {}, {}, {}, {}, []
     for a, (name, seq) in enumerate(zip(names, ds.agents)):
         gt = _gt(seq)
         if gt is None or not len(est[name][0]):
             per.append({"ate_rmse": None, "ate_rmse_no_lc": None})
             continue
-        r = ate(*gt, *est[name], align="se3", max_diff=0.01)
-        r0 = ate(*gt, *est_no_lc[name], align="se3", max_diff=0.01)
+        has_gt.append(name)
+        try:
+            r = ate(*gt, *est[name], align="se3", max_diff=0.01)
+            r0 = ate(*gt, *est_no_lc[name], align="se3", max_diff=0.01)
+        except InputError as e:  # too few / collinear poses to align this agent on its own
+            per.append({"ate_rmse": None, "ate_rmse_no_lc": None, "ate_note": f"not aligned on its own: {e}"})
+            continue
         per.append({"ate_rmse": r.rmse, "ate_rmse_no_lc": r0.rmse, "ate_matched": r.matched})
         gt_pos[name], est_pos[name], errs[name] = r.pairs.T_gt[:, :3, 3], r.T_est_aligned[:, :3, 3], r.errors
         nolc_pos[name], nolc_err[name] = r0.T_est_aligned[:, :3, 3], r0.errors
-    members = [names[a] for a in team.server.components().get(0, []) if names[a] in gt_pos]
+    members = [names[a] for a in team.server.components().get(0, []) if names[a] in has_gt]
     team_rmse = None
     if members:
         j = ate_multi({n: _gt(ds.agents[names.index(n)]) for n in members}, {n: est[n] for n in members},
@@ -148,13 +154,16 @@ def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict
         S = j.joint.transform
         for n in members:  # one alignment for the whole global frame
             T = S.apply_to_poses(j.per_agent[n].pairs.T_est)
-            est_pos[n] = T[:, :3, 3]
-            errs[n] = np.linalg.norm(est_pos[n] - j.per_agent[n].pairs.T_gt[:, :3, 3], axis=1)
+            est_pos[n], gt_pos[n] = T[:, :3, 3], j.per_agent[n].pairs.T_gt[:, :3, 3]
+            errs[n] = np.linalg.norm(est_pos[n] - gt_pos[n], axis=1)
+            entry = per[names.index(n)]
+            if entry["ate_rmse"] is None:  # scored under the team's one alignment instead
+                entry.update(ate_rmse=j.per_agent[n].rmse, ate_matched=j.per_agent[n].matched, ate_align="joint")
     if gt_pos:
         title = (f"with loop closures: global-frame ATE {100 * team_rmse:.2f} cm (one alignment)"
                  if team_rmse is not None else "with loop closures")
         plot_trajectories(out / "trajectory.png", gt_pos, est_pos, errors=errs, title=title)
-        plot_trajectories(out / "trajectory_no_lc.png", gt_pos, nolc_pos, errors=nolc_err,
+        plot_trajectories(out / "trajectory_no_lc.png", {n: gt_pos[n] for n in nolc_pos}, nolc_pos, errors=nolc_err,
                           title="tracking only (each agent aligned on its own)")
     return {"agents": per, "team": team_rmse}
 

@@ -221,6 +221,20 @@ def test_ate_multi_team_frame_vs_per_agent():
         ate_multi({"a": (ta, Ta)}, {"c": (ta, Ta)})
 
 
+def test_ate_multi_scores_an_unalignable_agent_under_the_joint_alignment():
+    rng = np.random.default_rng(7)
+    (ta, Ta), (tb, Tb) = _random_traj(rng), _random_traj(rng)
+    tb, Tb = tb[:2], Tb[:2]  # two poses: too few to align agent b on its own
+    R, tt, _ = _sim3(rng, 1.0)
+    Eb = _apply(Tb, R, tt, 1)
+    Eb[1, :3, 3] += [0.03, 0.0, 0.04]  # 5 cm off in the common frame
+    with pytest.raises(InputError):
+        ate(tb, Tb, tb, Eb)
+    r = ate_multi({"a": (ta, Ta), "b": (tb, Tb)}, {"a": (ta, _apply(Ta, R, tt, 1)), "b": (tb, Eb)})
+    assert r.per_agent["a"].align == "se3" and r.per_agent["b"].align == "joint"
+    assert r.per_agent["b"].errors[0] < 0.01 and r.per_agent["b"].errors[1] == pytest.approx(0.05, abs=0.01)
+
+
 def test_bad_trajectories_are_input_errors():
     rng = np.random.default_rng(6)
     t, T = _random_traj(rng, 10)

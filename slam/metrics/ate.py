@@ -95,17 +95,22 @@ def ate_multi(gt: Mapping[str, tuple[np.ndarray, np.ndarray]], est: Mapping[str,
 
     gt, est: agent name -> (timestamps [N], T_world_cam [N, 4, 4]); every estimated agent needs ground truth.
     The estimates of all agents must live in one common world frame for the joint number to mean anything.
+    An agent with too few (or collinear) poses to be aligned on its own is scored under the joint alignment; its
+    result then has align == "joint".
     """
     missing = sorted(set(est) - set(gt))
     if missing:
         raise InputError(f"no ground truth for agent(s) {', '.join(missing)}")
     if not est:
         raise InputError("no estimated trajectories given")
-    per_agent, all_pairs = {}, []
+    per_agent, pairs_of, own_failed = {}, {}, []
     for name in est:
-        pairs = associate_poses(*gt[name], *est[name], max_diff=max_diff, by_index=by_index)
-        per_agent[name] = ate_from_pairs(pairs, align)
-        all_pairs.append(pairs)
+        pairs_of[name] = pairs = associate_poses(*gt[name], *est[name], max_diff=max_diff, by_index=by_index)
+        try:
+            per_agent[name] = ate_from_pairs(pairs, align)
+        except InputError:  # too few / collinear poses to align this agent alone (e.g. 2 frames of a split)
+            own_failed.append(name)
+    all_pairs = list(pairs_of.values())
     stacked = PosePairs(
         timestamps=np.concatenate([p.timestamps for p in all_pairs]),
         T_gt=np.concatenate([p.T_gt for p in all_pairs]),
@@ -113,4 +118,10 @@ def ate_multi(gt: Mapping[str, tuple[np.ndarray, np.ndarray]], est: Mapping[str,
         n_gt=sum(p.n_gt for p in all_pairs),
         n_est=sum(p.n_est for p in all_pairs),
     )
-    return MultiAteResult(per_agent, ate_from_pairs(stacked, align))
+    joint = ate_from_pairs(stacked, align)  # raises if even the stacked poses cannot be aligned
+    for name in own_failed:  # such an agent is scored under the team's one alignment (align = "joint")
+        p = pairs_of[name]
+        T_al = joint.transform.apply_to_poses(p.T_est)
+        err = np.linalg.norm(T_al[:, :3, 3] - p.T_gt[:, :3, 3], axis=1)
+        per_agent[name] = AteResult(ErrorStats.of(err), err, "joint", joint.transform, p, T_al)
+    return MultiAteResult({n: per_agent[n] for n in est}, joint)
