@@ -27,6 +27,9 @@ DEMO_SETTINGS: dict[str, dict[str, Any]] = {
     "default": {
         "tracking": {"refine": False},
         "mapping": {"max_width": 160, "iterations": 20, "first_iterations": 60},
+        # Server-side global map refinement, 20 steps per keyframe (62 keyframes in one component): merged-map PSNR
+        # 29.11 / 29.75 / 30.05 dB at 8 / 14 / 20 steps, demo wall 6.4 / 6.9 / 7.5 min on the idle machine.
+        "map_refine": {"iterations_per_keyframe": 20, "max_iterations": 1500},
     },
     "tiny": {
         "mapping": {"iterations": 10, "first_iterations": 30},
