@@ -306,11 +306,32 @@ class Server:
             out.setdefault(s.component, []).append(a)
         return out
 
-    def global_trajectory(self, a: int) -> tuple[np.ndarray, np.ndarray]:
-        """(timestamps [N], T [N, 4, 4]) of agent a's frames in its component's frame."""
+    def global_trajectory(self, a: int, *, per_keyframe: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps [N], T [N, 4, 4]) of agent a's frames in its component's frame.
+
+        per_keyframe=False: every frame moves rigidly with its submap (eq. 14), consistent with the map (for
+        rendering). per_keyframe=True: every frame follows the pose-graph optimum of the last keyframe before it in
+        its submap (T = T_kf^g · T_kf_local⁻¹ · T_frame_local) — the best trajectory estimate the graph gives, since a
+        submap's later keyframes have their own optimised poses that the rigid submap move ignores. Frames whose
+        keyframe is not in the last optimised graph keep the rigid move."""
         s = self.slots[a]
         stamps, T = s.agent.trajectory()
-        return stamps, (s.T_global_world[None] @ T if len(T) else T)
+        if not len(T):
+            return stamps, T
+        T = s.T_global_world[None] @ T
+        if per_keyframe and self.last_graph is not None:
+            optimum = self.last_graph[1]
+            kfs = sorted(s.agent.keyframes, key=lambda k: k.frame_index)
+            j, last = 0, None
+            for n, rec in enumerate(s.agent.poses):  # frames in tracking order
+                while j < len(kfs) and kfs[j].frame_index <= rec.frame_index:
+                    last, j = kfs[j], j + 1
+                if last is None or last.submap_id != rec.submap_id:
+                    continue
+                T_kf = optimum.get(self.key(a, last.id))
+                if T_kf is not None:
+                    T[n] = T_kf @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
+        return stamps, T
 
     def refine_maps(self, cfg, mapping, *, reference: bool = False) -> dict:
         """Global map refinement (slam.map_refine) of every component after the final optimisation: its merged

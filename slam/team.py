@@ -123,8 +123,9 @@ class Team:
     # ---- results ---------------------------------------------------------------------------------------------
 
     def trajectory(self, a: int) -> tuple[np.ndarray, np.ndarray]:
-        """Agent a's frames in its component's frame, with loop closures."""
-        return self.server.global_trajectory(a)
+        """Agent a's frames in its component's frame, with loop closures: each frame follows the pose-graph optimum
+        of its keyframe (Server.global_trajectory per_keyframe=True)."""
+        return self.server.global_trajectory(a, per_keyframe=True)
 
     def trajectory_no_lc(self, a: int) -> tuple[np.ndarray, np.ndarray]:
         """Agent a's frames as tracking alone placed them (its own world frame)."""

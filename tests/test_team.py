@@ -135,3 +135,38 @@ def test_join_moves_the_later_agent_into_the_lower_frame():
     assert srv.components() == {0: [0, 1]}
     assert np.allclose(srv.slots[1].T_global_world @ T_w1_q, T_w0_m @ T_m_q)
     assert np.allclose(srv.slots[0].T_global_world, np.eye(4))
+
+
+def test_trajectory_follows_each_keyframes_optimum_not_only_the_submap_move():
+    """per_keyframe=True: a frame = optimised pose of the last keyframe before it in its submap composed with the
+    tracked keyframe-to-frame motion; frames before any keyframe of their submap (or of a keyframe missing from
+    the graph) keep the rigid submap move of eq. 14."""
+    from types import SimpleNamespace as NS
+
+    from kernels import se3
+    from slam.agent import FramePose
+    from slam.server import Server
+
+    rng = np.random.default_rng(3)
+    T_wl = se3.exp(rng.normal(size=6) * 0.2)  # submap 0 in the agent's world
+    local = [se3.exp(rng.normal(size=6) * 0.1) for _ in range(4)]  # frames 0-3 in the submap
+    kfs = [NS(id=0, frame_index=0, submap_id=0, T_local_cam=local[0]),
+           NS(id=1, frame_index=2, submap_id=0, T_local_cam=local[2])]
+
+    class _Agent:
+        name, gmap = "a0", NS(submaps=[NS(T_world_local=T_wl)])
+        keyframes = kfs
+        poses = [FramePose(i, float(i), 0, local[i]) for i in range(4)]
+
+        def trajectory(self):
+            return np.arange(4.0), np.stack([T_wl @ T for T in local])
+
+    srv = Server([_Agent()])
+    rigid = srv.global_trajectory(0)[1]
+    assert np.allclose(srv.global_trajectory(0, per_keyframe=True)[1], rigid)  # no optimisation yet
+    opt1 = se3.exp(rng.normal(size=6) * 0.1) @ T_wl @ local[2]  # keyframe 1 moved on its own by the graph
+    srv.last_graph = (None, {srv.key(0, 0): T_wl @ local[0], srv.key(0, 1): opt1})
+    T = srv.global_trajectory(0, per_keyframe=True)[1]
+    assert np.allclose(T[:2], rigid[:2])  # keyframe 0 did not move
+    assert np.allclose(T[2], opt1) and np.allclose(T[3], opt1 @ se3.inverse(local[2]) @ local[3])
+    assert not np.allclose(T[3], rigid[3])
