@@ -1,4 +1,4 @@
-"""Warp's CPU launches split over Python threads (kernels/_warp/icp.py `_launch`) give exactly the single-launch
+"""Warp's CPU launches split over Python threads (kernels/_warp/launch.py `launch`) give exactly the single-launch
 result: the parts cover disjoint items / reduction blocks, so the sums and indices are bitwise equal."""
 
 import numpy as np
@@ -14,11 +14,11 @@ from registration import synthetic
 @pytest.fixture
 def warp_cpu(monkeypatch):
     kernels.use("warp", "cpu")
-    from kernels._warp import icp as W
+    from kernels._warp import launch as W
 
     def run_with(parts: int, fn):
         monkeypatch.setattr(W, "_cpu_threads", lambda: parts)
-        monkeypatch.setattr(W, "_MIN_SPLIT", 0)  # split even these small frames
+        monkeypatch.setattr(W, "MIN_SPLIT", 0)  # split even these small frames
         fn()  # the first launch of a kernel runs whole (it compiles / loads the module)
         return fn()
 
