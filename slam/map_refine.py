@@ -28,7 +28,8 @@ from kernels.camera import PinholeCamera
 
 from .config import MappingConfig, MapRefineConfig
 from .gaussian_map import GaussianParams
-from .render import NEAR, render, rgbd_loss
+from .mapper import mapping_loss
+from .render import NEAR, render
 
 
 @dataclass
@@ -133,11 +134,7 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         sub = GaussianParams(p.means[idx], p.log_scales[idx], p.quats[idx], p.logit_opacities[idx], p.colors[idx])
         opt.zero_grad(set_to_none=True)
         out = render(sub, v.viewmat, v.camera, reference=reference)
-        loss = rgbd_loss(out, v.color, v.depth, lambda_color=cfg.lambda_color, alpha_power=mapping.alpha_power,
-                         inlier_k=mapping.inlier_k)
-        if cfg.isotropic_regulariser > 0:
-            s = sub.scales
-            loss = loss + cfg.isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+        loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser)
         loss.backward()
         opt.step()
         losses.append(float(loss.detach()))

@@ -36,6 +36,18 @@ class MappingStats:
     loss_last: float
 
 
+def mapping_loss(out, color: torch.Tensor, depth: torch.Tensor, params: GaussianParams, cfg: MappingConfig,
+                 lambda_color: float, isotropic_regulariser: float) -> torch.Tensor:
+    """Eq. 3 (masked colour + depth loss with cfg's alpha and inlier masks) plus the isotropic-scale penalty on the
+    rendered Gaussians `params`; shared by submap mapping and the server's global refinement."""
+    loss = rgbd_loss(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
+                     inlier_k=cfg.inlier_k)
+    if isotropic_regulariser > 0:
+        s = params.scales
+        loss = loss + isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+    return loss
+
+
 def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, generator: torch.Generator,
                    reference: bool = False) -> GaussianParams:
     """New Gaussians (submap-local frame) for the parts of `kf` the submap does not cover yet."""
@@ -110,11 +122,7 @@ class Mapper:
             vm, color, depth, cam = targets[j]
             opt.zero_grad(set_to_none=True)
             out = render(p, vm, cam, reference=self.reference)
-            loss = rgbd_loss(out, color, depth, lambda_color=cfg.lambda_color, alpha_power=cfg.alpha_power,
-                             inlier_k=cfg.inlier_k)
-            if cfg.isotropic_regulariser > 0:
-                s = p.scales
-                loss = loss + cfg.isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+            loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser)
             loss.backward()
             opt.step()
             losses.append(float(loss.detach()))
