@@ -114,6 +114,26 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def project_rigid(T: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform to each [..., 4, 4] T: rotation projected onto SO(3) by SVD (Frobenius-nearest),
+    translation kept, bottom row (0, 0, 0, 1). Products of many poses drift off SE(3) by rounding, and `inverse`
+    (a transpose) turns any drift into a scale error that grows with every further product: pipelines that store
+    composed poses project them."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[..., :3, :3])
+    d = np.sign(np.linalg.det(U @ Vt))
+    U[..., :, 2] *= d[..., None]
+    T[..., :3, :3] = U @ Vt
+    T[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
+def rigidity_error(T: np.ndarray) -> float:
+    """max |RᵀR − I| over [..., 4, 4] T: 0 for a rigid transform (a check for stored poses)."""
+    R = np.asarray(T, dtype=np.float64)[..., :3, :3]
+    return float(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max()) if R.size else 0.0
+
+
 def compose(*Ts: np.ndarray) -> np.ndarray:
     """compose(A, B, C) == A @ B @ C for [..., 4, 4] transforms."""
     out = np.asarray(Ts[0], dtype=np.float64)

@@ -13,6 +13,7 @@ from kernels import se3
 from kernels.camera import PinholeCamera
 
 from .config import SlamConfig
+from .edge_information import OdometryChain, failed_covariance, registration_covariance
 from .frames import RGBD, make_rgbd
 from .gaussian_map import GaussianMap, GaussianParams
 from .loop_closure import LoopCloser
@@ -49,6 +50,7 @@ class Agent:
         self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth, reference=reference)
         self.mapper = Mapper(self.cfg.mapping, reference=reference)
         self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
+        self._chain = OdometryChain(self.loops.model)  # tracking covariance since the last keyframe
         self.keyframes: list[Keyframe] = []
         self.poses: list[FramePose] = []
         self.time = Timings()
@@ -92,7 +94,15 @@ class Agent:
 
     def _track(self, frame: RGBD) -> np.ndarray:
         params = self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()
-        return self.tracker.track(frame, params).T_local_cam
+        r = self.tracker.track(frame, params)
+        if self.poses and self.poses[-1].submap_id == self.gmap.active.id:
+            step = se3.inverse(self.poses[-1].T_local_cam) @ r.T_local_cam
+            c = r.coarse
+            cov = (registration_covariance(c.information, c.n_correspondences, c.inlier_rmse, c.T_target_source,
+                                           self._chain.model)
+                   if r.coarse_ok and c is not None else failed_covariance(self._chain.model))
+            self._chain.add(step, cov)
+        return r.T_local_cam
 
     def _is_keyframe(self, T_local_cam: np.ndarray) -> bool:
         k = self.cfg.keyframes
@@ -128,7 +138,8 @@ class Agent:
         self.mapper.map(self.gmap, s, [MapKeyframe(k.T_local_cam, k.map_rgbd) for k in kfs], iters)
 
     def _detect_loops(self, kf: Keyframe) -> None:
-        self.loops.add_keyframe(kf, self.keyframes, self.gmap)
+        self.loops.add_keyframe(kf, self.keyframes, self.gmap, self._chain.information())
+        self._chain.reset()
         if self.cfg.loop_closure.enabled and self.loops.detect(kf, self.keyframes, self.gmap):
             self.loops.optimise(self.keyframes, self.gmap)
 

@@ -123,7 +123,15 @@ class LoopClosureConfig(_Section):
         "thumbnail", description="keyframe descriptor from registration.place_recognition; 'thumbnail' needs no "
                                  "weights or vocabulary, 'bow'/'vlad' need `vocabulary`; 'auto' = thumbnail")
     vocabulary: str | None = Field(None, description="BoW/VLAD vocabulary (.npz) for descriptor bow/vlad")
-    top_k: int = Field(3, ge=1)
+    candidates: Literal["descriptor", "pose", "both"] = Field(
+        "both", description="where candidates come from: the keyframe descriptor (top_k above tau_sim), the tracked "
+                            "poses (pose_top_k by view overlap; GRAND-SLAM eq. 6), or both")
+    top_k: int = Field(3, ge=1, description="descriptor candidates per keyframe")
+    pose_top_k: int = Field(2, ge=0, description="pose candidates per keyframe (best view overlap first)")
+    pose_max_distance: float = Field(1.0, gt=0, description="pose candidates: camera centres at most this far (m)")
+    pose_max_angle_deg: float = Field(45.0, gt=0, le=180, description="... and viewing directions at most this apart")
+    pose_min_overlap: float = Field(0.3, ge=0, le=1, description="... and at least this fraction of the query's "
+                                    "depth pixels reprojected into the match with consistent depth")
     tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate (measured on generated data: "
                                                           "revisits 0.90-0.98, other views <= 0.77)")
     min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
@@ -132,8 +140,22 @@ class LoopClosureConfig(_Section):
     rmse_max: float = Field(0.03, gt=0, description="τ_ρ: accept when ICP inlier RMSE is below (m)")
     icp_max_distance: float = Field(0.05, gt=0, description="ICP correspondence distance (m)")
     max_correction: float = Field(0.5, gt=0, description="reject loops that move the pose by more than this (m)")
-    odometry_sigma_rot: float = Field(0.01, gt=0, description="keyframe odometry edge std (rad)")
-    odometry_sigma_trans: float = Field(0.01, gt=0, description="keyframe odometry edge std (m)")
+    information: Literal["registration", "fixed"] = Field(
+        "registration", description="edge information (eqs. 10-11): from each registration's information matrix, "
+                                    "RMSE and correspondence count (tracking edges chain their frame-to-frame steps; "
+                                    "slam.edge_information), or 'fixed' = the sigmas below for every edge")
+    information_points: float = Field(25.0, gt=0, description="effectively independent residuals per registration "
+                                      "(dense residuals are correlated; sets the overall confidence, the same for "
+                                      "tracking and loop edges)")
+    odometry_sigma_rot: float = Field(0.01, gt=0, description="edge std (rad) with information: fixed")
+    odometry_sigma_trans: float = Field(0.01, gt=0, description="edge std (m) with information: fixed")
+    residual_max_trans: float = Field(0.03, gt=0, description="after each optimisation, a loop whose residual "
+                                      "exceeds this (m) ...")
+    residual_max_deg: float = Field(1.5, gt=0, description="... or this (degrees) is rejected as inconsistent and "
+                                    "the graph solved again")
+    max_move_factor: float = Field(3.0, gt=0, description="an optimisation may move a keyframe at most this times "
+                                   "the loops' disagreement with the current poses ...")
+    max_move_slack: float = Field(0.05, ge=0, description="... plus this (m); otherwise it is not applied")
 
 
 class KernelsConfig(_Section):

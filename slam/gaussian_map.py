@@ -190,7 +190,7 @@ class GaussianMap:
         if self.submaps:
             prev = self.submaps[-1]
             prev.params = prev.params.detached()
-        s = Submap(len(self.submaps), np.array(T_world_local, dtype=np.float64),
+        s = Submap(len(self.submaps), se3.project_rigid(T_world_local),
                    GaussianParams.empty(self.device))
         self.submaps.append(s)
         return s
@@ -221,9 +221,18 @@ class GaussianMap:
     def transform_submap(submap: Submap, T: np.ndarray) -> None:
         """Move a whole submap by T (world <- world): its frame and, therefore, all its Gaussians and keyframes.
 
-        The local parameters are untouched (they live in the local frame); only `T_world_local` changes (eq. 14).
+        The local parameters are untouched (they live in the local frame); only `T_world_local` changes (eq. 14). The
+        product is projected back onto SE(3): repeated moves must not accumulate a scale (see se3.project_rigid).
         """
-        submap.T_world_local = np.asarray(T, dtype=np.float64) @ submap.T_world_local
+        submap.T_world_local = se3.project_rigid(np.asarray(T, dtype=np.float64) @ submap.T_world_local)
+
+    @staticmethod
+    def place_submap(submap: Submap, T_world_local: np.ndarray) -> np.ndarray:
+        """Put a submap's frame at T_world_local (rigid-projected); returns the move D (world <- world) applied."""
+        T_new = se3.project_rigid(T_world_local)
+        D = T_new @ se3.inverse(submap.T_world_local)
+        submap.T_world_local = T_new
+        return D
 
     def merged(self) -> GaussianParams:
         """Every submap's Gaussians in the world frame, concatenated (the global map, eq. 2)."""

@@ -14,7 +14,10 @@ import numpy as np
 from kernels import se3
 from kernels.errors import InputError
 
+from . import loop_check
 from .config import LoopClosureConfig
+from .edge_information import InformationModel, fixed_information, information, registration_covariance
+from .frames import RGBD
 from .gaussian_map import GaussianMap
 from .odometry_adapter import register_loop
 from .submaps import Keyframe, world_pose
@@ -42,6 +45,8 @@ class LoopCandidate:
     fitness: float = 0.0
     inlier_rmse: float = float("inf")
     correction_m: float = 0.0
+    source: str = "descriptor"  # "descriptor" (place recognition) or "pose" (tracked poses' view overlap)
+    overlap: float = float("nan")  # view overlap of the tracked poses (pose candidates)
 
 
 @dataclass
@@ -51,8 +56,10 @@ class Edge:
     i: int  # keyframe ids
     j: int
     T_ij: np.ndarray  # [4, 4] pose of j in i's camera frame
-    sigma_rot: float
-    sigma_trans: float
+    info: np.ndarray  # [6, 6] information, twist order [omega, v], in j's tangent space (GTSAM BetweenFactor)
+    candidate: LoopCandidate | None = None  # loops: the log entry, updated when the loop is rejected later
+    rejected: bool = False
+    applied: bool = False  # part of an optimisation that was applied
 
 
 class LoopCloser:
@@ -63,49 +70,81 @@ class LoopCloser:
         self.loops: list[Edge] = []
         self.log: list[LoopCandidate] = []
         self.optimisations = 0
+        self.not_applied = 0  # optimisations whose move was not justified by the loops
+        self.model = InformationModel(n_eff=cfg.information_points)
         self._recognizer = _make_recognizer(cfg)
+
+    @property
+    def active_loops(self) -> list[Edge]:
+        return [e for e in self.loops if not e.rejected]
 
     # ---- the keyframe chain ---------------------------------------------------------------------------------
 
-    def add_keyframe(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> None:
-        """Record the tracking constraint between the previous keyframe and `kf`, as tracked now."""
+    def add_keyframe(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap,
+                     odometry_info: np.ndarray | None = None) -> None:
+        """Record the tracking constraint between the previous keyframe and `kf`, as tracked now, with the
+        tracker's information (`odometry_info`, slam.edge_information.OdometryChain) or the fixed sigmas."""
         kf.descriptor = self._recognizer.describe(kf.small.color)
         if kf.id > 0:
             prev = keyframes[kf.id - 1]
-            T = se3.inverse(world_pose(gmap, prev)) @ world_pose(gmap, kf)
-            self.odometry.append(Edge(prev.id, kf.id, T, self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans))
+            if prev.submap_id == kf.submap_id:  # exact: no submap frames involved
+                T = se3.inverse(prev.T_local_cam) @ kf.T_local_cam
+            else:
+                T = se3.project_rigid(se3.inverse(world_pose(gmap, prev)) @ world_pose(gmap, kf))
+            if self.cfg.information == "fixed" or odometry_info is None:
+                info = fixed_information(self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans)
+            else:
+                info = odometry_info
+            self.odometry.append(Edge(prev.id, kf.id, T, info))
 
     # ---- detection and verification ------------------------------------------------------------------------
 
     def candidates(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> list[LoopCandidate]:
-        """Top-k keyframes of earlier submaps by cosine similarity above τ_sim, at least Δ_min frames apart."""
+        """Keyframes of earlier submaps at least Δ_min frames back: the top-k by descriptor cosine similarity above
+        τ_sim, and (cfg.candidates 'pose' / 'both') the top-k by view overlap of the tracked poses (eq. 6's
+        initial guess: distance, viewing angle, then reprojected depth)."""
         cfg = self.cfg
         T_q = world_pose(gmap, kf)
-        scored = []
-        for other in keyframes:
-            if other.submap_id == kf.submap_id or other.descriptor is None:
-                continue
-            if kf.frame_index - other.frame_index < cfg.min_index_gap:
-                continue
-            if cfg.min_baseline > 0 and np.linalg.norm(world_pose(gmap, other)[:3, 3] - T_q[:3, 3]) < cfg.min_baseline:
-                continue
-            scored.append((float(np.dot(kf.descriptor, other.descriptor)), other))
-        scored.sort(key=lambda s: -s[0])
-        out = []
-        for sim, other in scored[: cfg.top_k]:
-            c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim)
-            if sim < cfg.tau_sim:
-                c.reason = f"similarity {sim:.3f} < tau_sim {cfg.tau_sim}"
-                self.log.append(c)
-                continue
-            out.append(c)
+        pool = [o for o in keyframes if o.submap_id != kf.submap_id and kf.frame_index - o.frame_index >= cfg.min_index_gap
+                and not (cfg.min_baseline > 0 and np.linalg.norm(world_pose(gmap, o)[:3, 3] - T_q[:3, 3]) < cfg.min_baseline)]
+        out: list[LoopCandidate] = []
+        if cfg.candidates in ("descriptor", "both"):
+            scored = sorted(((float(np.dot(kf.descriptor, o.descriptor)), o) for o in pool if o.descriptor is not None),
+                            key=lambda s: -s[0])
+            for sim, other in scored[: cfg.top_k]:
+                c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim)
+                if sim < cfg.tau_sim:
+                    c.reason = f"similarity {sim:.3f} < tau_sim {cfg.tau_sim}"
+                    self.log.append(c)
+                    continue
+                out.append(c)
+        if cfg.candidates in ("pose", "both"):
+            taken = {c.match_kf for c in out}
+            near = []
+            for o in pool:
+                if o.id in taken:
+                    continue
+                T_oq = se3.inverse(world_pose(gmap, o)) @ T_q
+                if (np.linalg.norm(T_oq[:3, 3]) > cfg.pose_max_distance
+                        or np.degrees(se3.rotation_angle(T_oq[:3, :3])) > cfg.pose_max_angle_deg):
+                    continue
+                near.append((view_overlap(kf.small, o.small, T_oq), o))
+            near.sort(key=lambda s: -s[0])
+            for ov, other in near[: cfg.pose_top_k]:
+                sim = float(np.dot(kf.descriptor, other.descriptor)) if other.descriptor is not None else float("nan")
+                c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim, source="pose", overlap=ov)
+                if ov < cfg.pose_min_overlap:
+                    c.reason = f"overlap {ov:.2f} < pose_min_overlap {cfg.pose_min_overlap}"
+                    self.log.append(c)
+                    continue
+                out.append(c)
         return out
 
     def verify(self, c: LoopCandidate, keyframes: list[Keyframe], gmap: GaussianMap) -> LoopCandidate:
         """Register query (source) to match (target) from the tracked guess (eq. 6), then apply the gates."""
         cfg = self.cfg
         q, j = keyframes[c.query_kf], keyframes[c.match_kf]
-        T_init = se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q)  # eq. 6: T_j^-1 T_q
+        T_init = se3.project_rigid(se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q))  # eq. 6: T_j^-1 T_q
         r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, min_fitness=cfg.fitness_min,
                           max_rmse=cfg.rmse_max, max_depth=self.max_depth)
         c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
@@ -121,9 +160,16 @@ class LoopCloser:
         else:
             c.accepted = True
             c.reason = "accepted"
-            self.loops.append(Edge(j.id, q.id, r.T_target_source, cfg.odometry_sigma_rot, cfg.odometry_sigma_trans))
+            self.loops.append(Edge(j.id, q.id, se3.project_rigid(r.T_target_source), self.loop_information(r), c))
         self.log.append(c)
         return c
+
+    def loop_information(self, r) -> np.ndarray:
+        """Information of an accepted registration (slam.edge_information), or the fixed sigmas."""
+        if self.cfg.information == "fixed":
+            return fixed_information(self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans)
+        cov = registration_covariance(r.information, r.n_correspondences, r.inlier_rmse, r.T_target_source, self.model)
+        return information(cov, self.model)
 
     def detect(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> list[LoopCandidate]:
         """Candidates for `kf`, each verified; returns the accepted ones."""
@@ -132,32 +178,93 @@ class LoopCloser:
 
     # ---- optimisation ------------------------------------------------------------------------------------
 
+    def reject(self, e: Edge, reason: str) -> None:
+        e.rejected = True
+        if e.candidate is not None:
+            e.candidate.accepted, e.candidate.reason = False, reason
+
     def optimise(self, keyframes: list[Keyframe], gmap: GaussianMap) -> dict:
-        """Pose-graph optimisation over keyframe poses, then every submap moved rigidly to the optimised pose of
-        its first keyframe (eqs. 14–15; keyframes and Gaussians follow their submap)."""
+        """Pose-graph optimisation over keyframe poses; loops the optimum cannot satisfy are rejected and the graph
+        solved again (slam.loop_check); an optimum that moves keyframes further than the loops justify is not
+        applied (its new loops are rejected). Otherwise every submap moves rigidly to the optimised pose of its
+        first keyframe (eqs. 14–15; keyframes and Gaussians follow their submap)."""
+        cfg = self.cfg
         initial = {kf.id: world_pose(gmap, kf) for kf in keyframes}
-        optimised = optimise_pose_graph(initial, self.odometry, self.loops, fixed=keyframes[0].id)
-        moved = []
+        fixed = keyframes[0].id
+        new = [e for e in self.loops if not e.rejected and not e.applied]
+        optimised, rejected = initial, 0
+        while self.active_loops:
+            loops = self.active_loops
+            optimised = optimise_pose_graph(initial, self.odometry, loops, fixed=fixed)
+            bad = loop_check.worst_violation(optimised, [(e.i, e.j, e.T_ij) for e in loops],
+                                             cfg.residual_max_trans, cfg.residual_max_deg)
+            if bad is None:
+                break
+            self.reject(loops[bad.index], f"inconsistent after optimisation: residual {100 * bad.trans_m:.1f} cm / "
+                                          f"{bad.rot_deg:.2f} deg > {100 * cfg.residual_max_trans:.1f} cm / "
+                                          f"{cfg.residual_max_deg} deg")
+            rejected += 1
+        else:  # every loop was rejected: nothing to move
+            optimised = initial
+        self.optimisations += 1
+        moved = loop_check.max_move(initial, optimised)
+        allowed = loop_check.justified_move(initial, [(e.i, e.j, e.T_ij) for e in self.active_loops],
+                                            cfg.max_move_factor, cfg.max_move_slack)
+        if moved > allowed:
+            self.not_applied += 1
+            for e in new:
+                if not e.rejected:
+                    self.reject(e, f"optimisation would move keyframes {moved:.3f} m, more than the loops justify "
+                                   f"({allowed:.3f} m): not applied")
+            warnings.warn(f"loop closure: optimisation not applied (it would move keyframes {moved:.3f} m, the loops "
+                          f"justify {allowed:.3f} m)", RuntimeWarning, stacklevel=2)
+            return {"submaps_moved": 0, "max_shift_m": 0.0, "rejected": rejected, "applied": False}
+        for e in self.loops:
+            e.applied = True
+        shifts = []
         for s in gmap.submaps:
             if not s.keyframe_ids:
                 continue
             first = keyframes[s.keyframe_ids[0]]
-            T_new = optimised[first.id] @ se3.inverse(first.T_local_cam)
-            D = T_new @ se3.inverse(s.T_world_local)
-            gmap.transform_submap(s, D)
-            moved.append(float(np.linalg.norm(D[:3, 3])))
-        self.optimisations += 1
-        return {"submaps_moved": len(moved), "max_shift_m": max(moved, default=0.0)}
+            D = gmap.place_submap(s, optimised[first.id] @ se3.inverse(first.T_local_cam))
+            shifts.append(float(np.linalg.norm(D[:3, 3])))
+        return {"submaps_moved": len(shifts), "max_shift_m": max(shifts, default=0.0), "rejected": rejected,
+                "applied": True}
 
     def log_rows(self) -> list[dict]:
         return [asdict(c) for c in self.log]
 
 
+def view_overlap(query: RGBD, match: RGBD, T_match_query: np.ndarray, *, stride: int = 4,
+                 depth_tolerance: float = 0.1) -> float:
+    """Fraction of the query's valid depth pixels (every `stride`-th) that land inside the match image in front
+    of its camera with a depth within `depth_tolerance` (relative) of the match's depth there."""
+    d = query.depth[::stride, ::stride]
+    cam = query.camera
+    v, u = np.nonzero(d > 0)
+    if len(u) == 0:
+        return 0.0
+    z = d[v, u].astype(np.float64)
+    x = ((u * stride - cam.cx) / cam.fx) * z
+    y = ((v * stride - cam.cy) / cam.fy) * z
+    p = np.stack([x, y, z], 1) @ T_match_query[:3, :3].T + T_match_query[:3, 3]
+    mc = match.camera
+    front = p[:, 2] > 1e-3
+    zu = np.where(front, p[:, 2], 1.0)
+    uu = np.round(mc.fx * p[:, 0] / zu + mc.cx).astype(np.int64)
+    vv = np.round(mc.fy * p[:, 1] / zu + mc.cy).astype(np.int64)
+    inside = front & (uu >= 0) & (uu < mc.width) & (vv >= 0) & (vv < mc.height)
+    dm = np.zeros(len(z))
+    dm[inside] = match.depth[vv[inside], uu[inside]]
+    ok = inside & (dm > 0) & (np.abs(dm - p[:, 2]) < depth_tolerance * p[:, 2])
+    return float(ok.sum()) / len(z)
+
+
 def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[Edge], loops: list[Edge], *,
                         fixed: int) -> dict[int, np.ndarray]:
     """Levenberg–Marquardt over keyframe poses (eq. 13) with `graph/`: tracking and loop edges as relative-pose
-    constraints, information diag(1/sigma^2) in twist order [omega, v]; the graph anchors its first pose (the
-    first keyframe, `fixed`)."""
+    constraints with their information (twist order [omega, v]); the graph anchors its first pose (the first
+    keyframe, `fixed`)."""
     from graph.formulations import build_problem
     from graph.pose_graph import PoseGraph
     from graph.solvers import solve
@@ -168,19 +275,16 @@ def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[Edge], lo
     for k in sorted(initial):
         g.add_pose(k, initial[k])
 
-    def info(e: Edge) -> np.ndarray:
-        return np.diag([1.0 / e.sigma_rot**2] * 3 + [1.0 / e.sigma_trans**2] * 3)
-
     for e in odometry:
-        g.add_odometry(e.i, e.j, e.T_ij, info(e))
+        g.add_odometry(e.i, e.j, e.T_ij, e.info)
     for e in loops:
-        g.add_loop(e.i, e.j, e.T_ij, info(e))
+        g.add_loop(e.i, e.j, e.T_ij, e.info)
     try:
         res = solve(build_problem(g, "base"), "lm")
     except (SwarmsplatError, RuntimeError) as err:  # an indeterminate system: keep the tracked poses
         warnings.warn(f"pose-graph optimisation failed ({err}); poses left as tracked", stacklevel=2)
         return dict(initial)
-    out = {k: np.asarray(res.poses[k], dtype=np.float64) for k in initial}
+    out = {k: se3.project_rigid(res.poses[k]) for k in initial}
     # The graph anchors each component at its own choice of pose; re-anchor at `fixed` so that frame stays put.
-    D = initial[fixed] @ np.linalg.inv(out[fixed])
-    return {k: D @ T for k, T in out.items()}
+    D = initial[fixed] @ se3.inverse(out[fixed])
+    return {k: se3.project_rigid(D @ T) for k, T in out.items()}

@@ -3,7 +3,9 @@ rejected, written as `loops.csv` and summarised in the report.
 
 "No loops found" without an explanation is the most common complaint about SLAM systems; every candidate that
 reached the similarity test is therefore kept, with a short machine-readable `reason_code`
-(`accepted`, `similarity`, `registration`, `fitness`, `rmse`, `correction`, `gnc`) beside the human sentence.
+(`accepted`, `similarity`, `overlap`, `registration`, `fitness`, `rmse`, `correction`, `gnc`, `inconsistent`,
+`move`) beside the human sentence; `source` says where the candidate came from (`descriptor`: place recognition,
+`pose`: the tracked poses' view overlap, GRAND-SLAM eq. 6).
 
 Intra-agent candidates come from the agent's own `LoopCloser.log` (slam.loop_closure.LoopCandidate); that record
 has no reason code, so it is derived from the start of its reason sentence (`reason_code_of`).
@@ -20,7 +22,9 @@ from pathlib import Path
 from kernels.fileio import atomic_write_text
 
 INTRA, INTER = "intra", "inter"
-REASON_CODES = ("accepted", "similarity", "registration", "fitness", "rmse", "correction", "gnc")
+REASON_CODES = ("accepted", "similarity", "overlap", "registration", "fitness", "rmse", "correction", "gnc",
+                "inconsistent", "move")
+SOURCES = ("descriptor", "pose")
 
 
 @dataclass
@@ -44,6 +48,7 @@ class LoopRecord:
     correction_m: float = 0.0  # translation the loop applies to the current estimate (same frame only)
     joined: bool = False  # this loop brought two agents' frames together (first inter-agent loop of a pair)
     step: int = 0  # team step (round) at which the candidate was checked
+    source: str = "descriptor"  # one of SOURCES
 
     def reject(self, code: str, reason: str) -> "LoopRecord":
         self.accepted, self.reason_code, self.reason = False, code, reason
@@ -55,8 +60,9 @@ def reason_code_of(reason: str, accepted: bool) -> str:
     if accepted:
         return "accepted"
     r = reason.lower()
-    for prefix, code in (("similarity", "similarity"), ("registration", "registration"), ("fitness", "fitness"),
-                         ("inlier rmse", "rmse"), ("correction", "correction"), ("gnc", "gnc")):
+    for prefix, code in (("similarity", "similarity"), ("overlap", "overlap"), ("registration", "registration"),
+                         ("fitness", "fitness"), ("inlier rmse", "rmse"), ("correction", "correction"), ("gnc", "gnc"),
+                         ("inconsistent", "inconsistent"), ("optimisation would move", "move")):
         if r.startswith(prefix):
             return code
     return "registration"
@@ -66,10 +72,11 @@ def from_intra(agent: str, candidate, step: int = 0) -> LoopRecord:
     """A LoopRecord from one of `LoopCloser.log`'s LoopCandidates (duck-typed: only its fields are read)."""
     c = candidate
     code = reason_code_of(c.reason, c.accepted)
-    reg = "" if code == "similarity" else ("ok" if code != "registration" else c.reason.split(":", 1)[-1].strip())
+    reg = "" if code in ("similarity", "overlap") else (
+        "ok" if code != "registration" else c.reason.split(":", 1)[-1].strip())
     return LoopRecord(INTRA, agent, c.query_kf, c.query_frame, agent, c.match_kf, c.match_frame, float(c.similarity),
                       bool(c.accepted), code, c.reason, reg, float(c.fitness), float(c.inlier_rmse),
-                      float(c.correction_m), False, step)
+                      float(c.correction_m), False, step, getattr(c, "source", "descriptor"))
 
 
 def write_loops_csv(path: str | Path, records: list[LoopRecord]) -> Path:
@@ -93,6 +100,9 @@ def summarise(records: list[LoopRecord]) -> dict:
     for kind in (INTRA, INTER):
         rs = [r for r in records if r.kind == kind]
         by = Counter(r.reason_code for r in rs)
+        src = Counter(r.source for r in rs)
+        acc = Counter(r.source for r in rs if r.accepted)
         out[kind] = {"candidates": len(rs), "accepted": sum(r.accepted for r in rs),
-                     "by_reason": {c: by[c] for c in REASON_CODES if by[c]}}
+                     "by_reason": {c: by[c] for c in REASON_CODES if by[c]},
+                     "by_source": {s: {"candidates": src[s], "accepted": acc[s]} for s in SOURCES if src[s]}}
     return out

@@ -22,25 +22,21 @@ class Registration:
     fitness: float = 0.0
     inlier_rmse: float = float("inf")
     information: np.ndarray = field(default_factory=lambda: np.eye(6))  # [6, 6], twist order [omega, v]
+    n_correspondences: int = 0
 
 
 def rigid(T: np.ndarray) -> np.ndarray:
-    """The nearest rigid transform (rotation re-orthonormalised by SVD): products of many poses drift off SE(3)
-    by rounding, and the registration checks its initial guess strictly."""
-    T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    T[:3, :3], T[3] = R, (0.0, 0.0, 0.0, 1.0)
-    return T
+    """The nearest rigid transform (kernels.se3.project_rigid): the registration checks its initial guess strictly."""
+    from kernels.se3 import project_rigid
+
+    return project_rigid(T)
 
 
 def _view(r) -> Registration:
     ok = bool(r.success)
     return Registration(np.asarray(r.T_target_source, dtype=np.float64), ok, "" if ok else str(r.reason),
                         float(r.fitness), float(r.inlier_rmse) if r.fitness > 0 else float("inf"),
-                        np.asarray(r.information, dtype=np.float64))
+                        np.asarray(r.information, dtype=np.float64), int(r.n_correspondences))
 
 
 def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, *, max_depth: float = 10.0) -> Registration:

@@ -82,6 +82,8 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
         "loop_candidates": len(agent.loops.log),
         "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
         "pose_graph_optimisations": agent.loops.optimisations,
+        "pose_graph_not_applied": agent.loops.not_applied,
+        "loops_by_source": _by_source(agent.loops.log),
         "fps": n_frames / wall_s if wall_s > 0 else float("nan"),
         "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
         "kernels": agent.cfg.kernels.model_dump(),
@@ -139,9 +141,19 @@ def _render_metrics(agent: Agent, seq) -> dict:
             "render_views": len(ps)}
 
 
+def _by_source(log) -> dict:
+    """{source: {"candidates": n, "accepted": k}} over the loop closer's candidates."""
+    out: dict[str, dict[str, int]] = {}
+    for c in log:
+        d = out.setdefault(c.source, {"candidates": 0, "accepted": 0})
+        d["candidates"] += 1
+        d["accepted"] += int(c.accepted)
+    return out
+
+
 def _write_loops_csv(path: Path, rows: list[dict]) -> None:
     cols = ["query_kf", "match_kf", "query_frame", "match_frame", "similarity", "accepted", "reason", "fitness",
-            "inlier_rmse", "correction_m"]
+            "inlier_rmse", "correction_m", "source", "overlap"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols)
     w.writeheader()

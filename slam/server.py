@@ -23,18 +23,13 @@ from kernels import se3
 
 from .agent import Agent
 from .gaussian_map import GaussianMap, GaussianParams, transform_params
+from . import loop_check
+from .edge_information import fixed_information
 from .loop_log import INTER, LoopRecord, from_intra
 from .submaps import Keyframe, world_pose
 
 
-def _rigid(T: np.ndarray) -> np.ndarray:
-    """T with its rotation projected back onto SO(3) (SVD). Poses composed from many tracked and moved frames
-    drift from orthonormality; registration refuses an initial guess that is more than 1e-4 off."""
-    T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
-    T[3] = (0.0, 0.0, 0.0, 1.0)
-    return T
+_rigid = se3.project_rigid  # poses composed from many tracked and moved frames drift off SE(3)
 
 
 class ServerConfig(BaseModel):
@@ -66,6 +61,9 @@ class InterLoop:
     kf_j: int
     T_ij: np.ndarray  # [4, 4] pose of keyframe j's camera in keyframe i's camera
     record: LoopRecord
+    info: np.ndarray | None = None  # [6, 6] from the registration (None: the server's fixed loop sigmas)
+    rejected: bool = False
+    applied: bool = False
 
 
 @dataclass
@@ -88,6 +86,7 @@ class Server:
         self.records: list[LoopRecord] = []
         self.rejected_edges: set[tuple] = set()  # GNC outliers, left out of later graphs
         self.optimisations = 0
+        self.not_applied = 0  # optimisations whose move the loops did not justify
         self.time = {"intra": 0.0, "inter": 0.0, "optimisation": 0.0}
         self.last_graph = None  # (PoseGraph, optimised poses) of the last optimisation
         self.descriptors: dict[tuple[int, int], np.ndarray] = {}  # (agent, keyframe id) -> unit vector
@@ -199,7 +198,9 @@ class Server:
             rec.joined = True
         rec.accepted, rec.reason_code = True, "accepted"
         rec.reason = "accepted" + (" (joined frames)" if rec.joined else "") + f" [{r.method}]"
-        self.inter.append(InterLoop(b, m.id, a, q.id, r.T_target_source.copy(), rec))
+        ag = self.slots[a].agent
+        info = ag.loops.loop_information(r) if ag.cfg.loop_closure.information == "registration" else None
+        self.inter.append(InterLoop(b, m.id, a, q.id, _rigid(r.T_target_source), rec, info))
         return rec
 
     def _join(self, b: int, m: Keyframe, a: int, q: Keyframe, T_m_q: np.ndarray) -> None:
@@ -234,39 +235,65 @@ class Server:
         ("inter", n)."""
         from graph.pose_graph import PoseGraph
 
-        def info(sr, st):
-            return np.diag([sr ** -2] * 3 + [st ** -2] * 3)
-
+        fixed = fixed_information(self.cfg.loop_sigma_rot, self.cfg.loop_sigma_trans)
         g, tags = PoseGraph(), []
         for a, s in enumerate(self.slots):
             for kf in s.agent.keyframes:
                 g.add_pose(self.key(a, kf.id), _rigid(self.global_pose(a, kf)))
             for e in s.agent.loops.odometry:
-                g.add_odometry(self.key(a, e.i), self.key(a, e.j), _rigid(e.T_ij), info(e.sigma_rot, e.sigma_trans))
+                g.add_odometry(self.key(a, e.i), self.key(a, e.j), _rigid(e.T_ij), e.info)
                 tags.append(None)
             for n, e in enumerate(s.agent.loops.loops):
-                if ("intra", a, n) not in self.rejected_edges:
-                    g.add_loop(self.key(a, e.i), self.key(a, e.j), _rigid(e.T_ij), info(e.sigma_rot, e.sigma_trans))
+                if ("intra", a, n) not in self.rejected_edges and not e.rejected:
+                    g.add_loop(self.key(a, e.i), self.key(a, e.j), _rigid(e.T_ij), e.info)
                     tags.append(("intra", a, n))
         for n, L in enumerate(self.inter):
-            if ("inter", n) not in self.rejected_edges:
+            if ("inter", n) not in self.rejected_edges and not L.rejected:
                 g.add_loop(self.key(L.agent_i, L.kf_i), self.key(L.agent_j, L.kf_j), _rigid(L.T_ij),
-                           info(self.cfg.loop_sigma_rot, self.cfg.loop_sigma_trans))
+                           fixed if L.info is None else L.info)
                 tags.append(("inter", n))
         return g, tags
 
     def optimise(self) -> dict:
-        """LM (or GNC) over the whole team's keyframe poses, then every submap moved to the optimised pose of its
-        first keyframe (eq. 14), expressed back in its agent's own world frame."""
+        """LM (or GNC) over the whole team's keyframe poses; loops the optimum cannot satisfy are rejected and the
+        graph solved again, and an optimum that moves keyframes further than the loops justify is not applied
+        (slam.loop_check, the agents' loop_closure limits). Otherwise every submap moves to the optimised pose of
+        its first keyframe (eq. 14), expressed back in its agent's own world frame."""
         from graph.formulations import build_problem
         from graph.solvers import solve
 
         t0 = time.perf_counter()
-        g, tags = self.build_graph()
-        res = solve(build_problem(g, "base"), self.cfg.solver)
-        if res.rejected:
-            self._mark_gnc(g, tags, res.rejected)
-        moved = []
+        lc = self.slots[0].agent.cfg.loop_closure
+        new = self._unapplied_loops()
+        rejected = 0
+        while True:
+            g, tags = self.build_graph()
+            res = solve(build_problem(g, "base"), self.cfg.solver)
+            if res.rejected:
+                self._mark_gnc(g, tags, res.rejected)
+            loop_edges = [(n, e) for n, e in enumerate(g.edges) if tags[n] is not None]
+            bad = loop_check.worst_violation(res.poses, [(e.key_i, e.key_j, e.T_ij) for _, e in loop_edges],
+                                             lc.residual_max_trans, lc.residual_max_deg)
+            if bad is None:
+                break
+            self._reject_edge(tags[loop_edges[bad.index][0]], "inconsistent",
+                              f"inconsistent after optimisation: residual {100 * bad.trans_m:.1f} cm / "
+                              f"{bad.rot_deg:.2f} deg > {100 * lc.residual_max_trans:.1f} cm / {lc.residual_max_deg} deg")
+            rejected += 1
+        self.optimisations += 1
+        moved = loop_check.max_move(g.poses, res.poses)
+        allowed = loop_check.justified_move(g.poses, [(e.key_i, e.key_j, e.T_ij) for e in g.edges if e.kind == "loop"],
+                                            lc.max_move_factor, lc.max_move_slack)
+        if moved > allowed:
+            self.not_applied += 1
+            for tag in new:
+                self._reject_edge(tag, "move", f"optimisation would move keyframes {moved:.3f} m, more than the "
+                                               f"loops justify ({allowed:.3f} m): not applied")
+            self.time["optimisation"] += time.perf_counter() - t0
+            return {"submaps_moved": 0, "max_shift_m": 0.0, "solver": res.solver, "rejected": rejected,
+                    "applied": False}
+        self._mark_applied()
+        shifts = []
         for a, s in enumerate(self.slots):
             kfs = s.agent.keyframes
             W_from_G = se3.inverse(s.T_global_world)
@@ -274,15 +301,38 @@ class Server:
                 if not sm.keyframe_ids:
                     continue
                 first = kfs[sm.keyframe_ids[0]]
-                T_new = _rigid(W_from_G @ res.poses[self.key(a, first.id)] @ se3.inverse(first.T_local_cam))
-                D = T_new @ se3.inverse(sm.T_world_local)
-                s.agent.gmap.transform_submap(sm, D)
-                moved.append(float(np.linalg.norm(D[:3, 3])))
-        self.optimisations += 1
+                D = s.agent.gmap.place_submap(sm, W_from_G @ res.poses[self.key(a, first.id)]
+                                              @ se3.inverse(first.T_local_cam))
+                shifts.append(float(np.linalg.norm(D[:3, 3])))
         self.last_graph = (g, res.poses)
         self.time["optimisation"] += time.perf_counter() - t0
-        return {"submaps_moved": len(moved), "max_shift_m": max(moved, default=0.0), "solver": res.solver,
-                "rejected": len(res.rejected)}
+        return {"submaps_moved": len(shifts), "max_shift_m": max(shifts, default=0.0), "solver": res.solver,
+                "rejected": rejected + len(res.rejected), "applied": True}
+
+    def _unapplied_loops(self) -> list[tuple]:
+        out = [("intra", a, n) for a, s in enumerate(self.slots) for n, e in enumerate(s.agent.loops.loops)
+               if not e.rejected and not e.applied]
+        return out + [("inter", n) for n, L in enumerate(self.inter) if not L.rejected and not L.applied]
+
+    def _mark_applied(self) -> None:
+        for s in self.slots:
+            for e in s.agent.loops.loops:
+                e.applied = True
+        for L in self.inter:
+            L.applied = True
+
+    def _reject_edge(self, tag: tuple, code: str, reason: str) -> None:
+        """Leave a loop out of later graphs and say why in its record."""
+        if tag[0] == "inter":
+            L = self.inter[tag[1]]
+            L.rejected = True
+            L.record.reject(code, reason)
+            return
+        _, a, n = tag
+        slot = self.slots[a]
+        slot.agent.loops.reject(slot.agent.loops.loops[n], reason)
+        if n < len(slot.intra_accepted):
+            slot.intra_accepted[n].reject(code, reason)
 
     def _mark_gnc(self, g, tags, rejected: list[int]) -> None:
         for e in rejected:

@@ -18,7 +18,7 @@ from kernels import se3
 from .config import TrackingConfig
 from .frames import RGBD
 from .gaussian_map import GaussianParams
-from .odometry_adapter import coarse_odometry
+from .odometry_adapter import Registration, coarse_odometry
 from .render import render, rgbd_loss
 
 
@@ -29,6 +29,7 @@ class TrackResult:
     coarse_ok: bool
     iterations: int
     loss: float
+    coarse: Registration | None = None  # the coarse stage's registration (its information feeds the pose graph)
 
 
 def refine_pose(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig,
@@ -118,7 +119,7 @@ class Tracker:
             T = np.eye(4)
             self._remember(frame, T)
             return TrackResult(T, T, True, 0, 0.0)
-        coarse_ok = False
+        coarse_ok, r = False, None
         T_prev_cur = self._velocity
         if self.cfg.coarse == "rgbd_odometry":
             src = frame.resized(self.cfg.coarse_max_width)
@@ -134,7 +135,7 @@ class Tracker:
             T, it, loss = refine_pose(params, frame, T_coarse, self.cfg, reference=self.reference)
         self._velocity = se3.inverse(self._prev_pose) @ T
         self._remember(frame, T)
-        return TrackResult(T, T_coarse, coarse_ok, it, loss)
+        return TrackResult(T, T_coarse, coarse_ok, it, loss, r)
 
     def _remember(self, frame: RGBD, T: np.ndarray) -> None:
         self._prev = frame.resized(self.cfg.coarse_max_width)
