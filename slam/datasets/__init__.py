@@ -1,6 +1,6 @@
 """Dataset loaders: our folder format plus the public layouts users already have (TUM RGB-D, Redwood /
-ICL-NUIM, Replica and Multiagent Replica, EuRoC). Every loader returns lazily loading `Sequence`s; a
-`MultiAgentDataset` groups one per agent.
+ICL-NUIM, Replica and Multiagent Replica, EuRoC, ScanNet exports, 7-Scenes). Every loader returns lazily loading
+`Sequence`s; a `MultiAgentDataset` groups one per agent.
 
     load_sequence(path, fmt="auto") -> Sequence
     load_dataset(path, fmt="auto")  -> MultiAgentDataset   (a single sequence becomes a one-agent team)
@@ -19,34 +19,43 @@ from .euroc import is_euroc_sequence, load_euroc_sequence
 from .folder import is_folder_sequence, load_folder_dataset, load_folder_sequence
 from .redwood import is_redwood_sequence, load_redwood_sequence
 from .replica import is_replica_sequence, load_replica_sequence
+from .scannet import is_scannet_sequence, load_scannet_sequence
+from .sevenscenes import is_sevenscenes_sequence, load_sevenscenes_sequence
 from .tum import is_tum_sequence, load_tum_sequence
 
 __all__ = [
     "Frame", "Sequence", "MultiAgentDataset", "ImageSequence", "FORMATS",
     "load_sequence", "load_dataset", "detect_sequence_format",
     "load_folder_sequence", "load_folder_dataset", "load_tum_sequence", "load_redwood_sequence",
-    "load_replica_sequence", "load_euroc_sequence", "match_nearest", "associate_unique",
+    "load_replica_sequence", "load_euroc_sequence", "load_scannet_sequence", "load_sevenscenes_sequence",
+    "match_nearest", "associate_unique",
 ]
 
-# Checked in this order: our format first (it is TUM-like but carries calibration.yaml).
+# Checked in this order: our format first (it is TUM-like but carries calibration.yaml); ScanNet (color/ depth/
+# intrinsic/) before Redwood (color/ depth/ and a .log).
 _DETECT = {
     "folder": is_folder_sequence,
     "tum": is_tum_sequence,
     "replica": is_replica_sequence,
     "euroc": is_euroc_sequence,
+    "scannet": is_scannet_sequence,
     "redwood": is_redwood_sequence,
+    "7scenes": is_sevenscenes_sequence,
 }
 _LOAD = {
     "folder": load_folder_sequence,
     "tum": load_tum_sequence,
     "replica": load_replica_sequence,
     "euroc": load_euroc_sequence,
+    "scannet": load_scannet_sequence,
     "redwood": load_redwood_sequence,
+    "7scenes": load_sevenscenes_sequence,
 }
 FORMATS = tuple(_DETECT)
 
 _LAYOUTS_HELP = ("our format (calibration.yaml + rgb.txt), TUM RGB-D (rgb.txt + depth.txt), Replica "
-                 "(results/ + traj.txt), EuRoC (mav0/cam0/data.csv) or Redwood (color/ + depth/ + .log)")
+                 "(results/ + traj.txt), EuRoC (mav0/cam0/data.csv), ScanNet (color/ + depth/ + intrinsic/), "
+                 "Redwood (color/ + depth/ + .log) or 7-Scenes (frame-NNNNNN.color.png + .depth.png)")
 
 
 def _check(path: str | Path, fmt: str) -> tuple[Path, str]:
@@ -72,7 +81,7 @@ def detect_sequence_format(path: str | Path) -> str | None:
 
 def load_sequence(path: str | Path, fmt: str = "auto", **kwargs) -> ImageSequence:
     """Load one sequence; `fmt` is one of FORMATS or "auto". Extra keyword arguments go to the loader
-    (e.g. `camera=` for TUM/Redwood/Replica, `undistort=` for EuRoC)."""
+    (e.g. `camera=` for TUM/Redwood/Replica/7-Scenes, `undistort=` for EuRoC)."""
     p, fmt = _check(path, fmt)
     if fmt == "auto":
         fmt = detect_sequence_format(p)
@@ -83,7 +92,8 @@ def load_sequence(path: str | Path, fmt: str = "auto", **kwargs) -> ImageSequenc
 
 def load_dataset(path: str | Path, fmt: str = "auto", **kwargs) -> MultiAgentDataset:
     """Load a team: a root with dataset.yaml (our format), a single sequence (one agent), or a folder whose
-    sub-folders are sequences of one layout (Multiagent Replica, a set of EuRoC runs), agents in name order."""
+    sub-folders are sequences of one layout (Multiagent Replica, a set of EuRoC runs, a 7-Scenes scene's seq-NN
+    folders), agents in name order."""
     p, fmt = _check(path, fmt)
     if (p / "dataset.yaml").is_file() and fmt in ("auto", "folder"):
         return load_folder_dataset(p)
