@@ -61,6 +61,7 @@ class SolveResult:
     weights: dict[int, float] = field(default_factory=dict)  # loop edge index -> GNC weight
     rejected: list[int] = field(default_factory=list)  # loop edge indices GNC rejected (weight < 0.5)
     gnc_iterations: int = 0
+    converged: bool = True  # False: LM stopped at max_iterations before its tolerances were met
 
 
 # ------------------------------------------------------------------------------------------- scale term
@@ -133,14 +134,18 @@ def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = 
         e0 = graph.error(values)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         result = opt.optimize()
-        return _result(problem, result, opt.iterations(), e0, graph.error(result), t0, "lm")
+        res = _result(problem, result, opt.iterations(), e0, graph.error(result), t0, "lm")
+        res.converged = opt.iterations() < max_iterations
+        return res
     term = _ScaleTerm(problem, weights)
     if loops == "custom":
         graph.push_back(custom_loop_factors(problem, weights))
     dims = [(int(k), 1) for k in term.scale_keys] + [(int(k), 6) for k in term.pose_keys]
     result, iters, e0, e1 = _python_lm(graph, term if loops == "numpy" else None, term.scale_keys, dims, values,
                                        max_iterations, relative_tol, absolute_tol)
-    return _result(problem, result, iters, e0, e1, t0, "lm")
+    res = _result(problem, result, iters, e0, e1, t0, "lm")
+    res.converged = iters < max_iterations
+    return res
 
 
 def custom_loop_factors(problem: Problem, weights: dict[int, float] | None = None) -> gtsam.NonlinearFactorGraph:
@@ -299,7 +304,7 @@ def loop_costs(problem: Problem, values: gtsam.Values) -> dict[int, float]:
 
 
 def _single(problem: Problem, lf):
-    return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d)
+    return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d, problem.objective)
 
 
 def gnc(problem: Problem, *, inlier_cost: float | None = None, probability: float = 0.99, mu_step: float = 1.4,
