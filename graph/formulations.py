@@ -29,7 +29,7 @@ import numpy as np
 
 from kernels.errors import InputError
 
-from .information import isotropic_weights, se_sync_information, se_sync_weights
+from .information import diagonal_weights, se_sync_information, se_sync_weights
 from .pose_graph import PoseGraph, key_index, key_robot
 
 FORMULATIONS = ("base", "is", "ss", "shared")
@@ -93,9 +93,10 @@ class Problem:
 
 def between_factor(ki: int, kj: int, measured: gtsam.Pose3, info: np.ndarray, is_2d: bool, objective: str = "g2o"):
     """BetweenFactorPose3 (or Pose2 for 2D graphs) with a Gaussian noise model of information `info` [6, 6];
-    for objective "se-sync" the FrobeniusBetweenFactor weighted by `info`'s SE-Sync (kappa, tau)."""
+    for objective "se-sync" the FrobeniusBetweenFactor weighted by the (kappa, tau) of `info`, which is then
+    the diagonal matrix `graph.information.se_sync_information` makes (times a GNC weight)."""
     if objective == "se-sync":
-        return frobenius_factor(ki, kj, measured, *isotropic_weights(info, is_2d), is_2d)
+        return frobenius_factor(ki, kj, measured, *diagonal_weights(info, is_2d), is_2d)
     if is_2d:
         idx = [3, 4, 2]
         return gtsam.BetweenFactorPose2(ki, kj, _pose2(measured.matrix()),

@@ -114,6 +114,14 @@ def isotropic_weights(info: np.ndarray, is_2d: bool = False):
     return kappa, tau
 
 
+def diagonal_weights(info: np.ndarray, is_2d: bool = False) -> tuple[float, float]:
+    """`isotropic_weights` of a diagonal matrix (such as `se_sync_information`'s), without inverses."""
+    d = np.diagonal(info)
+    if is_2d:
+        return float(d[2]), float(2.0 / (1.0 / d[3] + 1.0 / d[4]))
+    return float(1.5 / np.sum(1.0 / d[:3])), float(3.0 / np.sum(1.0 / d[3:]))
+
+
 def se_sync_weights(edges, is_2d: bool = False) -> np.ndarray:
     """[E, 2] SE-Sync (kappa, tau) of graph edges (one edge: a pair of floats), times each edge's confidence:
     from the file's own matrix where it was replaced and its diagonal blocks still give positive weights (what

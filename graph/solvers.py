@@ -117,15 +117,29 @@ class _ScaleTerm:
 # ------------------------------------------------------------------------------------------- LM
 def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = None,
                         initial: gtsam.Values | None = None, max_iterations: int = 100,
-                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5, loops: str = "numpy") -> SolveResult:
+                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5, loops: str = "numpy",
+                        newton: bool | None = None) -> SolveResult:
     """Solve `problem` (loops weighted by `weights`, edge index -> w, default 1) from `initial` (default: the
     problem's). GTSAM's C++ LM when every factor is built-in, `_python_lm` otherwise, with the up-to-scale
-    loops evaluated in NumPy (`loops="numpy"`) or as gtsam.CustomFactors (`loops="custom"`)."""
+    loops evaluated in NumPy (`loops="numpy"`) or as gtsam.CustomFactors (`loops="custom"`). A 3D problem with
+    the se-sync objective runs graph.newton's Newton/GN steps instead (`newton=None`: whenever it applies;
+    False: GTSAM's LM). Tolerances: GTSAM's relative / absolute decrease tests (its defaults 1e-5)."""
     if loops not in ("numpy", "custom"):
         raise InputError(f"loops must be 'numpy' or 'custom', got {loops!r}")
     t0 = time.perf_counter()
     values = problem.initial if initial is None else initial
     graph = problem.builtin_graph(weights)
+    use_newton = problem.objective == "se-sync" and not problem.is_2d and problem.scale_loops is None
+    if newton and not use_newton:
+        raise InputError("newton steps need a 3D problem with the se-sync objective and no scale variables")
+    if use_newton and newton is not False:
+        from .newton import newton_lm
+
+        result, iters, e0, e1, ok = newton_lm(problem, graph, values, weights, max_iterations, relative_tol,
+                                              absolute_tol)
+        res = _result(problem, result, iters, e0, e1, t0, "lm")
+        res.converged = ok
+        return res
     if problem.scale_loops is None:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
