@@ -28,6 +28,7 @@ from kernels.errors import InputError
 POLICIES = ("repair", "isotropic", "strict")
 REPAIR_FLOOR = 1e-6  # smallest eigenvalue after `repair`, relative to the largest
 _IDX_2D = [3, 4, 2]  # x, y, theta inside the 6x6 matrix of a 2D edge
+_DIAG = np.diag_indices(6)
 
 
 def is_positive_definite(info: np.ndarray) -> np.ndarray:
@@ -116,10 +117,10 @@ def isotropic_weights(info: np.ndarray, is_2d: bool = False):
 
 def diagonal_weights(info: np.ndarray, is_2d: bool = False) -> tuple[float, float]:
     """`isotropic_weights` of a diagonal matrix (such as `se_sync_information`'s), without inverses."""
-    d = np.diagonal(info)
+    d = np.diagonal(info).tolist()  # plain floats: this runs once per edge when factors are built
     if is_2d:
-        return float(d[2]), float(2.0 / (1.0 / d[3] + 1.0 / d[4]))
-    return float(1.5 / np.sum(1.0 / d[:3])), float(3.0 / np.sum(1.0 / d[3:]))
+        return d[2], 2.0 / (1.0 / d[3] + 1.0 / d[4])
+    return 1.5 / (1.0 / d[0] + 1.0 / d[1] + 1.0 / d[2]), 3.0 / (1.0 / d[3] + 1.0 / d[4] + 1.0 / d[5])
 
 
 def se_sync_weights(edges, is_2d: bool = False) -> np.ndarray:
@@ -148,8 +149,10 @@ def se_sync_weights(edges, is_2d: bool = False) -> np.ndarray:
 def se_sync_information(kappa: float, tau: float, is_2d: bool = False) -> np.ndarray:
     """A 6x6 diagonal matrix whose `isotropic_weights` are (kappa, tau): what the se-sync objective's factors are
     built from (diag(2 kappa I, tau I); 2D: theta kappa, x and y tau, identity elsewhere)."""
+    out = np.zeros((6, 6))
     if is_2d:
-        out = np.eye(6)
-        out[2, 2], out[3, 3], out[4, 4] = kappa, tau, tau
-        return out
-    return np.diag([2 * kappa] * 3 + [tau] * 3)
+        out[_DIAG] = (1.0, 1.0, kappa, tau, tau, 1.0)
+    else:
+        k2 = 2.0 * kappa
+        out[_DIAG] = (k2, k2, k2, tau, tau, tau)
+    return out

@@ -184,25 +184,27 @@ def initialize(graph: PoseGraph, method: str = "best", objective: str = "g2o") -
     out = dict(graph.poses)
     by_comp: dict[int, list[int]] = {}
     comp_of = {}
-    for c in graph.components():
+    components = graph.components()
+    for c in components:
         for k in c:
             comp_of[k] = c[0]
     for n, e in enumerate(graph.edges):
         by_comp.setdefault(comp_of[e.key_i], []).append(n)
-    for comp in graph.components():
+    for comp in components:
         edges = by_comp.get(comp[0], [])
         entry = {"anchor": comp[0], "poses": len(comp), "edges": len(edges), "errors": {}, "gtsam_failure": None}
         cands: dict[str, dict[int, np.ndarray]] = {}
+        between = _between_graph(graph, edges) if not graph.is_2d or objective == "g2o" else None
         if method in ("best", "gtsam") and edges:
             try:
-                cands["gtsam"] = _gtsam_initialization(graph, comp, edges)
+                cands["gtsam"] = _gtsam_initialization(graph, comp, edges, between)
             except (RuntimeError, ValueError) as e:  # "Indeterminant linear system", lago's noise-model check
                 entry["gtsam_failure"] = str(e).splitlines()[0][:200]
         if ours is not None or "gtsam" not in cands:
             if ours is None:
                 ours = chordal_initialization(graph)
             cands["chordal"] = {k: ours[k] for k in comp}
-        score = _component_objective(graph, edges, objective)
+        score = _component_objective(graph, edges, objective, between)
         for name, poses in cands.items():
             entry["errors"][name] = score(poses)
         best = min(cands, key=lambda m: (not np.isfinite(entry["errors"][m]), entry["errors"][m], m != "chordal"))
@@ -213,47 +215,65 @@ def initialize(graph: PoseGraph, method: str = "best", objective: str = "g2o") -
     return out, report
 
 
-def _component_objective(graph: PoseGraph, edges: list[int], objective: str):
+def _between_graph(graph: PoseGraph, edges: list[int]) -> gtsam.NonlinearFactorGraph:
+    """The g2o objective's factors (graph.formulations.between_factor) of the edges `edges`."""
+    from .formulations import between_factor  # formulations does not import this module
+
+    nfg = gtsam.NonlinearFactorGraph()
+    for n in edges:
+        e = graph.edges[n]
+        nfg.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), e.info * e.confidence, graph.is_2d))
+    return nfg
+
+
+def _component_objective(graph: PoseGraph, edges: list[int], objective: str, between):
     """poses -> GTSAM's error (0.5 sum of squared whitened residuals) of the edges `edges` under `objective`
-    (se-sync: 0.5 * SE-Sync's F, in NumPy; g2o: the BetweenFactors, built once)."""
-    from .formulations import between_factor, pose_values  # formulations does not import this module
+    (se-sync: 0.5 * SE-Sync's F, in NumPy; g2o: the factors `between`)."""
+    from .formulations import pose_values
     from .metrics import se_sync_cost
 
     sub = PoseGraph({}, [graph.edges[n] for n in edges], graph.is_2d)
     keys = sorted({e.key_i for e in sub.edges} | {e.key_j for e in sub.edges})
     if objective == "se-sync":
         return lambda poses: 0.5 * se_sync_cost(sub, poses)
-    nfg = gtsam.NonlinearFactorGraph()
-    for e in sub.edges:
-        nfg.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), e.info * e.confidence, graph.is_2d))
-    return lambda poses: float(nfg.error(pose_values({k: poses[k] for k in keys}, graph.is_2d)))
+    return lambda poses: float(between.error(pose_values({k: poses[k] for k in keys}, graph.is_2d)))
 
 
-def _gtsam_initialization(graph: PoseGraph, comp: list[int], edges: list[int]) -> dict[int, np.ndarray]:
+def _gtsam_initialization(graph: PoseGraph, comp: list[int], edges: list[int], between) -> dict[int, np.ndarray]:
     """GTSAM's initialiser on one component, anchored at its first key's pose: InitializePose3.initialize
-    (chordal rotations, then one Gauss-Newton step on the poses) in 3D, lago.initialize in 2D. Raises GTSAM's
+    (chordal rotations, then one Gauss-Newton step on the poses) on the factors `between` in 3D; lago.initialize
+    in 2D (diagonal noise models where the information is diagonal: lago needs them). Raises GTSAM's
     RuntimeError / ValueError where it cannot (indeterminate system, non-diagonal noise in lago)."""
-    from .formulations import between_factor
-
-    nfg = gtsam.NonlinearFactorGraph()
     anchor = graph.poses[comp[0]]
-    for n in edges:
-        e = graph.edges[n]
-        info = e.info * e.confidence
-        if graph.is_2d:
-            sub = info[np.ix_([3, 4, 2], [3, 4, 2])]
-            model = (gtsam.noiseModel.Diagonal.Precisions(np.diag(sub).copy()) if np.count_nonzero(sub - np.diag(
-                np.diag(sub))) == 0 else gtsam.noiseModel.Gaussian.Information(sub))
-            nfg.add(gtsam.BetweenFactorPose2(e.key_i, e.key_j, _pose2(e.T_ij), model))
-        else:
-            nfg.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), info, False))
     if graph.is_2d:
+        nfg = gtsam.NonlinearFactorGraph()
+        for n in edges:
+            e = graph.edges[n]
+            sub = (e.info * e.confidence)[np.ix_([3, 4, 2], [3, 4, 2])]
+            diagonal = np.count_nonzero(sub - np.diag(np.diag(sub))) == 0
+            model = (gtsam.noiseModel.Diagonal.Precisions(np.diag(sub).copy()) if diagonal
+                     else gtsam.noiseModel.Gaussian.Information(sub))
+            nfg.add(gtsam.BetweenFactorPose2(e.key_i, e.key_j, _pose2(e.T_ij), model))
         nfg.add(gtsam.PriorFactorPose2(comp[0], _pose2(anchor), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
         values = gtsam.lago.initialize(nfg)
         return {k: _se2(values.atPose2(k)) for k in comp}
+    nfg = gtsam.NonlinearFactorGraph(between)
     nfg.add(gtsam.PriorFactorPose3(comp[0], gtsam.Pose3(anchor), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     values = gtsam.InitializePose3.initialize(nfg)
-    return {k: values.atPose3(k).matrix() for k in comp}
+    X = gtsam.utilities.extractPose3(values)
+    out = {}
+    for k, row in zip(sorted(comp), X[_sorted_positions(values, comp)]):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = row[:9].reshape(3, 3), row[9:]
+        out[k] = T
+    return out
+
+
+def _sorted_positions(values: gtsam.Values, comp: list[int]) -> np.ndarray:
+    """Rows of extractPose3(values) (Values' key order) holding the sorted keys `comp`."""
+    keys = np.array(values.keys(), dtype=np.uint64)
+    order = np.argsort(keys)
+    return order[np.searchsorted(keys[order], np.array(sorted(comp), dtype=np.uint64))]
 
 
 def _pose2(T: np.ndarray) -> gtsam.Pose2:

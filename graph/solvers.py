@@ -280,22 +280,18 @@ def _clamp_scales(values: gtsam.Values, keys: list[int]) -> list[int]:
 
 
 def _result(problem: Problem, values: gtsam.Values, iters: int, e0: float, e1: float, t0: float, solver: str):
+    keys = problem.graph.keys()
+    T = np.tile(np.eye(4), (len(keys), 1, 1))
     if problem.is_2d:
         X = gtsam.utilities.extractPose2(values)
-        poses = {}
-        for k, (x, y, th) in zip(problem.graph.keys(), X):
-            T = np.eye(4)
-            T[:2, :2] = [[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]
-            T[:2, 3] = [x, y]
-            poses[k] = T
+        c, s_ = np.cos(X[:, 2]), np.sin(X[:, 2])
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s_, s_, c
+        T[:, :2, 3] = X[:, :2]
     else:
         X = gtsam.utilities.extractPose3(values)
-        poses = {}
-        for k, row in zip(problem.graph.keys(), X):
-            T = np.eye(4)
-            T[:3, :3] = row[:9].reshape(3, 3)
-            T[:3, 3] = row[9:]
-            poses[k] = T
+        T[:, :3, :3] = X[:, :9].reshape(-1, 3, 3)
+        T[:, :3, 3] = X[:, 9:]
+    poses = dict(zip(keys, T))
     scales = {}
     if problem.scale_loops is not None:
         for n, k in zip(problem.scale_loops.edge, problem.scale_loops.key_s):
