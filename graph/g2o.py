@@ -174,6 +174,11 @@ def _add_edges(graph: PoseGraph, path: Path, edge_lines: list, have_vertices: bo
     for b in np.flatnonzero(~is_positive_definite(info)):
         fixed = apply_policy(info[b], policy, graph.is_2d)
         if fixed is None:
+            if policy != "strict":
+                M = info[b][np.ix_([3, 4, 2], [3, 4, 2])] if graph.is_2d else info[b]
+                raise InputError(f"{wheres[b]}: information matrix is not positive definite and cannot be "
+                                 f"replaced under --information {policy}: no positive eigenvalue in a diagonal "
+                                 f"block (eigenvalues {np.round(np.linalg.eigvalsh(M), 6).tolist()})")
             check_information(info[b], wheres[b])  # raises with the eigenvalues
             raise InputError(f"{wheres[b]}: information matrix is not positive definite")
         raw[int(b)] = (info[b].copy(), fixed[1])

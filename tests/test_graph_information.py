@@ -144,3 +144,13 @@ def test_cli_information_policies(synthetic, tmp_path, capsys):
     assert float(cap.out.split("final error ")[1].split()[0]) == pytest.approx(summary["final_error"], rel=1e-8)
     back = read_g2o(out, information="repair")  # the file's own matrices are written back
     assert repaired_edges(back) == {"repair": len(BAD)}
+
+
+def test_matrix_without_positive_part_is_refused_under_every_policy(tmp_path):
+    p = tmp_path / "zero.g2o"
+    p.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 100 0 0 100 0 50\n"
+                 "EDGE_SE2 1 0 -1 0 0 0 0 0 0 0 0\n")
+    for policy in ("repair", "isotropic", "strict"):
+        with pytest.raises(InputError, match="not positive definite") as err:
+            read_g2o(p, information=policy)
+        assert f"{p}:4:" in str(err.value)
