@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -13,19 +14,21 @@ from graph.g2o import read_g2o, repaired_edges, write_g2o
 from graph.information import (REPAIR_FLOOR, apply_policy, is_positive_definite, isotropic_information,
                                isotropic_weights, nearest_pd, se_sync_weights)
 from graph.init import initialize
-from graph.metrics import ate
 from graph.pose_graph import LOOP, ODOMETRY, Edge, PoseGraph
 from graph.solvers import levenberg_marquardt
 from kernels.errors import InputError
 
-N_POSES, BAD = 60, (3, 17, 30, 41, 62)  # edge indices whose matrix the file gets wrong
+N_POSES = 60
+GROSS, MILD = (3, 17, 30, 41, 62), (5, 22, 36, 50, 70)  # edges whose matrix the file gets badly / slightly wrong
+BAD = GROSS + MILD
 
 
 def _noisy_graph(seed=0):
     """A 3D loop of 60 poses (radius 10 m, climbing), odometry + loops every 10 poses across the loop. Each edge
     has its own anisotropic PD information (with rotation-translation cross terms) and a measurement drawn with
-    that covariance. Returns (true poses, graph with the true matrices, graph whose BAD edges carry an
-    indefinite matrix with the same diagonal blocks)."""
+    that covariance. Returns (true poses, graph with the true matrices, graph whose GROSS edges carry an
+    indefinite matrix with the same diagonal blocks and whose MILD edges' smallest eigenvalue is pushed just
+    below zero, as rounding would)."""
     rng = np.random.default_rng(seed)
     gt = {}
     for k in range(N_POSES):
@@ -49,10 +52,13 @@ def _noisy_graph(seed=0):
         kind = ODOMETRY if j == i + 1 else LOOP
         clean.edges.append(Edge(i, j, T, info, kind))
         wrong = info.copy()
-        if n in BAD:  # cross block large enough to make the matrix indefinite, diagonal blocks untouched
+        if n in GROSS:  # cross block large enough to make the matrix indefinite, diagonal blocks untouched
             d = np.sqrt(np.diag(info))
             C = 3.0 * np.outer(d[:3], d[3:]) * rng.choice([-1, 1], (3, 3))
             wrong[:3, 3:], wrong[3:, :3] = C, C.T
+        elif n in MILD:
+            w, V = np.linalg.eigh(info)
+            wrong = info - (1 + 1e-3) * w[0] * np.outer(V[:, 0], V[:, 0])
         bad.edges.append(Edge(i, j, T, wrong, kind))
     return gt, clean, bad
 
@@ -94,36 +100,52 @@ def test_strict_refuses_with_file_and_line(synthetic):
     _, _, _, bad = synthetic
     with pytest.raises(InputError, match="not positive definite") as err:
         read_g2o(bad)  # the library default is strict, today's behaviour
-    first_edge_line = N_POSES + BAD[0] + 1
+    first_edge_line = N_POSES + min(BAD) + 1
     assert f"{bad}:{first_edge_line}:" in str(err.value)
+
+
+def _positions(graph):
+    poses, _ = initialize(graph)
+    res = levenberg_marquardt(build_problem(graph, initial_poses=poses), relative_tol=1e-8, absolute_tol=1e-10)
+    assert res.converged
+    return np.stack([res.poses[k][:3, 3] for k in sorted(res.poses)])
 
 
 @pytest.mark.parametrize("policy", ["repair", "isotropic"])
 def test_policies_replace_only_the_bad_edges_and_still_solve(synthetic, policy):
     gt, clean_graph, clean, bad = synthetic
     g = read_g2o(bad, information=policy)
-    assert repaired_edges(g) == {policy: len(BAD)}
+    rules = {n: ("repair" if policy == "repair" and n in MILD else "isotropic") for n in BAD}
+    assert repaired_edges(g) == {r: list(rules.values()).count(r) for r in set(rules.values())}
     ref = read_g2o(clean)
     for n, (e, c) in enumerate(zip(g.edges, ref.edges)):
         assert is_positive_definite(e.info)
         if n in BAD:
-            assert e.info_policy == policy and not is_positive_definite(e.info_raw)
-            assert np.allclose(e.info_raw[:3, :3], c.info[:3, :3]) and np.allclose(e.info_raw[3:, 3:], c.info[3:, 3:])
-            if policy == "isotropic":
+            assert e.info_policy == rules[n] and not is_positive_definite(e.info_raw)
+            if n in GROSS:  # diagonal blocks as they were
+                assert np.allclose(e.info_raw[:3, :3], c.info[:3, :3]) and np.allclose(e.info_raw[3:, 3:], c.info[3:, 3:])
+            if rules[n] == "isotropic":
                 assert np.count_nonzero(e.info - np.diag(np.diag(e.info))) == 0
-            assert se_sync_weights(e) == pytest.approx(se_sync_weights(c))  # SE-Sync's weights: the file's blocks
+            else:  # a slightly wrong matrix: the projection barely changes it
+                assert np.linalg.norm(e.info - e.info_raw) < 1e-3 * np.linalg.norm(e.info_raw)
+            # SE-Sync's weights come from the file's own diagonal blocks (what SE-Sync reads), not from the repair
+            raw, used = np.array(isotropic_weights(e.info_raw)), np.array(isotropic_weights(e.info))
+            assert se_sync_weights(e) == pytest.approx(np.where(raw > 0, raw, used), rel=1e-12)
+            if n in GROSS:
+                assert se_sync_weights(e) == pytest.approx(se_sync_weights(c), rel=1e-9)
         else:
             assert e.info_raw is None and np.array_equal(e.info, c.info)
-
-    def solve(graph):
-        poses, _ = initialize(graph)
-        res = levenberg_marquardt(build_problem(graph, initial_poses=poses), relative_tol=1e-8, absolute_tol=1e-10)
-        assert res.converged
-        return ate(res.poses, gt)[0]
-
-    err_true, err = solve(ref), solve(g)
-    print(f"{policy}: ATE {err:.4f} m with {len(BAD)} replaced matrices, {err_true:.4f} m with the true ones")
-    assert err < 1.5 * err_true + 0.01 and err < 0.3
+    # the solution against the one with the true matrices, and against knowing nothing about the bad edges
+    true = _positions(ref)
+    dropped = copy.deepcopy(g)
+    for n in BAD:
+        dropped.edges[n].info = 1e-6 * np.eye(6)
+    moved, moved_dropped = np.abs(_positions(g) - true).max(), np.abs(_positions(dropped) - true).max()
+    print(f"{policy}: solution {moved:.3f} m from the one with the true matrices (bad edges ignored: "
+          f"{moved_dropped:.3f} m)")
+    # measured: repair 0.165 m, isotropic 0.457 m (the slightly wrong matrices lose their translation weight
+    # entirely under isotropic), bad edges ignored 0.713 m
+    assert moved < (0.35 if policy == "repair" else 0.8) * moved_dropped
 
 
 def test_cli_information_policies(synthetic, tmp_path, capsys):
@@ -138,12 +160,13 @@ def test_cli_information_policies(synthetic, tmp_path, capsys):
     warnings = [line for line in cap.err.splitlines() if line.startswith("warning")]
     assert len(warnings) == 1 and warnings[0].startswith(f"warning: {len(BAD)} of ")
     summary = json.loads(out.with_suffix(".json").read_text())
-    assert summary["information"] == {"policy": "repair", "replaced": len(BAD), "by_rule": {"repair": len(BAD)}}
+    assert summary["information"] == {"policy": "repair", "replaced": len(BAD),
+                                      "by_rule": {"repair": len(MILD), "isotropic": len(GROSS)}}
     assert summary["converged"] and summary["iterations"] >= 1
     assert f"iterations {summary['iterations']}" in cap.out
     assert float(cap.out.split("final error ")[1].split()[0]) == pytest.approx(summary["final_error"], rel=1e-8)
     back = read_g2o(out, information="repair")  # the file's own matrices are written back
-    assert repaired_edges(back) == {"repair": len(BAD)}
+    assert repaired_edges(back) == {"repair": len(MILD), "isotropic": len(GROSS)}
 
 
 def test_matrix_without_positive_part_is_refused_under_every_policy(tmp_path):

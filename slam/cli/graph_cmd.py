@@ -32,8 +32,9 @@ def register(sub) -> None:
                    help="g2o: full information matrices, geodesic error (GTSAM's, default); se-sync: SE-Sync's "
                         "chordal cost with isotropic weights (reaches SE-Sync's published optima)")
     s.add_argument("--information", choices=["repair", "isotropic", "strict"], default="repair",
-                   help="non-positive-definite information matrices: nearest positive-definite matrix (repair, "
-                        "default), SE-Sync's isotropic weights of the diagonal blocks, or refuse the file (strict)")
+                   help="non-positive-definite information matrices: the nearest positive-definite matrix where "
+                        "that changes it by <= 5%%, else SE-Sync's isotropic weights of its diagonal blocks (repair, "
+                        "default); the isotropic weights always (isotropic); or refuse the file (strict)")
     s.add_argument("--gnc-probability", type=float, default=0.99,
                    help="GNC inlier threshold as a chi-square probability (default 0.99)")
     s.add_argument("--max-iterations", type=int, default=500, help="LM iterations at most (default 500)")
