@@ -5,8 +5,10 @@
     g2o            read (SE3:QUAT, SE2) / write (SE3:QUAT) with file:line errors; per-robot files and merge
     confidence     FLOCC eqs. 1-2: correspondence ratio, R_thr gate, logistic p, information * p
     scale_factors  IS loop factor (eqs. 7-8) as gtsam.CustomFactor and batched NumPy; SS smoothing factor
-    formulations   base (eq. 5 + eq. 6 scale) / IS / SS / shared problems
+    information    SE-Sync's isotropic weights; policies for non-positive-definite matrices (repair/isotropic/strict)
+    formulations   base (eq. 5 + eq. 6 scale) / IS / SS / shared problems; g2o or se-sync (SE-Sync's) objective
     solvers        LM (GTSAM's, or a Python loop over GTSAM's linear solver for scale graphs) and GNC-TLS
-    init           chordal initialisation per connected component; spanning-tree composition
+    newton         Newton steps for the se-sync objective (the curvature term GN lacks, per-pose HessianFactors)
+    init           chordal initialisation; per component the better of it and GTSAM's InitializePose3
     metrics        SE-Sync cost, ATE;  synthetic: FLOCC-like multi-robot teams;  lie: batched SE(3)
 """

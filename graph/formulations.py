@@ -7,6 +7,12 @@
          apart on both robots form a cluster; consecutive members are tied by ||s_b - s_a||² / sigma_s².
   shared one scale variable for all up-to-scale loops.
 
+Objectives: "g2o" (default) is the maximum-likelihood cost GTSAM and g2o minimise, one BetweenFactorPose3 (Pose2
+for SE2 graphs) per edge with its full information matrix; "se-sync" is SE-Sync's chordal cost (graph.metrics.
+se_sync_cost), one FrobeniusBetweenFactorPose3 (Pose2) per edge weighted by the edge's isotropic (kappa, tau):
+GTSAM's error is then exactly 0.5 * F (plus the anchors), so its minimum is SE-Sync's published optimum. The
+se-sync objective is for graphs without scale variables (base formulation, or no up-to-scale loops).
+
 Metric loops (RGB-D, LiDAR) and odometry are BetweenFactorPose3 in every formulation. Each connected component
 is anchored by a prior on its smallest key, so robots not yet linked keep their own frame. Every information
 matrix is multiplied by the edge's confidence p (eq. 3). Scale variables get a weak prior (sigma 10 by
@@ -23,9 +29,11 @@ import numpy as np
 
 from kernels.errors import InputError
 
+from .information import diagonal_weights, se_sync_information, se_sync_weights
 from .pose_graph import PoseGraph, key_index, key_robot
 
 FORMULATIONS = ("base", "is", "ss", "shared")
+OBJECTIVES = ("g2o", "se-sync")
 SCALE_INITS = ("raw", "odometry", "gt")
 SCALE_KEY_CHAR = 0xFE  # Symbol character of scale variables (not a printable robot name)
 ANCHOR_SIGMA = 1e-6
@@ -71,6 +79,7 @@ class Problem:
     scale_keys: list[int] = field(default_factory=list)
     clusters: list[list[int]] = field(default_factory=list)  # SS: edge indices per cluster
     is_2d: bool = False
+    objective: str = "g2o"  # OBJECTIVES
 
     def builtin_graph(self, weights: dict[int, float] | None = None) -> gtsam.NonlinearFactorGraph:
         """fixed + built-in loops, each loop's information times weights[edge] (absent: 1; 0: left out)."""
@@ -78,17 +87,41 @@ class Problem:
         for lf in self.loops:
             w = 1.0 if weights is None else weights.get(lf.edge, 1.0)
             if w > 0:
-                g.add(between_factor(lf.key_i, lf.key_j, lf.measured, w * lf.info, self.is_2d))
+                g.add(between_factor(lf.key_i, lf.key_j, lf.measured, w * lf.info, self.is_2d, self.objective))
         return g
 
 
-def between_factor(ki: int, kj: int, measured: gtsam.Pose3, info: np.ndarray, is_2d: bool):
-    """BetweenFactorPose3 (or Pose2 for 2D graphs) with a Gaussian noise model of information `info` [6, 6]."""
+def between_factor(ki: int, kj: int, measured: gtsam.Pose3, info: np.ndarray, is_2d: bool, objective: str = "g2o"):
+    """BetweenFactorPose3 (or Pose2 for 2D graphs) with a Gaussian noise model of information `info` [6, 6];
+    for objective "se-sync" the FrobeniusBetweenFactor weighted by the (kappa, tau) of `info`, which is then
+    the diagonal matrix `graph.information.se_sync_information` makes (times a GNC weight)."""
+    if objective == "se-sync":
+        return frobenius_factor(ki, kj, measured, *diagonal_weights(info, is_2d), is_2d)
     if is_2d:
         idx = [3, 4, 2]
         return gtsam.BetweenFactorPose2(ki, kj, _pose2(measured.matrix()),
                                         gtsam.noiseModel.Gaussian.Information(info[np.ix_(idx, idx)]))
     return gtsam.BetweenFactorPose3(ki, kj, measured, gtsam.noiseModel.Gaussian.Information(info))
+
+
+def frobenius_factor(ki: int, kj: int, measured: gtsam.Pose3, kappa: float, tau: float, is_2d: bool):
+    """GTSAM factor with error 0.5 (kappa ||R_j - R_i R_ij||_F^2 + tau ||t_j - t_i - R_i t_ij||^2): the
+    FrobeniusBetweenFactor's residual is vec(T_i T_ij - T_j) (column-major, homogeneous row included, always 0
+    there: weight 1)."""
+    if is_2d:
+        prec = np.array([kappa, kappa, 1.0, kappa, kappa, 1.0, tau, tau, 1.0])
+        return gtsam.FrobeniusBetweenFactorPose2(ki, kj, _pose2(measured.matrix()),
+                                                 gtsam.noiseModel.Diagonal.Precisions(prec))
+    prec = np.array([kappa, kappa, kappa, 1.0] * 3 + [tau, tau, tau, 1.0])
+    return gtsam.FrobeniusBetweenFactorPose3(ki, kj, measured, gtsam.noiseModel.Diagonal.Precisions(prec))
+
+
+def pose_values(poses: dict[int, np.ndarray], is_2d: bool = False) -> gtsam.Values:
+    """gtsam.Values of Pose3 (Pose2 for 2D graphs) from key -> 4x4 T_world_kf."""
+    values = gtsam.Values()
+    for k in sorted(poses):
+        values.insert(k, _pose2(poses[k]) if is_2d else gtsam.Pose3(poses[k]))
+    return values
 
 
 def _pose2(T: np.ndarray) -> gtsam.Pose2:
@@ -153,11 +186,14 @@ def scale_clusters(graph: PoseGraph, edges: list[int], gap: int = 10) -> list[li
 def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str = "odometry", *,
                   initial_poses: dict[int, np.ndarray] | None = None, gt_scales: dict[int, float] | None = None,
                   cluster_gap: int = 10, scale_sigma: float = 0.05, scale_prior_sigma: float = 10.0,
-                  scale_residual: str = "metric") -> Problem:
+                  scale_residual: str = "metric", objective: str = "g2o") -> Problem:
     """Factor graph + initial values for `formulation` (module docstring). `initial_poses` defaults to the
     graph's own poses; `scale_sigma` is SS's 1/sqrt(Omega_s). `scale_residual`: "metric" is eq. 8 as the paper
     writes it; "network" compares in the network's unit (unbiased scales, see graph.scale_factors), with the
-    translation information scaled by the initial scale squared."""
+    translation information scaled by the initial scale squared. `objective`: "g2o" or "se-sync" (module
+    docstring)."""
+    if objective not in OBJECTIVES:
+        raise InputError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     if scale_residual not in ("metric", "network"):
         raise InputError(f"scale_residual must be 'metric' or 'network', got {scale_residual!r}")
     if formulation not in FORMULATIONS:
@@ -165,6 +201,8 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
     is_2d = graph.is_2d
     if is_2d and any(e.up_to_scale for e in graph.edges):
         raise InputError("up-to-scale loop closures need a 3D graph")
+    if objective == "se-sync" and formulation != "base" and any(e.up_to_scale for e in graph.edges):
+        raise InputError(f"the se-sync objective has no scale variables: use formulation 'base', not {formulation!r}")
     poses = graph.poses if initial_poses is None else initial_poses
     s0 = initial_scales(graph, scale_init, gt_scales)
     fixed = gtsam.NonlinearFactorGraph()
@@ -179,10 +217,11 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
                                              gtsam.noiseModel.Isotropic.Sigma(6, ANCHOR_SIGMA)))
     loops: list[LoopFactor] = []
     scaled: list[int] = []
+    W = se_sync_weights(graph.edges, is_2d) if objective == "se-sync" else None
     for n, e in enumerate(graph.edges):
-        info = e.info * e.confidence
+        info = se_sync_information(*W[n], is_2d) if W is not None else e.info * e.confidence
         if e.kind == "odometry":
-            fixed.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), info, is_2d))
+            fixed.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), info, is_2d, objective))
         elif e.up_to_scale and formulation != "base":
             scaled.append(n)
         else:
@@ -190,7 +229,7 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
             if e.up_to_scale:
                 T[:3, 3] *= s0[n]
             loops.append(LoopFactor(n, e.key_i, e.key_j, gtsam.Pose3(T), info))
-    problem = Problem(graph, formulation, fixed, loops, None, values, is_2d=is_2d)
+    problem = Problem(graph, formulation, fixed, loops, None, values, is_2d=is_2d, objective=objective)
     if not scaled:
         return problem
 

@@ -10,7 +10,8 @@ Ids are GTSAM keys (Symbol keys for multi-robot files). The information matrix i
 edge a loop closure. An edge to a keyframe of a robot the file has no vertex of (DGS writes each robot's
 inter-robot edges into its own file) is kept in `PoseGraph.pending` until the graphs are merged; an edge to a
 missing vertex of the file's own robot is an error. A file without any VERTEX line (CSAIL.g2o) gets its poses
-by composing edges along a spanning tree. Every malformed line raises InputError naming file:line.
+by composing edges along a spanning tree. Every malformed line raises InputError naming file:line; an
+information matrix that is not positive definite is refused or replaced by the chosen policy (graph.information).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from kernels import se3
 from kernels.errors import InputError
 from kernels.fileio import atomic_path
 
+from .information import POLICIES, apply_policy, is_positive_definite
 from .pose_graph import LOOP, ODOMETRY, Edge, PoseGraph, check_information, is_odometry_pair, key_robot
 
 _FIELDS = {"VERTEX_SE3:QUAT": 9, "EDGE_SE3:QUAT": 31, "VERTEX_SE2": 5, "EDGE_SE2": 12}
@@ -37,8 +39,12 @@ def se2_matrix(x: float, y: float, theta: float) -> np.ndarray:
     return T
 
 
-def read_g2o(path: str | Path) -> PoseGraph:
-    """Parse a g2o file into a PoseGraph (see the module docstring for the accepted lines)."""
+def read_g2o(path: str | Path, information: str = "strict") -> PoseGraph:
+    """Parse a g2o file into a PoseGraph (see the module docstring for the accepted lines). `information` is
+    the policy for matrices that are not positive definite (graph.information: strict, repair, isotropic);
+    replaced edges keep the file's matrix in `Edge.info_raw` (count them with `repaired_edges`)."""
+    if information not in POLICIES:
+        raise InputError(f"information policy must be one of {', '.join(POLICIES)}, got {information!r}")
     path = Path(path)
     if not path.is_file():
         raise InputError(f"g2o file not found: {path}")
@@ -88,7 +94,7 @@ def read_g2o(path: str | Path) -> PoseGraph:
         graph.poses = dict(zip(keys, mats))
     have_vertices = bool(graph.poses)
     if edge_lines:
-        _add_edges(graph, path, edge_lines, have_vertices)
+        _add_edges(graph, path, edge_lines, have_vertices, information)
     if not graph.poses:
         raise InputError(f"{path}: no vertices or edges")
     if not have_vertices:
@@ -100,7 +106,8 @@ def read_g2o(path: str | Path) -> PoseGraph:
 
 def write_g2o(graph: PoseGraph, path: str | Path, poses: dict[int, np.ndarray] | None = None) -> Path:
     """Write `graph` (with `poses` in place of its own when given) as 3D g2o, atomically. Up-to-scale loop
-    closures are written with their measured translation (scale information is not part of g2o)."""
+    closures are written with their measured translation (scale information is not part of g2o). An edge whose
+    matrix was replaced on reading (graph.information) is written with the file's matrix, as it came in."""
     poses = graph.poses if poses is None else poses
     p = [3, 4, 5, 0, 1, 2]
     iu = np.triu_indices(6)
@@ -114,13 +121,23 @@ def write_g2o(graph: PoseGraph, path: str | Path, poses: dict[int, np.ndarray] |
                 f.write(f"VERTEX_SE3:QUAT {k} " + " ".join(f"{v:.12g}" for v in (*xyz, *q)) + "\n")
             for e in graph.edges:
                 xyz, q = se3.to_tum(e.T_ij)
-                info = (e.info * e.confidence)[np.ix_(p, p)][iu]
+                M = e.info if e.info_raw is None else e.info_raw  # the file's own matrix, as read
+                info = (M * e.confidence)[np.ix_(p, p)][iu]
                 f.write(f"EDGE_SE3:QUAT {e.key_i} {e.key_j} " + " ".join(f"{v:.12g}" for v in (*xyz, *q))
                         + " " + " ".join(f"{v:.12g}" for v in info) + "\n")
     return Path(path)
 
 
-def _add_edges(graph: PoseGraph, path: Path, edge_lines: list, have_vertices: bool) -> None:
+def repaired_edges(graph: PoseGraph) -> dict[str, int]:
+    """How many edges had their information matrix replaced, per rule ("repair", "isotropic")."""
+    out: dict[str, int] = {}
+    for e in graph.edges + graph.pending:
+        if e.info_policy:
+            out[e.info_policy] = out.get(e.info_policy, 0) + 1
+    return out
+
+
+def _add_edges(graph: PoseGraph, path: Path, edge_lines: list, have_vertices: bool, policy: str) -> None:
     """Vectorised conversion and validation of all edge lines (a per-line NumPy path costs ~1 ms an edge)."""
     wheres = [f"{path}:{n}" for _, n, _ in edge_lines]
     ki = [_parse_key(s[1], w) for (_, _, s), w in zip(edge_lines, wheres)]
@@ -153,12 +170,19 @@ def _add_edges(graph: PoseGraph, path: Path, edge_lines: list, have_vertices: bo
         M = M + np.triu(M, 1).swapaxes(1, 2)
         p = np.array([3, 4, 5, 0, 1, 2])
         info = M[:, p[:, None], p[None, :]]
-    eig_min = np.linalg.eigvalsh(info)[:, 0]
-    scale = np.abs(info).max(axis=(1, 2))
-    bad = np.flatnonzero(~(eig_min > 1e-12 * scale))
-    if len(bad):
-        check_information(info[bad[0]], wheres[bad[0]])  # raises with the eigenvalues
-        raise InputError(f"{wheres[bad[0]]}: information matrix is not positive definite")
+    raw: dict[int, tuple[np.ndarray, str]] = {}
+    for b in np.flatnonzero(~is_positive_definite(info)):
+        fixed = apply_policy(info[b], policy, graph.is_2d)
+        if fixed is None:
+            if policy != "strict":
+                M = info[b][np.ix_([3, 4, 2], [3, 4, 2])] if graph.is_2d else info[b]
+                raise InputError(f"{wheres[b]}: information matrix is not positive definite and cannot be "
+                                 f"replaced under --information {policy}: no positive eigenvalue in a diagonal "
+                                 f"block (eigenvalues {np.round(np.linalg.eigvalsh(M), 6).tolist()})")
+            check_information(info[b], wheres[b])  # raises with the eigenvalues
+            raise InputError(f"{wheres[b]}: information matrix is not positive definite")
+        raw[int(b)] = (info[b].copy(), fixed[1])
+        info[b] = fixed[0]
     own = {key_robot(k) for k in graph.poses}
     for e in range(E):
         if not have_vertices:
@@ -168,6 +192,8 @@ def _add_edges(graph: PoseGraph, path: Path, edge_lines: list, have_vertices: bo
             raise InputError(f"{wheres[e]}: edge from vertex {ki[e]} to itself")
         kind = ODOMETRY if is_odometry_pair(ki[e], kj[e]) else LOOP
         edge = Edge(ki[e], kj[e], T[e], info[e], kind, source=wheres[e])
+        if e in raw:
+            edge.info_raw, edge.info_policy = raw[e]
         missing = [k for k in (ki[e], kj[e]) if k not in graph.poses]
         if not missing:
             graph.edges.append(edge)

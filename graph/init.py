@@ -9,29 +9,27 @@ indeterminate system) still get a solution:
   2. translations: with rotations fixed, t_j - t_i = R_i t_ij is linear; one Laplacian system, three RHS.
 Each component's anchor (its smallest key) keeps its current pose. Weights follow SE-Sync's isotropic
 reduction of each edge's information (kappa for rotation, tau for translation).
+
+`initialize` runs both GTSAM's initialiser (gtsam.InitializePose3; lago in 2D) and ours on every connected
+component and keeps, per component, the one with the lower objective; ours where GTSAM's fails (an
+indeterminate system, or lago's diagonal-noise requirement).
 """
 
 from __future__ import annotations
 
+import time
 from collections import deque
+from dataclasses import dataclass, field
 
+import gtsam
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from kernels.errors import GraphError
+from kernels.errors import GraphError, InputError
 
+from .information import isotropic_weights, se_sync_weights  # noqa: F401 (isotropic_weights re-exported)
 from .pose_graph import PoseGraph
-
-
-def isotropic_weights(info: np.ndarray, is_2d: bool = False) -> tuple[float, float]:
-    """SE-Sync's (kappa, tau) from a 6x6 GTSAM-ordered information matrix (PROVENANCE of the SE-Sync data)."""
-    if is_2d:
-        tau = 2.0 / np.trace(np.linalg.inv(info[3:5, 3:5]))
-        return float(info[2, 2]), float(tau)
-    tau = 3.0 / np.trace(np.linalg.inv(info[3:, 3:]))
-    kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(info[:3, :3])))
-    return float(kappa), float(tau)
 
 
 def spanning_tree_poses(graph: PoseGraph) -> dict[int, np.ndarray]:
@@ -82,7 +80,7 @@ def chordal_initialization(graph: PoseGraph) -> dict[int, np.ndarray]:
     jj = np.array([idx[e.key_j] for e in graph.edges])
     Rij = np.stack([e.T_ij[:3, :3] for e in graph.edges])
     tij = np.stack([e.T_ij[:3, 3] for e in graph.edges])
-    w = np.array([isotropic_weights(e.info * e.confidence, graph.is_2d) for e in graph.edges])
+    w = se_sync_weights(graph.edges, graph.is_2d)
     kappa, tau = np.sqrt(w[:, 0]), np.sqrt(w[:, 1])
     R0 = np.stack([graph.poses[k][:3, :3] for k in keys])
     t0 = np.stack([graph.poses[k][:3, 3] for k in keys])
@@ -146,3 +144,145 @@ def _solve_lsq(rows, cols, vals, rhs, n_rows, n_cols, what, flat=False):
     if not np.all(np.isfinite(x)):
         raise GraphError(f"chordal initialisation: the {what} system has no finite solution")
     return x
+
+
+# ------------------------------------------------------------------------------------------- choice per component
+INIT_METHODS = ("best", "chordal", "gtsam", "file")
+
+
+@dataclass
+class InitReport:
+    """What `initialize` did: per connected component its size, the candidates' objective values (None: the
+    candidate failed, `gtsam_failure` says why) and the one kept."""
+
+    method: str
+    objective: str
+    components: list[dict] = field(default_factory=list)
+    time_s: float = 0.0
+
+    def chosen(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for c in self.components:
+            out[c["chosen"]] = out.get(c["chosen"], 0) + 1
+        return out
+
+
+def initialize(graph: PoseGraph, method: str = "best", objective: str = "g2o") -> tuple[dict[int, np.ndarray],
+                                                                                        InitReport]:
+    """Initial poses for every key and a report. `method`: "chordal" (ours, `chordal_initialization`), "gtsam"
+    (gtsam.InitializePose3 / lago per component, ours where it fails), "best" (both; per connected component the
+    one with the lower `objective`, "g2o" or "se-sync" as in graph.formulations), "file" (the graph's poses).
+    Each component's anchor (its smallest key) keeps its pose in every case."""
+    if method not in INIT_METHODS:
+        raise InputError(f"initialisation must be one of {INIT_METHODS}, got {method!r}")
+    t0 = time.perf_counter()
+    report = InitReport(method, objective)
+    if method == "file":
+        report.time_s = time.perf_counter() - t0
+        return dict(graph.poses), report
+    ours = chordal_initialization(graph) if method in ("best", "chordal") else None
+    out = dict(graph.poses)
+    by_comp: dict[int, list[int]] = {}
+    comp_of = {}
+    components = graph.components()
+    for c in components:
+        for k in c:
+            comp_of[k] = c[0]
+    for n, e in enumerate(graph.edges):
+        by_comp.setdefault(comp_of[e.key_i], []).append(n)
+    for comp in components:
+        edges = by_comp.get(comp[0], [])
+        entry = {"anchor": comp[0], "poses": len(comp), "edges": len(edges), "errors": {}, "gtsam_failure": None}
+        cands: dict[str, dict[int, np.ndarray]] = {}
+        between = _between_graph(graph, edges) if not graph.is_2d or objective == "g2o" else None
+        if method in ("best", "gtsam") and edges:
+            try:
+                cands["gtsam"] = _gtsam_initialization(graph, comp, edges, between)
+            except (RuntimeError, ValueError) as e:  # "Indeterminant linear system", lago's noise-model check
+                entry["gtsam_failure"] = str(e).splitlines()[0][:200]
+        if ours is not None or "gtsam" not in cands:
+            if ours is None:
+                ours = chordal_initialization(graph)
+            cands["chordal"] = {k: ours[k] for k in comp}
+        score = _component_objective(graph, edges, objective, between)
+        for name, poses in cands.items():
+            entry["errors"][name] = score(poses)
+        best = min(cands, key=lambda m: (not np.isfinite(entry["errors"][m]), entry["errors"][m], m != "chordal"))
+        entry["chosen"] = best
+        out.update(cands[best])
+        report.components.append(entry)
+    report.time_s = time.perf_counter() - t0
+    return out, report
+
+
+def _between_graph(graph: PoseGraph, edges: list[int]) -> gtsam.NonlinearFactorGraph:
+    """The g2o objective's factors (graph.formulations.between_factor) of the edges `edges`."""
+    from .formulations import between_factor  # formulations does not import this module
+
+    nfg = gtsam.NonlinearFactorGraph()
+    for n in edges:
+        e = graph.edges[n]
+        nfg.add(between_factor(e.key_i, e.key_j, gtsam.Pose3(e.T_ij), e.info * e.confidence, graph.is_2d))
+    return nfg
+
+
+def _component_objective(graph: PoseGraph, edges: list[int], objective: str, between):
+    """poses -> GTSAM's error (0.5 sum of squared whitened residuals) of the edges `edges` under `objective`
+    (se-sync: 0.5 * SE-Sync's F, in NumPy; g2o: the factors `between`)."""
+    from .formulations import pose_values
+    from .metrics import se_sync_cost
+
+    sub = PoseGraph({}, [graph.edges[n] for n in edges], graph.is_2d)
+    keys = sorted({e.key_i for e in sub.edges} | {e.key_j for e in sub.edges})
+    if objective == "se-sync":
+        return lambda poses: 0.5 * se_sync_cost(sub, poses)
+    return lambda poses: float(between.error(pose_values({k: poses[k] for k in keys}, graph.is_2d)))
+
+
+def _gtsam_initialization(graph: PoseGraph, comp: list[int], edges: list[int], between) -> dict[int, np.ndarray]:
+    """GTSAM's initialiser on one component, anchored at its first key's pose: InitializePose3.initialize
+    (chordal rotations, then one Gauss-Newton step on the poses) on the factors `between` in 3D; lago.initialize
+    in 2D (diagonal noise models where the information is diagonal: lago needs them). Raises GTSAM's
+    RuntimeError / ValueError where it cannot (indeterminate system, non-diagonal noise in lago)."""
+    anchor = graph.poses[comp[0]]
+    if graph.is_2d:
+        nfg = gtsam.NonlinearFactorGraph()
+        for n in edges:
+            e = graph.edges[n]
+            sub = (e.info * e.confidence)[np.ix_([3, 4, 2], [3, 4, 2])]
+            diagonal = np.count_nonzero(sub - np.diag(np.diag(sub))) == 0
+            model = (gtsam.noiseModel.Diagonal.Precisions(np.diag(sub).copy()) if diagonal
+                     else gtsam.noiseModel.Gaussian.Information(sub))
+            nfg.add(gtsam.BetweenFactorPose2(e.key_i, e.key_j, _pose2(e.T_ij), model))
+        nfg.add(gtsam.PriorFactorPose2(comp[0], _pose2(anchor), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+        values = gtsam.lago.initialize(nfg)
+        return {k: _se2(values.atPose2(k)) for k in comp}
+    nfg = gtsam.NonlinearFactorGraph(between)
+    nfg.add(gtsam.PriorFactorPose3(comp[0], gtsam.Pose3(anchor), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    values = gtsam.InitializePose3.initialize(nfg)
+    X = gtsam.utilities.extractPose3(values)
+    out = {}
+    for k, row in zip(sorted(comp), X[_sorted_positions(values, comp)]):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = row[:9].reshape(3, 3), row[9:]
+        out[k] = T
+    return out
+
+
+def _sorted_positions(values: gtsam.Values, comp: list[int]) -> np.ndarray:
+    """Rows of extractPose3(values) (Values' key order) holding the sorted keys `comp`."""
+    keys = np.array(values.keys(), dtype=np.uint64)
+    order = np.argsort(keys)
+    return order[np.searchsorted(keys[order], np.array(sorted(comp), dtype=np.uint64))]
+
+
+def _pose2(T: np.ndarray) -> gtsam.Pose2:
+    return gtsam.Pose2(T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0]))
+
+
+def _se2(p: gtsam.Pose2) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(p.theta()), np.sin(p.theta())
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = [p.x(), p.y()]
+    return T

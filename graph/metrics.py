@@ -4,21 +4,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from .init import isotropic_weights
+from .information import se_sync_weights
 from .pose_graph import PoseGraph
 
 
 def se_sync_cost(graph: PoseGraph, poses: dict[int, np.ndarray]) -> float:
     """SE-Sync's objective F = sum kappa ||R_j - R_i Rt_ij||_F^2 + tau ||t_j - t_i - R_i tt_ij||^2 (the formula
-    and kappa/tau of the SE-Sync data's PROVENANCE). Not GTSAM's error: compare with published SE-Sync optima."""
-    total = 0.0
-    for e in graph.edges:
-        kappa, tau = isotropic_weights(e.info * e.confidence, graph.is_2d)
-        Ti, Tj = poses[e.key_i], poses[e.key_j]
-        Ri, Rj = Ti[:3, :3], Tj[:3, :3]
-        total += kappa * np.sum((Rj - Ri @ e.T_ij[:3, :3]) ** 2)
-        total += tau * np.sum((Tj[:3, 3] - Ti[:3, 3] - Ri @ e.T_ij[:3, 3]) ** 2)
-    return float(total)
+    and kappa/tau of the SE-Sync data's PROVENANCE; graph.information.se_sync_weights). Not GTSAM's error: compare
+    with published SE-Sync optima."""
+    if not graph.edges:
+        return 0.0
+    w = se_sync_weights(graph.edges, graph.is_2d)
+    Ti = np.stack([poses[e.key_i] for e in graph.edges])
+    Tj = np.stack([poses[e.key_j] for e in graph.edges])
+    Tm = np.stack([e.T_ij for e in graph.edges])
+    dR = Tj[:, :3, :3] - Ti[:, :3, :3] @ Tm[:, :3, :3]
+    dt = Tj[:, :3, 3] - Ti[:, :3, 3] - np.einsum("eab,eb->ea", Ti[:, :3, :3], Tm[:, :3, 3])
+    return float(np.sum(w[:, 0] * np.einsum("eab,eab->e", dR, dR)) + np.sum(w[:, 1] * np.einsum("ea,ea->e", dt, dt)))
 
 
 def ate(poses: dict[int, np.ndarray], gt: dict[int, np.ndarray]) -> tuple[float, float]:

@@ -59,6 +59,8 @@ class Edge:
     confidence: float = 1.0  # p of eq. 2; the built factor's information is p * info
     odom_scale: float | None = None  # eq. 6 scale: |t_odom metric| / |t_odom network|, for up_to_scale loops
     source: str = ""  # "file:line" the edge came from, for messages
+    info_raw: np.ndarray | None = None  # the file's matrix where `info` replaced a non-positive-definite one
+    info_policy: str = ""  # "" (as read), "repair" or "isotropic": the graph.information rule that made `info`
 
     @property
     def inter_robot(self) -> bool:

@@ -61,6 +61,7 @@ class SolveResult:
     weights: dict[int, float] = field(default_factory=dict)  # loop edge index -> GNC weight
     rejected: list[int] = field(default_factory=list)  # loop edge indices GNC rejected (weight < 0.5)
     gnc_iterations: int = 0
+    converged: bool = True  # False: LM stopped at max_iterations before its tolerances were met
 
 
 # ------------------------------------------------------------------------------------------- scale term
@@ -116,15 +117,29 @@ class _ScaleTerm:
 # ------------------------------------------------------------------------------------------- LM
 def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = None,
                         initial: gtsam.Values | None = None, max_iterations: int = 100,
-                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5, loops: str = "numpy") -> SolveResult:
+                        relative_tol: float = 1e-5, absolute_tol: float = 1e-5, loops: str = "numpy",
+                        newton: bool | None = None) -> SolveResult:
     """Solve `problem` (loops weighted by `weights`, edge index -> w, default 1) from `initial` (default: the
     problem's). GTSAM's C++ LM when every factor is built-in, `_python_lm` otherwise, with the up-to-scale
-    loops evaluated in NumPy (`loops="numpy"`) or as gtsam.CustomFactors (`loops="custom"`)."""
+    loops evaluated in NumPy (`loops="numpy"`) or as gtsam.CustomFactors (`loops="custom"`). A 3D problem with
+    the se-sync objective runs graph.newton's Newton/GN steps instead (`newton=None`: whenever it applies;
+    False: GTSAM's LM). Tolerances: GTSAM's relative / absolute decrease tests (its defaults 1e-5)."""
     if loops not in ("numpy", "custom"):
         raise InputError(f"loops must be 'numpy' or 'custom', got {loops!r}")
     t0 = time.perf_counter()
     values = problem.initial if initial is None else initial
     graph = problem.builtin_graph(weights)
+    use_newton = problem.objective == "se-sync" and not problem.is_2d and problem.scale_loops is None
+    if newton and not use_newton:
+        raise InputError("newton steps need a 3D problem with the se-sync objective and no scale variables")
+    if use_newton and newton is not False:
+        from .newton import newton_lm
+
+        result, iters, e0, e1, ok = newton_lm(problem, graph, values, weights, max_iterations, relative_tol,
+                                              absolute_tol)
+        res = _result(problem, result, iters, e0, e1, t0, "lm")
+        res.converged = ok
+        return res
     if problem.scale_loops is None:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
@@ -133,14 +148,18 @@ def levenberg_marquardt(problem: Problem, *, weights: dict[int, float] | None = 
         e0 = graph.error(values)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         result = opt.optimize()
-        return _result(problem, result, opt.iterations(), e0, graph.error(result), t0, "lm")
+        res = _result(problem, result, opt.iterations(), e0, graph.error(result), t0, "lm")
+        res.converged = opt.iterations() < max_iterations
+        return res
     term = _ScaleTerm(problem, weights)
     if loops == "custom":
         graph.push_back(custom_loop_factors(problem, weights))
     dims = [(int(k), 1) for k in term.scale_keys] + [(int(k), 6) for k in term.pose_keys]
     result, iters, e0, e1 = _python_lm(graph, term if loops == "numpy" else None, term.scale_keys, dims, values,
                                        max_iterations, relative_tol, absolute_tol)
-    return _result(problem, result, iters, e0, e1, t0, "lm")
+    res = _result(problem, result, iters, e0, e1, t0, "lm")
+    res.converged = iters < max_iterations
+    return res
 
 
 def custom_loop_factors(problem: Problem, weights: dict[int, float] | None = None) -> gtsam.NonlinearFactorGraph:
@@ -261,22 +280,18 @@ def _clamp_scales(values: gtsam.Values, keys: list[int]) -> list[int]:
 
 
 def _result(problem: Problem, values: gtsam.Values, iters: int, e0: float, e1: float, t0: float, solver: str):
+    keys = problem.graph.keys()
+    T = np.tile(np.eye(4), (len(keys), 1, 1))
     if problem.is_2d:
         X = gtsam.utilities.extractPose2(values)
-        poses = {}
-        for k, (x, y, th) in zip(problem.graph.keys(), X):
-            T = np.eye(4)
-            T[:2, :2] = [[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]
-            T[:2, 3] = [x, y]
-            poses[k] = T
+        c, s_ = np.cos(X[:, 2]), np.sin(X[:, 2])
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s_, s_, c
+        T[:, :2, 3] = X[:, :2]
     else:
         X = gtsam.utilities.extractPose3(values)
-        poses = {}
-        for k, row in zip(problem.graph.keys(), X):
-            T = np.eye(4)
-            T[:3, :3] = row[:9].reshape(3, 3)
-            T[:3, 3] = row[9:]
-            poses[k] = T
+        T[:, :3, :3] = X[:, :9].reshape(-1, 3, 3)
+        T[:, :3, 3] = X[:, 9:]
+    poses = dict(zip(keys, T))
     scales = {}
     if problem.scale_loops is not None:
         for n, k in zip(problem.scale_loops.edge, problem.scale_loops.key_s):
@@ -299,7 +314,7 @@ def loop_costs(problem: Problem, values: gtsam.Values) -> dict[int, float]:
 
 
 def _single(problem: Problem, lf):
-    return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d)
+    return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d, problem.objective)
 
 
 def gnc(problem: Problem, *, inlier_cost: float | None = None, probability: float = 0.99, mu_step: float = 1.4,

@@ -20,6 +20,7 @@ SUBJECTS = {
     "raster": "perf.raster",
     "icp": "perf.icp",
     "graph": "perf.graph",
+    "graph-benchmarks": "perf.graph_benchmarks",
     "frontend": "perf.frontend",
     "slam": "perf.slam",
     "fig5": "perf.flocc_fig5",

@@ -1,12 +1,20 @@
-"""`swarmsplat graph solve IN.g2o [IN2.g2o ...] --out OUT.g2o [--solver lm|gnc] [--init file|chordal]`.
+"""`swarmsplat graph solve IN.g2o [IN2.g2o ...] --out OUT.g2o [--solver lm|gnc] [--init best|chordal|gtsam|file]
+[--objective g2o|se-sync] [--information repair|isotropic|strict] [--json OUT.json]`.
 
-Reads one or more g2o files (several robots' files are merged, edges present in two files kept once), solves
-the pose graph with Levenberg–Marquardt or GNC, writes the optimised graph as g2o (atomically) and prints the
-initial and final error (GTSAM's 0.5 * sum of squared whitened residuals) and, for GNC, the rejected loops.
-A 2D (SE2) input is written back as 3D g2o (z, roll and pitch 0).
+Reads one or more g2o files (several robots' files are merged, edges present in two files kept once), replaces
+information matrices that are not positive definite by the `--information` policy (graph.information; one
+warning line counts them; `strict` refuses the file), initialises every connected component (default `best`:
+GTSAM's InitializePose3 and our chordal initialisation, the one with the lower objective kept; ours where
+GTSAM's fails), solves with Levenberg–Marquardt (GTSAM's, its default tolerances unless tighter ones are given)
+or GNC, and writes the optimised graph as g2o (atomically) plus a JSON summary (default: OUT with suffix .json).
+Printed and in the JSON: initial and final error (GTSAM's 0.5 * sum of squared whitened residuals of the chosen
+objective), LM iterations and whether the tolerances were met, SE-Sync's cost F of the result, times. A 2D (SE2)
+input is written back as 3D g2o (z, roll and pitch 0).
 """
 
 from __future__ import annotations
+
+import sys
 
 
 def register(sub) -> None:
@@ -15,39 +23,104 @@ def register(sub) -> None:
     s = gsub.add_parser("solve", help="optimise a g2o pose graph and write the result")
     s.add_argument("inputs", nargs="+", metavar="IN.g2o", help="g2o file(s); several are merged (one per robot)")
     s.add_argument("--out", required=True, help="output g2o file")
+    s.add_argument("--json", default=None, metavar="OUT.json", help="summary JSON (default: --out with .json)")
     s.add_argument("--solver", choices=["lm", "gnc"], default="lm", help="Levenberg-Marquardt or GNC (TLS)")
-    s.add_argument("--init", choices=["file", "chordal"], default="file",
-                   help="start from the file's vertices or from a chordal initialisation (default: file)")
+    s.add_argument("--init", choices=["best", "chordal", "gtsam", "file"], default="best",
+                   help="initial poses per connected component: the better of GTSAM's InitializePose3 and our "
+                        "chordal initialisation (best, default), one of them, or the file's vertices")
+    s.add_argument("--objective", choices=["g2o", "se-sync"], default="g2o",
+                   help="g2o: full information matrices, geodesic error (GTSAM's, default); se-sync: SE-Sync's "
+                        "chordal cost with isotropic weights (reaches SE-Sync's published optima)")
+    s.add_argument("--information", choices=["repair", "isotropic", "strict"], default="repair",
+                   help="non-positive-definite information matrices: the nearest positive-definite matrix where "
+                        "that changes it by <= 5%%, else SE-Sync's isotropic weights of its diagonal blocks (repair, "
+                        "default); the isotropic weights always (isotropic); or refuse the file (strict)")
     s.add_argument("--gnc-probability", type=float, default=0.99,
                    help="GNC inlier threshold as a chi-square probability (default 0.99)")
-    s.add_argument("--max-iterations", type=int, default=100)
+    s.add_argument("--max-iterations", type=int, default=500, help="LM iterations at most (default 500)")
+    s.add_argument("--relative-tol", type=float, default=1e-5, help="LM relative decrease tolerance (GTSAM: 1e-5)")
+    s.add_argument("--absolute-tol", type=float, default=1e-5, help="LM absolute decrease tolerance (GTSAM: 1e-5)")
     s.set_defaults(func=run)
 
 
 def run(args) -> int:
+    import json
+    import time
+    from pathlib import Path
+
     from graph.formulations import build_problem
-    from graph.g2o import read_g2o, write_g2o
-    from graph.init import chordal_initialization
+    from graph.g2o import read_g2o, repaired_edges, write_g2o
+    from graph.init import initialize
+    from graph.metrics import se_sync_cost
     from graph.pose_graph import key_str
     from graph.solvers import gnc, levenberg_marquardt
+    from kernels.errors import InputError
+    from kernels.fileio import atomic_write_text
 
-    graph = read_g2o(args.inputs[0])
+    if args.max_iterations < 1 or not (args.relative_tol > 0 and args.absolute_tol > 0):
+        raise InputError("--max-iterations must be >= 1 and the tolerances > 0")
+    if args.relative_tol > 1e-5 or args.absolute_tol > 1e-5:
+        print("warning: tolerances looser than GTSAM's defaults (1e-5): LM may stop short of the minimum",
+              file=sys.stderr)
+    t_start = time.perf_counter()
+    graph = read_g2o(args.inputs[0], information=args.information)
     for path in args.inputs[1:]:
-        graph = graph.merged(read_g2o(path))
-    init = chordal_initialization(graph) if args.init == "chordal" else None
-    problem = build_problem(graph, "base", initial_poses=init)
+        graph = graph.merged(read_g2o(path, information=args.information))
+    fixed = repaired_edges(graph)
+    n_fixed = sum(fixed.values())
+    if n_fixed:
+        how = ", ".join(f"{n} {'nearest positive-definite' if k == 'repair' else 'isotropic'}"
+                        for k, n in sorted(fixed.items()))
+        print(f"warning: {n_fixed} of {len(graph.edges) + len(graph.pending)} edges have an information matrix that "
+              f"is not positive definite; replaced ({how}; --information strict refuses them)", file=sys.stderr)
+    poses, init = initialize(graph, args.init, args.objective)
+    problem = build_problem(graph, "base", initial_poses=poses, objective=args.objective)
+    lm = dict(max_iterations=args.max_iterations, relative_tol=args.relative_tol, absolute_tol=args.absolute_tol)
     if args.solver == "gnc":
         res = gnc(problem, probability=args.gnc_probability, lm_max_iterations=args.max_iterations)
     else:
-        res = levenberg_marquardt(problem, max_iterations=args.max_iterations)
-    write_g2o(graph, args.out, res.poses)
+        res = levenberg_marquardt(problem, **lm)
+    out = write_g2o(graph, args.out, res.poses)
+    F = se_sync_cost(graph, res.poses)
+    total = time.perf_counter() - t_start
+    chosen = ", ".join(f"{m} {n}" for m, n in sorted(init.chosen().items()))
     print(f"poses {len(graph.poses)}  edges {len(graph.edges)}  loops {len(graph.loops())}  "
           f"components {len(graph.components())}")
-    print(f"solver {res.solver}  iterations {res.iterations}  time {res.time_s:.3f} s")
+    print(f"information {args.information}  replaced {n_fixed}")
+    print(f"init {args.init}  components initialised by: {chosen or 'file'}  time {init.time_s:.3f} s")
+    for c in init.components[:5]:
+        errs = "  ".join(f"{m} {v:.9g}" for m, v in c["errors"].items())
+        fail = f"  (gtsam failed: {c['gtsam_failure']})" if c["gtsam_failure"] else ""
+        print(f"  component at {key_str(c['anchor'])}: {c['poses']} poses, initial {args.objective} error {errs}"
+              f" -> {c['chosen']}{fail}")
+    print(f"solver {res.solver}  objective {args.objective}  iterations {res.iterations}  "
+          f"converged {'yes' if res.converged else 'no'}  time {res.time_s:.3f} s")
     print(f"initial error {res.initial_error:.9g}")
     print(f"final error {res.final_error:.9g}")
+    print(f"se-sync cost {F:.9g}")
+    if not res.converged:
+        print(f"warning: LM stopped at --max-iterations {args.max_iterations} before meeting its tolerances",
+              file=sys.stderr)
     if args.solver == "gnc":
         names = ", ".join(f"{key_str(graph.edges[n].key_i)}-{key_str(graph.edges[n].key_j)}" for n in res.rejected)
         print(f"rejected loops {len(res.rejected)}" + (f": {names}" if names else ""))
-    print(f"wrote {args.out}")
+    summary = {
+        "inputs": [str(p) for p in args.inputs], "out": str(out), "poses": len(graph.poses),
+        "edges": len(graph.edges), "loops": len(graph.loops()), "components": len(graph.components()),
+        "information": {"policy": args.information, "replaced": n_fixed, "by_rule": fixed},
+        "init": {"method": args.init, "chosen": init.chosen(), "time_s": init.time_s,
+                 "components": init.components},
+        "solver": res.solver, "objective": args.objective, "iterations": res.iterations, "converged": res.converged,
+        "relative_tol": args.relative_tol, "absolute_tol": args.absolute_tol, "max_iterations": args.max_iterations,
+        "initial_error": res.initial_error, "final_error": res.final_error, "se_sync_cost": F,
+        "solve_time_s": res.time_s, "total_time_s": total,
+    }
+    if args.solver == "gnc":
+        summary["rejected_loops"] = [[key_str(graph.edges[n].key_i), key_str(graph.edges[n].key_j)]
+                                     for n in res.rejected]
+    js = Path(args.json) if args.json else Path(out).with_suffix(".json")
+    if js.resolve() == Path(out).resolve():
+        js = Path(str(out) + ".json")
+    atomic_write_text(js, json.dumps(summary, indent=1, default=float) + "\n")
+    print(f"wrote {args.out}, {js}")
     return 0
