@@ -24,6 +24,7 @@ SUBJECTS = {
     "frontend": "perf.frontend",
     "slam": "perf.slam",
     "fig5": "perf.flocc_fig5",
+    "loops-real": "perf.loops_real",
 }
 
 

@@ -152,6 +152,13 @@ class Agent:
         T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ p.T_local_cam for p in self.poses])
         return np.array([p.timestamp for p in self.poses]), T
 
+    def trajectory_no_lc(self) -> tuple[np.ndarray, np.ndarray]:
+        """The same frames as `trajectory`, placed as tracking alone places them (loop closures left out)."""
+        if not self.poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        T = np.stack([self.gmap.submaps[p.submap_id].T_world_local_no_lc @ p.T_local_cam for p in self.poses])
+        return np.array([p.timestamp for p in self.poses]), T
+
     def keyframe_world_poses(self) -> np.ndarray:
         return np.stack([world_pose(self.gmap, k) for k in self.keyframes]) if self.keyframes else np.zeros((0, 4, 4))
 

@@ -159,6 +159,9 @@ class Submap:
     T_world_local: np.ndarray  # [4, 4]
     params: GaussianParams
     keyframe_ids: list[int] = field(default_factory=list)
+    # Where the frame would be without loop closure: the previous submap's tracking-only frame composed with this
+    # frame's offset from it at creation (pure tracking). Loop closure never changes it.
+    T_world_local_no_lc: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.params)
@@ -187,11 +190,13 @@ class GaussianMap:
     def new_submap(self, T_world_local: np.ndarray) -> Submap:
         """Start a new (empty) active submap whose local frame is T_world_local; the previous one is frozen
         (its tensors are detached, so it holds no optimiser state or graph)."""
+        T = se3.project_rigid(T_world_local)
+        T_no_lc = T
         if self.submaps:
             prev = self.submaps[-1]
             prev.params = prev.params.detached()
-        s = Submap(len(self.submaps), se3.project_rigid(T_world_local),
-                   GaussianParams.empty(self.device))
+            T_no_lc = se3.project_rigid(prev.T_world_local_no_lc @ se3.inverse(prev.T_world_local) @ T)
+        s = Submap(len(self.submaps), T, GaussianParams.empty(self.device), T_world_local_no_lc=T_no_lc)
         self.submaps.append(s)
         return s
 

@@ -55,8 +55,14 @@ def render_report(m: dict, files: set[str] | None = None) -> str:
         n1 = sum(a["ate_rmse"] for a in vals) / len(vals)
         L.append(f"| **mean** | | | {_cm(n0)} | {_cm(n1)} | |")
     if m.get("ate_rmse_team") is not None:
-        L += ["", f"Team ATE of the agents in the global frame under **one** alignment: "
-                  f"**{_cm(m['ate_rmse_team'])} cm**."]
+        over = m.get("ate_rmse_team_agents") or []
+        left = m.get("unjoined_agents") or []
+        L += ["", f"Team ATE of the agents in the global frame ({', '.join(over) or 'agent 0'}) under **one** "
+                  f"alignment: **{_cm(m['ate_rmse_team'])} cm**."
+              + (f" **Not joined** (own frame, not in this figure): {', '.join(left)}." if left else
+                 " Every agent joined the global frame.")]
+    elif m.get("unjoined_agents"):
+        L += ["", f"No team ATE: not joined: {', '.join(m['unjoined_agents'])}."]
     L.append("")
     for fig, cap in (("trajectory.png", "With loop closures"), ("trajectory_no_lc.png", "Tracking only")):
         if fig in files:

@@ -66,8 +66,10 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
     from .ply import save_ply
 
     stamps, T_est = agent.trajectory()
+    _, T_no_lc = agent.trajectory_no_lc()
     if len(stamps):
         write_tum(out / "trajectory.txt", stamps, T_est)
+        write_tum(out / "trajectory_no_lc.txt", stamps, T_no_lc)
     save_ply(out / "map.ply", agent.gmap.merged())
     _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
     t = agent.time
@@ -89,12 +91,14 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
         "kernels": agent.cfg.kernels.model_dump(),
     }
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
+    if metrics.get("ate_rmse") is not None:  # the same run's tracking-only trajectory, aligned the same way
+        metrics["ate_rmse_no_lc"] = _trajectory_metrics(seq, stamps, T_no_lc, None)["ate_rmse"]
     metrics.update(_render_metrics(agent, seq))
     write_json(out / "metrics.json", metrics)
     return metrics
 
 
-def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path) -> dict:
+def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path | None) -> dict:
     from .metrics import ate
     from .plots import plot_trajectories
 
@@ -110,6 +114,8 @@ def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path) -
         align = "first_pose"
         g0 = gt[ok][int(np.argmin(np.abs(seq.timestamps[ok] - stamps[0])))]
         res = ate(seq.timestamps[ok], gt[ok], stamps, g0 @ np.linalg.inv(T_est[0]) @ T_est, align="none", max_diff=1e-3)
+    if out is None:
+        return {"ate_rmse": res.rmse}
     plot_trajectories(out / "trajectory.png", {seq.name: res.pairs.T_gt[:, :3, 3]},
                       {seq.name: res.T_est_aligned[:, :3, 3]}, errors={seq.name: res.errors},
                       title=f"{seq.name}: ATE RMSE {100 * res.rmse:.2f} cm")

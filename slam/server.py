@@ -110,6 +110,8 @@ class Server:
         t1 = time.perf_counter()
         if self.cfg.inter_loops:
             new += [self.verify_inter(a, kf, b, m, sim, step) for b, m, sim in self.inter_candidates(a, kf, step)]
+            new += [self.verify_inter(a, kf, b, m, sim, step, source="pose")
+                    for b, m, sim in self.inter_pose_candidates(a, kf, step)]
         t2 = time.perf_counter()
         self.time["intra"] += t1 - t0
         self.time["inter"] += t2 - t1
@@ -156,11 +158,49 @@ class Server:
                 "similarity", f"similarity {s:.3f} < tau_sim {self.cfg.tau_sim}"))
         return out
 
+    def inter_pose_candidates(self, a: int, kf: Keyframe, step: int = 0) -> list[tuple[int, Keyframe, float]]:
+        """Once agents share a frame, their poses propose candidates too (as intra-agent ones, eq. 6): keyframes
+        of the other agents of a's component near kf's pose, by view overlap; loop_closure.pose_top_k of them,
+        skipping those the descriptor already proposed."""
+        from .loop_closure import view_overlap
+
+        lc = self.slots[a].agent.cfg.loop_closure
+        if lc.candidates == "descriptor" or lc.pose_top_k == 0:
+            return []
+        T_q = self.global_pose(a, kf)
+        taken = {(r.match_agent, r.match_kf) for r in self.records[-2 * self.cfg.top_k:]
+                 if r.kind == INTER and r.query_agent == self.slots[a].agent.name and r.query_kf == kf.id}
+        near = []
+        for b, slot in enumerate(self.slots):
+            if b == a or slot.component != self.slots[a].component:
+                continue
+            for m in slot.agent.keyframes:
+                if (slot.agent.name, m.id) in taken:
+                    continue
+                T_mq = se3.inverse(self.global_pose(b, m)) @ T_q
+                if (np.linalg.norm(T_mq[:3, 3]) > lc.pose_max_distance
+                        or np.degrees(se3.rotation_angle(T_mq[:3, :3])) > lc.pose_max_angle_deg):
+                    continue
+                near.append((view_overlap(kf.small, m.small, T_mq), b, m))
+        near.sort(key=lambda s: -s[0])
+        out = []
+        for ov, b, m in near[: lc.pose_top_k]:
+            d, e = self.descriptors.get((a, kf.id)), self.descriptors.get((b, m.id))
+            sim = float(np.dot(d, e)) if d is not None and e is not None else float("nan")
+            if ov < lc.pose_min_overlap:
+                rec = self._record(a, kf, b, m, sim, step)
+                rec.source = "pose"
+                self.records.append(rec.reject("overlap", f"overlap {ov:.2f} < pose_min_overlap {lc.pose_min_overlap}"))
+                continue
+            out.append((b, m, sim))
+        return out
+
     def _record(self, a: int, q: Keyframe, b: int, m: Keyframe, sim: float, step: int) -> LoopRecord:
         return LoopRecord(INTER, self.slots[a].agent.name, q.id, q.frame_index, self.slots[b].agent.name, m.id,
                           m.frame_index, float(sim), step=step)
 
-    def verify_inter(self, a: int, q: Keyframe, b: int, m: Keyframe, sim: float, step: int = 0) -> LoopRecord:
+    def verify_inter(self, a: int, q: Keyframe, b: int, m: Keyframe, sim: float, step: int = 0, *,
+                     source: str = "descriptor") -> LoopRecord:
         """Register agent a's keyframe q (source) to agent b's keyframe m (target): coarse RGB-D, then ICP, then
         the fitness / RMSE gates. Agents already in one frame start from their current relative pose (eq. 6) and
         must also pass the correction gate; agents in different frames start from identity with the FPFH + RANSAC
@@ -169,6 +209,7 @@ class Server:
 
         lc = self.slots[a].agent.cfg.loop_closure
         rec = self._record(a, q, b, m, sim, step)
+        rec.source = source
         self.records.append(rec)
         same = self.slots[a].component == self.slots[b].component
         T_init = _rigid(se3.inverse(self.global_pose(b, m)) @ self.global_pose(a, q)) if same else np.eye(4)

@@ -93,7 +93,11 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
     summary = summarise(srv.records)
     metrics = {
         "dataset": str(ds.root), "dataset_name": ds.name, "agents": agents,
-        "ate_rmse_team": traj["team"], "psnr": render["psnr"], "ssim": render["ssim"],
+        "ate_rmse_team": traj["team"], "ate_rmse_team_agents": traj["team_agents"],
+        "joined_agents": [names[a] for a in comps.get(0, [])],
+        "unjoined_agents": [names[a] for a in range(len(names)) if srv.slots[a].component != 0],
+        "all_agents_joined": all(srv.slots[a].component == 0 for a in range(len(names))),
+        "psnr": render["psnr"], "ssim": render["ssim"],
         "depth_l1": render["depth_l1"], "render_views": render["views"],
         "psnr_novel": render["psnr_novel"], "ssim_novel": render["ssim_novel"], "novel_views": render["novel_views"],
         "psnr_before_refine": before.get("psnr"), "ssim_before_refine": before.get("ssim"),
@@ -104,6 +108,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "gaussians": sum(len(ag.gmap) for ag in team.agents),
         "loops": summary, "loops_accepted": summary["intra"]["accepted"] + summary["inter"]["accepted"],
         "loop_candidates": len(srv.records), "pose_graph_optimisations": srv.optimisations,
+        "pose_graph_not_applied": srv.not_applied,
         "time_s": {"wall": wall_s, "cpu": cpu_s, "server": dict(srv.time),
                    "evaluation": time.perf_counter() - t_eval},
         "kernels": team.cfg.kernels.model_dump(), "run": run_info or {},
@@ -165,7 +170,7 @@ def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict
         plot_trajectories(out / "trajectory.png", gt_pos, est_pos, errors=errs, title=title)
         plot_trajectories(out / "trajectory_no_lc.png", {n: gt_pos[n] for n in nolc_pos}, nolc_pos, errors=nolc_err,
                           title="tracking only (each agent aligned on its own)")
-    return {"agents": per, "team": team_rmse}
+    return {"agents": per, "team": team_rmse, "team_agents": members if team_rmse is not None else []}
 
 
 def _spread(items: list, n: int) -> list:

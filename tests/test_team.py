@@ -60,6 +60,8 @@ def test_two_agents_end_to_end(split_run):
     assert accepted[0]["joined"] == "True"
     assert saved["components"] == {"agent_0": ["agent_0", "agent_1"]}
     assert all(a["in_global_frame"] for a in saved["agents"])
+    assert saved["joined_agents"] == ["agent_0", "agent_1"] and saved["unjoined_agents"] == []
+    assert saved["all_agents_joined"] and saved["ate_rmse_team_agents"] == ["agent_0", "agent_1"]
     # One map in one frame: the team ATE under one alignment is small, so the join put agent 1 where it belongs.
     assert saved["ate_rmse_team"] is not None and saved["ate_rmse_team"] < 0.05
     for a in saved["agents"]:
@@ -105,6 +107,19 @@ def test_disjoint_agents_never_merged(disjoint_team):
     assert srv.components() == {0: [0], 1: [1]}
     assert np.allclose(srv.slots[1].T_global_world, np.eye(4))
     assert len(srv.merged_map(0)) == len(team.agents[0].gmap)
+
+
+def test_team_figures_say_who_joined(disjoint_team, tmp_path):
+    """Agents that never joined: the team ATE names the agents it covers and the report says who is left out."""
+    from slam.team_results import write_team_results
+
+    team, seqs = disjoint_team
+    ds = MultiAgentDataset(tmp_path, seqs, "disjoint")
+    m = write_team_results(team, ds, tmp_path, wall_s=1.0, cpu_s=1.0, render_views=1)
+    assert m["joined_agents"] == ["agent_0"] and m["unjoined_agents"] == ["agent_1"]
+    assert not m["all_agents_joined"]
+    assert m["ate_rmse_team"] is None or m["ate_rmse_team_agents"] == ["agent_0"]
+    assert "Not joined" in (tmp_path / "report.md").read_text() or "not joined" in (tmp_path / "report.md").read_text()
 
 
 def test_injected_false_inter_candidate_rejected_by_gates(disjoint_team):

@@ -28,7 +28,8 @@ def run(args) -> int:
 
     m = run_demo(args.out, preset=args.preset, kernels=args.kernels, device=args.device, seed=args.seed,
                  progress=not args.quiet)
-    keys = ["ate_rmse_team", "psnr", "ssim", "depth_l1", "loops_accepted", "loop_candidates"]
+    keys = ["ate_rmse_team", "ate_rmse_team_agents", "joined_agents", "unjoined_agents", "psnr", "ssim", "depth_l1",
+            "loops_accepted", "loop_candidates"]
     summary = {k: m.get(k) for k in keys}
     summary["agents"] = {a["name"]: {"ate_rmse": a.get("ate_rmse"), "ate_rmse_no_lc": a.get("ate_rmse_no_lc")}
                          for a in m["agents"]}

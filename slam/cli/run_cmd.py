@@ -65,7 +65,9 @@ def run(args) -> int:
         keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
             "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],
-            "ate_rmse_team": m.get("ate_rmse_team"), "psnr": m.get("psnr"), "loops_accepted": m.get("loops_accepted"),
+            "ate_rmse_team": m.get("ate_rmse_team"), "ate_rmse_team_agents": m.get("ate_rmse_team_agents"),
+            "joined_agents": m.get("joined_agents"), "unjoined_agents": m.get("unjoined_agents"),
+            "psnr": m.get("psnr"), "loops_accepted": m.get("loops_accepted"),
             "loops": {kind: m.get("loops", {}).get(kind) for kind in ("intra", "inter")},
         }
         print(json.dumps(summary, indent=1))
