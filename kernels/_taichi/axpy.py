@@ -12,6 +12,6 @@ def _axpy(a: ti.f32, x: ti.types.ndarray(dtype=ti.f32, ndim=1), y: ti.types.ndar
 
 def axpy(a: float, x: torch.Tensor, y: torch.Tensor, device: str) -> torch.Tensor:
     _axpy(float(a), x, y)
-    if device == "cuda":
+    if device != "cpu":
         ti.sync()
     return y
