@@ -3,6 +3,8 @@
 import torch
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # forward only: no adjoint kernel to compile
+
 
 @wp.kernel
 def _axpy(a: wp.float32, x: wp.array(dtype=wp.float32), y: wp.array(dtype=wp.float32)):

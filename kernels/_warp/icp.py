@@ -315,6 +315,13 @@ def _reduce_kernel(projective: bool, photo: bool):
     return _REDUCE[key]
 
 
+def aot_kernels() -> dict:
+    """label -> kernel for the factory-made kernels (each its own Warp module), for ahead-of-time builds
+    (perf/gpu_codegen.py)."""
+    return {f"_reduce[{'projective' if p else 'idx'}{'+photo' if ph else ''}]": _reduce_kernel(p, ph)
+            for p in (False, True) for ph in (False, True)}
+
+
 def _mat(T: torch.Tensor) -> wp.mat44:
     """A [4, 4] pose as a kernel argument by value (kept in registers instead of re-read per point)."""
     return wp.mat44(*T.detach().cpu().reshape(-1).tolist())
