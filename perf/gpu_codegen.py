@@ -3,8 +3,9 @@
 `python -m perf.gpu_codegen [--arch 86 87] [--json OUT] [--md OUT]` builds every Warp module of kernels/_warp/
 with Warp's bundled NVRTC for each architecture (no GPU or driver needed: `wp.compile_aot_module`) and reads
 from each cubin, per kernel: registers per thread, stack frame (local memory: spills and local arrays, bytes per
-thread) and static shared memory; from those, the occupancy of a Warp launch (256 threads per block) on an
-sm_86 / sm_87 multiprocessor. tests/test_gpu_codegen.py builds the same modules; docs/gpu.md has the table.
+thread) and static shared memory; from those, the occupancy of its launch (256 threads per block, Warp's
+default, unless the kernel's file lists another in `GPU_BLOCKS = {kernel name: threads}`) on an sm_86 / sm_87
+multiprocessor. tests/test_gpu_codegen.py builds the same modules; docs/gpu.md has the table.
 
 Modules: the module of every wp.Kernel defined in a kernels/_warp/*.py file, plus kernels made by factories,
 which a file lists with a function `aot_kernels()` -> {label: kernel} (kernels/_warp/icp.py: the four reduction
@@ -45,15 +46,18 @@ def warp_modules() -> dict:
     found: dict = {}
     for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
         mod = importlib.import_module(f"{pkg.__name__}.{info.name}")
-        for k in (v for v in vars(mod).values() if isinstance(v, wp.Kernel)):
-            found.setdefault(k.module.name, k.module)
+        kernels = [v for v in vars(mod).values() if isinstance(v, wp.Kernel)]
         for label, k in getattr(mod, "aot_kernels", dict)().items():
-            found.setdefault(k.module.name, k.module)
             LABELS[k.module.name] = f"{info.name}.{label}"
+            kernels.append(k)
+        for k in kernels:
+            found.setdefault(k.module.name, k.module)
+            BLOCKS[k.module.name] = getattr(mod, "GPU_BLOCKS", {})
     return found
 
 
 LABELS: dict = {}  # module name -> label of a factory-made kernel module
+BLOCKS: dict = {}  # module name -> {kernel name: CUDA threads per block} of the file that defines it
 
 
 def build(module, arch: int, out_dir: str | Path) -> Path:
@@ -145,20 +149,21 @@ def run(archs=ARCHS) -> dict:
                     continue
                 secs = time.perf_counter() - t0
                 for sym, res in sorted(cubin_resources(cubin.read_bytes()).items()):
-                    rows.append({"module": name, "kernel": kernel_label(name, sym), "arch": f"sm_{arch}",
-                                 **res, "occupancy": round(occupancy(res["registers"]), 3),
-                                 "build_s": round(secs, 2)})
+                    label = kernel_label(name, sym)
+                    block = BLOCKS.get(name, {}).get(label.split(".", 1)[1].split("[")[0], WARP_BLOCK)
+                    rows.append({"module": name, "kernel": label, "arch": f"sm_{arch}", **res, "block": block,
+                                 "occupancy": round(occupancy(res["registers"], block), 3), "build_s": round(secs, 2)})
     return {"modules": sorted(mods), "archs": list(archs), "rows": rows, "failures": failures}
 
 
 def markdown(res: dict) -> str:
-    lines = ["| kernel | arch | registers | stack frame (B) | shared (B) | occupancy at 256 threads/block |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| kernel | arch | registers | stack frame (B) | shared (B) | threads/block | occupancy |",
+             "|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         lines.append(f"| {r['kernel']} | {r['arch']} | {r['registers']} | {r['frame_bytes']} | {r['shared_bytes']} "
-                     f"| {r['occupancy']:.0%} |")
+                     f"| {r['block']} | {r['occupancy']:.0%} |")
     for f in res["failures"]:
-        lines.append(f"| {f['module']} | sm_{f['arch']} | build failed: {f['error']} | | | |")
+        lines.append(f"| {f['module']} | sm_{f['arch']} | build failed: {f['error']} | | | | |")
     return "\n".join(lines) + "\n"
 
 

@@ -4,6 +4,7 @@ import taichi as ti
 import torch
 
 
+# GPU: one element per thread, 128 per block / workgroup.
 @ti.kernel
 def _axpy(a: ti.f32, x: ti.types.ndarray(dtype=ti.f32, ndim=1), y: ti.types.ndarray(dtype=ti.f32, ndim=1)):
     for i in range(x.shape[0]):
