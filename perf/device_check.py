@@ -68,7 +68,8 @@ def run_tests(device: str, timeout: float) -> dict:
                f"--junitxml={xml}", str(REPO / "tests")]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=timeout, env=_env())
-        res = {"command": " ".join(cmd[1:]), "returncode": proc.returncode, "seconds": round(time.perf_counter() - t0, 1)}
+        res = {"command": " ".join(cmd[1:]), "returncode": proc.returncode,
+               "seconds": round(time.perf_counter() - t0, 1)}
         if not xml.exists():
             res["error"] = (proc.stdout + proc.stderr)[-2000:]
             return res
