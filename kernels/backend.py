@@ -60,7 +60,8 @@ def _init_warp(device: str) -> None:
 
 def _quiet_fd2(fn):
     """fn() with the process's stderr (fd 2) sent to /dev/null: Taichi's C++ driver probes print "RHI Error"
-    lines for a missing Vulkan driver, which is an answer here, not an error."""
+    lines for a missing Vulkan driver, which is an answer here, not an error. (Process-wide for the ~0.1 s of
+    the probe: another thread's stderr in that window is lost too.)"""
     sys.stderr.flush()
     saved = os.dup(2)
     try:
