@@ -6,7 +6,7 @@ VPY     := $(VENV)/bin/python
 STAMP   := $(VENV)/.swarmsplat-installed
 SUDO    := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 
-.PHONY: setup demo test bench clean-venv
+.PHONY: setup demo test bench device-check clean-venv
 
 setup: $(STAMP)
 
@@ -15,6 +15,12 @@ $(STAMP): pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 		echo "installing libusb-1.0-0 (needed by open3d)"; \
 		$(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@# Taichi's Vulkan device (tests on taichi-vulkan, --device vulkan): the Vulkan loader and Mesa's drivers
+	@# (lavapipe, a software Vulkan device, where there is no GPU); install them when absent.
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1' || ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1; then \
+		echo "installing libvulkan1 and mesa-vulkan-drivers (Taichi on Vulkan)"; \
+		$(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libvulkan1 mesa-vulkan-drivers >/dev/null; \
 	fi
 	@[ -x $(VPY) ] || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
@@ -31,6 +37,12 @@ test: setup
 
 bench: setup
 	$(VPY) -m perf all --quick --json perf/results/quick.json
+
+# On a GPU machine (e.g. a Jetson): the suite's cases for DEVICE and a quick benchmark of every perf subject on
+# it, into perf/results/device-check-$(DEVICE).json. DEVICE=vulkan checks Taichi's Vulkan device instead.
+DEVICE ?= cuda
+device-check: setup
+	$(VPY) -m perf device-check --device $(DEVICE)
 
 clean-venv:
 	rm -rf $(VENV)

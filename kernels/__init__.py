@@ -1,8 +1,9 @@
 """swarmsplat's numeric core: Warp and Taichi kernels behind one typed API, their NumPy/torch twins
 (`kernels.reference`), and the geometry every layer shares (SE(3), cameras).
 
-Choose the backend and device once, at run time: `kernels.use(backend="warp"|"taichi", device="cpu"|"cuda")`.
-Nothing initialises Warp or Taichi at import time; backend modules load on first use.
+Choose the backend and device once, at run time: `kernels.use(backend="warp"|"taichi", device="cpu"|"cuda"|
+"vulkan")` (vulkan: Taichi only); `kernels.devices()` lists the pairs that work on this machine. Nothing
+initialises Warp or Taichi at import time; backend modules load on first use. GPU notes: docs/gpu.md.
 """
 
 from __future__ import annotations
@@ -12,13 +13,13 @@ import importlib
 import torch
 
 from . import se3
-from .backend import Backend, active, cuda_available, use
+from .backend import Backend, active, cuda_available, devices, use
 from .camera import PinholeCamera
 from .checks import check_tensor
 from .errors import BackendError, GraphError, InputError, RegistrationError, SwarmsplatError
 
 __all__ = [
-    "use", "active", "cuda_available", "Backend", "backend_module",
+    "use", "active", "devices", "cuda_available", "Backend", "backend_module",
     "PinholeCamera", "se3", "check_tensor", "axpy",
     "SwarmsplatError", "InputError", "BackendError", "RegistrationError", "GraphError",
 ]

@@ -301,7 +301,7 @@ def n_blocks(n: int, device: str) -> tuple[int, int, int, int]:
     CPU: a few contiguous chunks per core (cache-friendly, Taichi spreads blocks over cores). CUDA: many threads
     walking the array with a grid stride (coalesced). Item i of block b is b * start_stride + j * item_stride.
     """
-    if device == "cuda":
+    if device != "cpu":  # cuda, vulkan
         blocks = max(1, min(16384, n))
         return blocks, 1, blocks, (n + blocks - 1) // blocks
     blocks = max(1, min(64, n))

@@ -1,7 +1,8 @@
-"""`python -m perf SUBJECT [--kernels warp|taichi] [--device cpu|cuda] [--quick] [--json OUT] [--md OUT]`.
+"""`python -m perf SUBJECT [--kernels warp|taichi] [--device cpu|cuda|vulkan] [--quick] [--json OUT] [--md OUT]`.
 
 Runs one benchmark subject (or `all`), prints a Markdown table and writes JSON with the machine's description.
-Runs unchanged on a GPU machine with `--device cuda`.
+Runs unchanged on a GPU machine with `--device cuda` (vulkan: Taichi only). `python -m perf device-check` runs
+the suite's device cases and a quick benchmark of every subject on one device (perf/device_check.py).
 """
 
 from __future__ import annotations
@@ -38,10 +39,15 @@ def _load(name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["device-check"]:
+        from perf.device_check import main as device_check
+
+        return device_check(argv[1:])
     p = argparse.ArgumentParser(prog="python -m perf", description=__doc__.splitlines()[0])
     p.add_argument("subject", choices=sorted(SUBJECTS) + ["all"])
     p.add_argument("--kernels", choices=["warp", "taichi", "both"], default="both")
-    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--device", choices=["cpu", "cuda", "vulkan"], default="cpu", help="vulkan: Taichi only")
     p.add_argument("--quick", action="store_true", help="smaller sizes and fewer repeats")
     p.add_argument("--json", dest="json_out", help="write results as JSON here")
     p.add_argument("--md", dest="md_out", help="write the Markdown tables here")
@@ -52,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
 
     names = sorted(SUBJECTS) if args.subject == "all" else [args.subject]
     backends = ["warp", "taichi"] if args.kernels == "both" else [args.kernels]
+    if args.device == "vulkan" and args.kernels == "both":
+        backends = ["taichi"]  # Warp has no Vulkan backend
     report = {"machine": machine_info(), "device": args.device, "quick": args.quick,
               "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "subjects": {}}
     md = []

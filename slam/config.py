@@ -160,7 +160,7 @@ class LoopClosureConfig(_Section):
 
 class KernelsConfig(_Section):
     backend: Literal["warp", "taichi"] = "warp"
-    device: Literal["cpu", "cuda"] = "cpu"
+    device: Literal["cpu", "cuda", "vulkan"] = "cpu"
     torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default). The per-call "
                                                     "tensors are small, so one thread avoids costly thread "
                                                     "hand-offs; the kernels bring their own parallelism")

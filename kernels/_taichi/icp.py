@@ -34,6 +34,8 @@ def _bp(d, u, v, ifx, ify, cx, cy):
     return ti.Vector([(ti.cast(u, ti.f32) - cx) * ifx * d, (ti.cast(v, ti.f32) - cy) * ify * d, d])
 
 
+# GPU (CUDA / Vulkan): one pixel per thread (chunk = 1), Taichi's default 128 per block / workgroup,
+# grid-stride; no scratch, no atomics.
 @ti.kernel
 def _vertices_normals(depth: f32_2, ifx: ti.f32, ify: ti.f32, cx: ti.f32, cy: ti.f32, jump: ti.f32, chunk: ti.i32,
                       verts: f32_3, normals: f32_3):
@@ -71,6 +73,8 @@ def _hash(cx, cy, cz, mask):
     return ((ti.cast(cx, ti.i64) * _P1) ^ (ti.cast(cy, ti.i64) * _P2) ^ (ti.cast(cz, ti.i64) * _P3)) & mask
 
 
+# GPU: one query per thread, 128 per block / workgroup; float64 sums (Vulkan needs shaderFloat64) and int64
+# cell hashes (shaderInt64); no atomics.
 @ti.kernel
 def _moments(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), start: ti.types.ndarray(dtype=ti.i32, ndim=1),
              cnt: ti.types.ndarray(dtype=ti.i32, ndim=1), h: ti.f32, mask: ti.i64, reach: ti.i32,
@@ -96,6 +100,7 @@ def _moments(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), start: 
             out[i, k] = acc[k]
 
 
+# GPU: one source point per thread, 128 per block / workgroup; int64 hashes (Vulkan: shaderInt64); no atomics.
 @ti.kernel
 def _assoc_nearest(spts: f32_2, scell: ti.types.ndarray(dtype=ti.i32, ndim=2), sidx: ti.types.ndarray(dtype=ti.i32, ndim=1),
                    start: ti.types.ndarray(dtype=ti.i32, ndim=1), cnt: ti.types.ndarray(dtype=ti.i32, ndim=1),
@@ -144,6 +149,7 @@ def _project_assoc(p, q, T: ti.template(), tv: ti.template(), tn: ti.template(),
     return res
 
 
+# GPU: one source point per thread, 128 per block / workgroup; no scratch, no atomics.
 @ti.kernel
 def _assoc_projective(src: f32_2, T: f32_2, tv: f32_2, tn: f32_2, sn: f32_2, H: ti.i32, W: ti.i32, fx: ti.f32,
                       fy: ti.f32, cx: ti.f32, cy: ti.f32, max_d: ti.f32, cos_min: ti.f32,
@@ -192,6 +198,8 @@ def _contrib(J, w, r, e0, e1, e2, e3, e4, e5):
                       b[0] * r, b[1] * r, b[2] * r, b[3] * r, b[4] * r, b[5] * r, e0, e1, e2, e3, e4, e5], dt=ti.f32)
 
 
+# GPU: one thread per block of points (n_blocks: up to 16384, grid stride), 128 per block / workgroup; the
+# float32 + float64 33-wide sums live in registers (Vulkan: shaderFloat64); one [48] row per thread, no atomics.
 @ti.kernel
 def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dtype=ti.i32, ndim=1), kind: ti.i32,
             k: ti.f32, has_photo: ti.i32, s_int: ti.types.ndarray(dtype=ti.f32, ndim=1), t_int: f32_2, t_gu: f32_2,
@@ -258,7 +266,7 @@ def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dt
 
 
 def _sync(device: str) -> None:
-    if device == "cuda":
+    if device != "cpu":  # CUDA launches are asynchronous; on Vulkan the launch already waited (no-op)
         ti.sync()
 
 

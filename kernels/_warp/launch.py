@@ -36,24 +36,27 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 MIN_SPLIT = 16384  # fewer work items than this run as one launch: a thread hand-off costs ~0.05-0.1 ms
 
 
-def launch(kernel, dim, inputs: list, offset_at: int, device: str, work: int | None = None) -> None:
+def launch(kernel, dim, inputs: list, offset_at: int, device: str, work: int | None = None,
+           gpu_block: int = 256) -> None:
     """wp.launch over `dim` (an int, or (rows, cols) split by rows) with inputs[offset_at] = the first item.
 
     Warp's CPU backend runs a launch on one thread and its ctypes call releases the GIL, so on the CPU the range is
     cut into one contiguous part per core and each part launched from its own Python thread (same kernel, its
     offset as an argument; the parts write disjoint outputs). The first launch of a kernel compiles and loads its
     module, so it runs whole on the calling thread, and so does a launch over fewer than MIN_SPLIT `work` items
-    (points or pixels; default: the rows). CUDA: a single launch.
+    (points or pixels; default: the rows). CUDA: a single launch of `gpu_block` threads per block (Warp's
+    default 256; docs/gpu.md has each kernel's registers and the occupancy they allow).
     """
     rows = dim if isinstance(dim, int) else dim[0]
     parts = min(_cpu_threads() if device == "cpu" else 1, rows)
     if (work if work is not None else rows) < MIN_SPLIT:
         parts = 1
     key = (kernel, device)
-    if parts <= 1 or key not in _LOADED:
+    if parts <= 1 or key not in _LOADED:  # always on CUDA (parts == 1)
         args = list(inputs)
         args[offset_at] = 0
-        wp.launch(kernel, dim=dim, inputs=args, device=device, record_tape=False)
+        gpu = {} if device == "cpu" else {"block_dim": gpu_block}
+        wp.launch(kernel, dim=dim, inputs=args, device=device, record_tape=False, **gpu)
         _LOADED.add(key)
         return
     cuts = [rows * k // parts for k in range(parts + 1)]

@@ -30,7 +30,8 @@ COMMANDS = [
 def add_backend_flags(p: argparse.ArgumentParser) -> None:
     """--kernels / --device, shared by every subcommand that launches kernels."""
     p.add_argument("--kernels", choices=["warp", "taichi"], default="warp", help="kernel backend (default: warp)")
-    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="kernel device (default: cpu)")
+    p.add_argument("--device", choices=["cpu", "cuda", "vulkan"], default="cpu",
+                   help="kernel device (default: cpu; vulkan: --kernels taichi only)")
 
 
 def build_parser() -> argparse.ArgumentParser:

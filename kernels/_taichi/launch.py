@@ -1,0 +1,15 @@
+"""Launch settings of the Taichi kernels that differ between the CPU and the GPU archs (CUDA, Vulkan).
+
+Taichi reads `ti.loop_config(block_dim=...)` per arch: on the CPU it is the number of loop iterations a worker
+thread takes at a time, on CUDA the threads per block, on Vulkan the invocations per workgroup. A CPU setting
+such as block_dim=1 (one expensive item per grab) is one thread per block on a GPU, and Taichi 1.7 dispatches a
+run-time-sized loop as 65536 threads, i.e. 65536 one-thread workgroups, which Vulkan devices may refuse
+("Dispatch error : RhiResult(not_supported)"). Guard CPU-only settings with `if ti.static(on_cpu()):`.
+"""
+
+import taichi as ti
+
+
+def on_cpu() -> bool:
+    """True when the initialised Taichi arch is a CPU (x64 or arm64); read at kernel compile time."""
+    return ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64)
