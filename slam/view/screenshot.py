@@ -161,7 +161,7 @@ def _page_ws(devtools: str) -> str:
 
 
 def take_screenshot(viewer, out: str | Path, *, width: int = 1280, height: int = 800, timeout: float = 120.0,
-                    min_changed: float = 0.01) -> Path:
+                    min_changed: float = 0.002) -> Path:
     """Open `viewer.url` in headless Chromium, wait until its splats are drawn, write the page as PNG to `out`
     (atomically). ScreenshotError when there is no Chromium or nothing was drawn within `timeout` seconds."""
     from kernels.fileio import atomic_write_bytes
@@ -191,7 +191,7 @@ def take_screenshot(viewer, out: str | Path, *, width: int = 1280, height: int =
             got = _settle(page, deadline, differ_from=base[1], min_changed=min_changed)
             if got is None:
                 raise ScreenshotError(f"the splats were not drawn within {timeout:.0f} s (the page changed on less "
-                                      f"than {100 * min_changed:.0f} % of its pixels)")
+                                      f"than {100 * min_changed:.1f} % of its pixels)")
         finally:
             page.close()
         return atomic_write_bytes(out, got[0])
