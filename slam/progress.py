@@ -62,6 +62,22 @@ def format_seconds(s: float) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m"
 
 
+def env_interval() -> float:
+    """Seconds between plain lines: $SWARMSPLAT_PROGRESS_INTERVAL, else DEFAULT_INTERVAL."""
+    raw = os.environ.get("SWARMSPLAT_PROGRESS_INTERVAL")
+    if raw is None:
+        return DEFAULT_INTERVAL
+    try:
+        v = float(raw)
+    except ValueError:
+        v = float("nan")
+    if not math.isfinite(v) or v < 0:
+        from kernels.errors import InputError
+
+        raise InputError(f"SWARMSPLAT_PROGRESS_INTERVAL must be a number of seconds >= 0, got {raw!r}")
+    return v
+
+
 class Bar:
     """Counts done out of `total` (None: unknown). Use `bar(...)` to make one."""
 
@@ -76,9 +92,7 @@ class Bar:
         self._t0 = self._last = clock()
         self._tqdm = None
         self._closed = False
-        if interval is None:
-            interval = float(os.environ.get("SWARMSPLAT_PROGRESS_INTERVAL", DEFAULT_INTERVAL))
-        self.interval = interval
+        self.interval = env_interval() if interval is None else float(interval)
         if enabled and (is_terminal(self.stream) if tty is None else tty):
             from tqdm import tqdm
 
@@ -127,15 +141,6 @@ class Bar:
 
     def _print(self, now: float) -> None:
         print(self.line(now), file=self.stream, flush=True)
-
-    def write(self, message: str) -> None:
-        """A message line that does not break the bar."""
-        if not self.enabled:
-            return
-        if self._tqdm is not None:
-            self._tqdm.write(message, file=self.stream)
-        else:
-            print(message, file=self.stream, flush=True)
 
     def close(self) -> None:
         if self._closed:

@@ -152,7 +152,8 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     frames: at most this many input frames per agent (None: config.max_frames, 0 = all); limits: per-agent
     caps; stride: use every stride-th frame.
     render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all).
-    observer: called with the team after every round and after refinement (slam.view.live).
+    observer: `observer(team)` after every round, `observer(team, force=True)` after the map refinement
+    (slam.view.live.LiveView, the live view).
     """
     import kernels
 

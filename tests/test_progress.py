@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 
+import pytest
+
 from slam.progress import Bar, TeamRounds, bar, format_seconds, reporting
 
 
@@ -50,7 +52,6 @@ def test_off_is_silent_and_library_bars_follow_reporting():
     out = io.StringIO()
     with bar(2, "x", enabled=False, stream=out, tty=False, interval=0) as b:
         b.update(2)
-        b.write("a message")
     with bar(2, "y", enabled=None, stream=out, tty=False, interval=0) as b:  # outside reporting(): off
         b.update(2)
     assert out.getvalue() == ""
@@ -96,3 +97,11 @@ def test_a_run_in_a_log_prints_lines_not_carriage_returns(tmp_path, capsys, monk
     err = capsys.readouterr().err
     assert "\r" not in err
     assert "[agent_0] frames 1/2 (50%)" in err and "[agent_0] frames 2/2 (100%)" in err
+
+
+def test_a_bad_interval_setting_is_named(monkeypatch):
+    from kernels.errors import InputError
+
+    monkeypatch.setenv("SWARMSPLAT_PROGRESS_INTERVAL", "soon")
+    with pytest.raises(InputError, match="SWARMSPLAT_PROGRESS_INTERVAL must be a number of seconds >= 0, got 'soon'"):
+        bar(3, "x", stream=io.StringIO(), tty=False)
