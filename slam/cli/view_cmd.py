@@ -56,8 +56,8 @@ def register(sub) -> None:
     add_viewer_flags(p, default_port=None)
     p.add_argument("--screenshot", metavar="PNG",
                    help="load the page in headless Chromium, wait until the splats are drawn, write PNG and exit")
-    p.add_argument("--timeout", type=float, default=180.0, help="seconds --screenshot waits for the page "
-                                                                "(default: 180)")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds --screenshot waits for the page "
+                                                                "(default: 300)")
     p.set_defaults(func=run)
 
 

@@ -166,7 +166,8 @@ class Viewer:
         if layer not in self._layer_on:
             self._layer_on[layer] = True
             with self._layers:
-                box = self.server.gui.add_checkbox(LAYERS.get(layer, layer), initial_value=True)
+                box = self.server.gui.add_checkbox(LAYERS.get(layer, layer), initial_value=True,
+                                                   order=list(LAYERS).index(layer) if layer in LAYERS else None)
             box.on_update(lambda _e, l=layer, b=box: self.set_layer_visible(l, b.value))
             self._checks[f"layer:{layer}"] = box
         name = f"/{frame}/{layer}"
