@@ -77,12 +77,10 @@ def ensure_dataset(folder: str | Path, preset: str, *, seed: int | None = None, 
             if progress:
                 print(f"[demo] reusing the dataset in {folder}", file=sys.stderr)
             return folder
-    if progress:
-        from tqdm import tqdm
+    from .progress import bar
 
-        with tqdm(total=config.agents * config.frames, unit="frame", desc="[demo] generate", file=sys.stderr) as bar:
-            return generate(folder, config, progress=bar.update)
-    return generate(folder, config)
+    with bar(config.agents * config.frames, "[demo] generate", unit="frame", enabled=progress) as b:
+        return generate(folder, config, progress=b.update)
 
 
 def ensure_vocabulary(path: str | Path, preset: str, *, seed: int | None = None, progress: bool = True) -> Path:
@@ -110,10 +108,11 @@ def ensure_vocabulary(path: str | Path, preset: str, *, seed: int | None = None,
 
 def run_demo(out_dir: str | Path, *, preset: str = "default", kernels: str = "warp", device: str = "cpu",
              seed: int | None = None, config: SlamConfig | None = None, server: ServerConfig | None = None,
-             progress: bool = True) -> dict:
+             progress: bool = True, observer=None) -> dict:
     """Generate (or reuse) `out_dir/dataset`, run the team into `out_dir/results`, and return its metrics.
 
     config / server replace the demo's own settings for `preset` (their kernels section is then used as is).
+    observer: handed to run_team (the live view, slam.view.live).
     """
     from .team import run_team
 
@@ -132,7 +131,8 @@ def run_demo(out_dir: str | Path, *, preset: str = "default", kernels: str = "wa
         server = ServerConfig(**settings)
     srv = server
     metrics = run_team(data, out / "results", cfg, server=srv, progress=progress,
-                       stride=FRAME_STRIDE.get(preset, 1), render_views=RENDER_VIEWS.get(preset, 8))
+                       stride=FRAME_STRIDE.get(preset, 1), render_views=RENDER_VIEWS.get(preset, 8),
+                       observer=observer)
     metrics["demo"] = {"preset": preset, "dataset": str(data), "generate_s": t_gen,
                        "total_s": time.perf_counter() - t0, "total_cpu_s": time.process_time() - cpu0}
     if progress:

@@ -29,6 +29,7 @@ from kernels.camera import PinholeCamera
 from .config import MappingConfig, MapRefineConfig
 from .gaussian_map import GaussianParams
 from .mapper import mapping_loss
+from .progress import bar
 from .render import NEAR, render
 
 
@@ -123,7 +124,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     subsets = [visible_indices(p.means.detach(), v, cfg.view_margin) for v in views]
     order: list[int] = []
     losses: list[float] = []
+    b = bar(n_it, "[refine] steps", unit="step", enabled=None)  # shown inside slam.progress.reporting(True)
     for _ in range(n_it):
+        b.update(1, f"loss {losses[-1]:.4f}" if losses else None)
         if not order:
             order = torch.randperm(len(views), generator=gen).tolist()
         j = order.pop()
@@ -138,6 +141,7 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         loss.backward()
         opt.step()
         losses.append(float(loss.detach()))
+    b.close()
     k = max(1, min(len(views), len(losses)))
     first = float(np.mean(losses[:k])) if losses else float("nan")
     last = float(np.mean(losses[-k:])) if losses else float("nan")

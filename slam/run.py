@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import io
-import sys
 import time
 from pathlib import Path
 
@@ -21,12 +20,14 @@ from .jsonio import write_json
 
 
 def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
-                 frames: int | None = None, progress: bool = True, reference: bool = False) -> dict:
+                 frames: int | None = None, progress: bool = True, reference: bool = False,
+                 observer=None) -> dict:
     """Track and map `dataset_path` (any layout `slam.datasets.load_sequence` reads) with one agent.
 
     frames: process at most this many (None: config.max_frames, 0 meaning all). Returns the metrics dict that is
-    also written to `out_dir/metrics.json`.
+    also written to `out_dir/metrics.json`. observer: called with the agent after every frame (slam.view.live).
     """
+    from .progress import bar
     import kernels
     from .datasets import load_sequence
 
@@ -47,16 +48,14 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
 
     agent = Agent(seq.camera, cfg, name=seq.name, reference=reference)
     t0 = time.perf_counter()
-    for i in range(n):
-        f = seq[i]
-        agent.step(f.index, f.timestamp, f.color, f.depth)
-        if progress:
-            el = time.perf_counter() - t0
-            print(f"\r[{seq.name}] frame {i + 1}/{n}  {len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps  "
-                  f"{(i + 1) / el:.2f} fps", end="", file=sys.stderr, flush=True)
+    with bar(n, f"[{seq.name}] frames", unit="frame", enabled=progress) as b:
+        for i in range(n):
+            f = seq[i]
+            agent.step(f.index, f.timestamp, f.color, f.depth)
+            b.update(1, f"{len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps")
+            if observer is not None:
+                observer(agent)
     wall = time.perf_counter() - t0
-    if progress:
-        print(file=sys.stderr)
     return write_results(agent, seq, out, wall_s=wall, n_frames=n)
 
 
@@ -70,11 +69,14 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
     if len(stamps):
         write_tum(out / "trajectory.txt", stamps, T_est)
         write_tum(out / "trajectory_no_lc.txt", stamps, T_no_lc)
+    if agent.keyframes:  # keyframe poses in id order (loops.csv's query_kf / match_kf index them)
+        write_tum(out / "keyframes.txt", np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
     save_ply(out / "map.ply", agent.gmap.merged())
     _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
     t = agent.time
     metrics = {
         "agent": agent.name,
+        "dataset": str(seq.root),
         "frames": n_frames,
         "frames_tracked": len(stamps),
         "skipped_frames": list(t.skipped),

@@ -79,9 +79,10 @@ class Team:
         origins.append(origins[k - 1] @ rel)
 
     def run(self, sequences: Sequence, *, limits: Sequence[int] | None = None, stride: int = 1,
-            progress: Callable[[str], None] | None = None) -> float:
+            progress: Callable[[int, int, str], None] | None = None) -> float:
         """Feed every agent its sequence, one frame per agent per round, until all have ended. `limits[a]` caps
-        agent a's input frames; `stride` k uses every k-th frame (a faster, coarser run). Returns wall seconds."""
+        agent a's input frames; `stride` k uses every k-th frame (a faster, coarser run). Returns wall seconds.
+        progress: called after every round with (rounds done, rounds in all, status line)."""
         if stride < 1:
             raise InputError(f"frame stride must be at least 1, got {stride}")
         n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
@@ -95,7 +96,7 @@ class Team:
                     f = seq[i * stride]
                     self.step(a, f.index, f.timestamp, f.color, f.depth)
             if progress:
-                progress(self.status(i + 1, rounds, time.perf_counter() - t0))
+                progress(i + 1, rounds, self.status(i + 1, rounds, time.perf_counter() - t0))
         return time.perf_counter() - t0
 
     def finish(self) -> dict | None:
@@ -142,7 +143,8 @@ class Team:
 
 def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
              server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
-             stride: int = 1, progress: bool = True, reference: bool = False, render_views: int = 8) -> dict:
+             stride: int = 1, progress: bool = True, reference: bool = False, render_views: int = 8,
+             observer=None) -> dict:
     """Run the team on a multi-agent RGB-D dataset (any layout `slam.datasets.load_dataset` reads) and write
     every output to `out_dir` (see slam.team_results). Returns the metrics written to metrics.json.
     `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from slam.split.split_sequence).
@@ -150,10 +152,13 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     frames: at most this many input frames per agent (None: config.max_frames, 0 = all); limits: per-agent
     caps; stride: use every stride-th frame.
     render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all).
+    observer: `observer(team)` after every round, `observer(team, force=True)` after the map refinement
+    (slam.view.live.LiveView, the live view).
     """
     import kernels
 
     from .datasets import MultiAgentDataset, load_dataset
+    from .progress import TeamRounds, reporting
     from .team_results import render_metrics, write_team_results
 
     cfg = config or SlamConfig()
@@ -169,14 +174,12 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server, reference=reference)
-    show = (lambda msg: print(f"\r[team] {msg}   ", end="", file=sys.stderr, flush=True)) if progress else None
     cpu0 = time.process_time()
-    wall = team.run(ds.agents, limits=caps, stride=stride, progress=show)
+    with TeamRounds(team, enabled=progress, observer=observer) as show:
+        wall = team.run(ds.agents, limits=caps, stride=stride, progress=show)
     t_fin = time.perf_counter()
     team.finish()
     wall += time.perf_counter() - t_fin
-    if progress:
-        print(file=sys.stderr)
     before, refined = None, {}
     if cfg.map_refine.iterations_per_keyframe > 0 and cfg.map_refine.max_iterations > 0:
         t_ev = time.perf_counter()
@@ -187,8 +190,11 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
                   f"{cfg.map_refine.iterations_per_keyframe} steps per keyframe, at most "
                   f"{cfg.map_refine.max_iterations} per component)", file=sys.stderr)
         t_ref = time.perf_counter()
-        refined = team.refine_map()
+        with reporting(progress):
+            refined = team.refine_map()
         wall += time.perf_counter() - t_ref
+        if observer is not None:
+            observer(team, force=True)
         before["seconds"] = t_ref - t_ev
     return write_team_results(team, ds, out, wall_s=wall, cpu_s=time.process_time() - cpu0,
                               render_views=render_views, progress=progress, before_refine=before,

@@ -24,6 +24,7 @@ COMMANDS = [
     "swarm_cmd",
     "robot_cmd",
     "bench_cmd",
+    "view_cmd",
 ]
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from slam.cli import add_backend_flags
+from slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
 
 
 def register(sub) -> None:
@@ -17,6 +18,7 @@ def register(sub) -> None:
                    help="default: 3 agents x 120 frames; tiny: 2 agents x 10 frames (a quick check)")
     p.add_argument("--seed", type=int, help="generator seed (default: the preset's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_live_view_flags(p)
     add_backend_flags(p)
     p.set_defaults(func=run)
 
@@ -26,8 +28,9 @@ def run(args) -> int:
 
     from slam.demo import run_demo
 
+    live = live_view(args)  # a taken port fails before the run starts
     m = run_demo(args.out, preset=args.preset, kernels=args.kernels, device=args.device, seed=args.seed,
-                 progress=not args.quiet)
+                 progress=not args.quiet, observer=live)
     keys = ["ate_rmse_team", "ate_rmse_team_agents", "joined_agents", "unjoined_agents", "psnr", "ssim", "depth_l1",
             "loops_accepted", "loop_candidates"]
     summary = {k: m.get(k) for k in keys}
@@ -35,4 +38,4 @@ def run(args) -> int:
                          for a in m["agents"]}
     summary["time_s"] = m["demo"]["total_s"]
     print(json.dumps(summary, indent=1))
-    return 0
+    return serve_result(live, args.out)

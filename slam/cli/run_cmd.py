@@ -5,6 +5,7 @@ config.yaml in DIR), or a team on a multi-agent dataset or on a single sequence 
 from __future__ import annotations
 
 from slam.cli import add_backend_flags
+from slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
 
 
 def register(sub) -> None:
@@ -24,7 +25,8 @@ def register(sub) -> None:
                         "each, e.g. 0:3,3:5 (agent_0 frames 0-2, agent_1 frames 3-4; ranges may overlap, an empty "
                         "START/STOP means the start/end). Each agent starts in its own frame and joins the "
                         "global frame at its first accepted inter-agent loop")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_live_view_flags(p)
     add_backend_flags(p)
     p.set_defaults(func=run)
 
@@ -47,6 +49,7 @@ def run(args) -> int:
     from slam.datasets import load_dataset
 
     ds = load_dataset(args.dataset)
+    live = live_view(args)  # a taken port fails before the run starts
     if ranges is not None:
         if len(ds) != 1:
             raise InputError(f"--split cuts one sequence into agents, but {args.dataset} already holds {len(ds)} "
@@ -61,7 +64,7 @@ def run(args) -> int:
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map (issue 7).
         from slam.team import run_team
 
-        m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet)
+        m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live)
         keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
             "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],
@@ -71,8 +74,8 @@ def run(args) -> int:
             "loops": {kind: m.get("loops", {}).get(kind) for kind in ("intra", "inter")},
         }
         print(json.dumps(summary, indent=1))
-        return 0
-    m = run_sequence(args.dataset, args.out, cfg, frames=args.frames, progress=not args.quiet)
+        return serve_result(live, args.out)
+    m = run_sequence(args.dataset, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live)
     keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
-    return 0
+    return serve_result(live, args.out)
