@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from kernels.errors import InputError, SwarmsplatError
-from kernels.fileio import atomic_write_bytes, atomic_write_text
+from kernels.fileio import atomic_write_bytes, atomic_write_text, output_dir
 
 from . import messages as M
 
@@ -27,7 +27,7 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
               port_base: int = 17447, run: str = "swarmsplat", stride: int = 4, schedule=None,
               place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
               formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
-              r_thr: float | None = None, k: float | None = None) -> Path:
+              r_thr: float | None = None, k: float | None = None, strict: bool = False) -> Path:
     """Run robot `robot` of `dataset` on Zenoh until the schedule ends; write its outputs under `out`.
 
     start_time: epoch seconds of tick 0 (None: read it from stdin after printing `ready`, as `launch` does).
@@ -43,7 +43,7 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
         raise InputError("a robot process needs the shared vocabulary: --place-checkpoint VOCAB.npz")
     setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
                     backend=backend, formulation=formulation, solver=solver, uniform_noise=uniform_noise,
-                    r_thr=r_thr, k=k)
+                    r_thr=r_thr, k=k, strict=strict)
     n = len(setup.dataset.agents)
     if not 0 <= robot < n:
         raise InputError(f"--id {robot}: the dataset has robots 0..{n - 1}")
@@ -51,7 +51,7 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
     clock = TickClock()
     tx = ZenohTransport(robot, list(range(n)), run=run, port_base=port_base, schedule=setup.schedule, clock=clock)
     node = RobotNode(robot, seq.camera, tx, setup.recognizer, setup.registrar, setup.node_config)
-    feeder = KeyframeFeeder(seq, setup.stride)
+    feeder = KeyframeFeeder(seq, setup.stride, strict)
     warm_up()
     tx.wait_for_peers(60.0)
     if start_time is None:
@@ -71,7 +71,8 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
     np.savez(d / "state.npz", trajectory=node.trajectory(), odometry=np.array(node.odometry),
              timestamps=np.array(node.timestamps))
     atomic_write_text(d / "bytes.json", json.dumps({**tx.stats.to_dict(), "n_solves": node.n_solves,
-                                                   "skipped_ticks": skipped}))
+                                                   "skipped_ticks": skipped,
+                                                   "skipped_frames": feeder.skipped.rows}))
     if node.estimate is not None:
         atomic_write_bytes(d / "estimate.msg", M.encode(node.estimate, robot, 0))
     if node.solved_basis:
@@ -87,14 +88,13 @@ def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, time
     from .outputs import write_outputs
     from .run import prepare
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(out, "--out")
     vocab = options.pop("place_checkpoint", None)
     place = options.get("place", "bow")
     setup = prepare(dataset, place_checkpoint=vocab,
                     vocabulary_out=None if vocab else out / "vocabulary.npz",
-                    **{k: v for k, v in options.items() if k in ("stride", "schedule", "place", "backend",
-                                                                 "formulation", "solver", "uniform_noise", "r_thr", "k")})
+                    **{k: v for k, v in options.items() if k in ("stride", "schedule", "place", "backend", "formulation",
+                                                                 "solver", "uniform_noise", "r_thr", "k", "strict")})
     if place in ("bow", "vlad") and not vocab:
         vocab = str(out / "vocabulary.npz")
     sched_path = out / "schedule.yaml"
@@ -109,6 +109,7 @@ def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, time
                      "--formulation", setup.node_config.solve.formulation, "--solver", setup.node_config.solve.solver] \
         + (["--place-checkpoint", vocab] if vocab else []) \
         + (["--uniform-noise"] if setup.node_config.solve.uniform_noise else []) \
+        + (["--strict"] if setup.strict else []) \
         + sum([[f"--{n.replace('_', '-')}", str(options[n])] for n in ("r_thr", "k") if options.get(n) is not None], [])
     procs = [subprocess.Popen(cmd(r), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for r in range(n)]
@@ -137,15 +138,16 @@ def gather(out: Path, setup) -> dict:
     """Read the robot processes' outputs and write the run's (`outputs.write_outputs`)."""
     from .outputs import write_outputs
 
-    robots, final = {}, {}
+    robots, final, skipped = {}, {}, []
     for r, seq in enumerate(setup.dataset.agents):
         d = out / "robots" / seq.name
         st = np.load(d / "state.npz")
         b = json.loads((d / "bytes.json").read_text())
+        skipped += b.pop("skipped_frames", [])
         est = M.decode((d / "estimate.msg").read_bytes())[1] if (d / "estimate.msg").exists() else None
         robots[r] = {"trajectory": st["trajectory"], "odometry": st["odometry"], "timestamps": st["timestamps"],
                      "bytes": b, "estimate": est, "n_solves": b.get("n_solves", 0)}
         graphs = sorted(d.glob("graph_*.msg"))
         if graphs and not final:  # the lowest robot that optimised: its last solve is the team's
             final = {int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs}
-    return write_outputs(out, setup, robots, final, mode="zenoh")
+    return write_outputs(out, setup, robots, final, mode="zenoh", skipped=skipped)

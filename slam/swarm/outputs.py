@@ -34,8 +34,8 @@ def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray], lin
     for r, seq in enumerate(setup.dataset.agents):
         if r not in trajs or seq.gt_poses is None:
             continue
-        frames = np.arange(0, len(seq), setup.stride)[: len(trajs[r])]
-        gt[seq.name] = (np.asarray(stamps[r]), seq.gt_poses[frames])
+        frames = frames_of(seq, stamps[r])[: len(trajs[r])]  # keyframes skipped as unreadable leave gaps
+        gt[seq.name] = (np.asarray(stamps[r])[: len(frames)], seq.gt_poses[frames])
         est[seq.name] = (np.asarray(stamps[r]), trajs[r])
     if not est:
         return {}
@@ -48,6 +48,14 @@ def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray], lin
         out["linked_robots"] = names
         out["linked_merged_rmse"] = sub.joint.rmse
     return out
+
+
+def frames_of(seq, stamps) -> np.ndarray:
+    """Frame indices of `seq` whose timestamps are `stamps` (a robot's keyframes, in order)."""
+    t = np.asarray(seq.timestamps, dtype=np.float64)
+    i = np.clip(np.searchsorted(t, np.asarray(stamps, dtype=np.float64)), 0, max(len(t) - 1, 0))
+    prev = np.clip(i - 1, 0, None)
+    return np.where(np.abs(t[prev] - stamps) < np.abs(t[i] - stamps), prev, i)
 
 
 def linked_robots(graph) -> list[int]:
@@ -77,9 +85,12 @@ def _public(d: dict) -> dict:
     return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
-def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *, mode: str) -> dict:
+def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *, mode: str,
+                  status: str = "complete", reason: str | None = None, skipped: list | None = None) -> dict:
     """robots: id -> {trajectory, odometry, timestamps, bytes, estimate, n_solves}; final_subs: the graphs of
-    the optimiser's last solve (robot id -> GraphSubmission), re-solved here for the comparison and the g2o."""
+    the optimiser's last solve (robot id -> GraphSubmission), re-solved here for the comparison and the g2o.
+    status: "complete", or "interrupted" / "failed" (with `reason`) for a run cut short, which skips the other
+    formulations' re-solves and the plot; skipped: {"agent", "frame", "reason"} of unreadable keyframes."""
     from graph.g2o import write_g2o
     from slam.trajectory import write_tum
 
@@ -95,7 +106,9 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
     run = _ate(setup, {r: d["trajectory"] for r, d in robots.items()}, stamps, linked)
     odo = _ate(setup, {r: d["odometry"] for r, d in robots.items()}, stamps, linked)
     cfg = setup.node_config.solve
-    metrics = {"mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
+    complete = status == "complete"
+    metrics = {"status": status, **({"reason": reason} if reason else {}), "skipped_frames": list(skipped or []),
+               "mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
                "schedule": setup.schedule.to_dict(), "stride": setup.stride,
                "ate": _public(run), "odometry_only_ate": _public(odo), "alternatives": {}}
     if sol is not None:
@@ -113,7 +126,7 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
         metrics["loop_closures"] = {"count": len(loops),
                                     "per_pair": _per_pair(loops), "mean_confidence": float(np.mean(
                                         [e.confidence for e in loops])) if loops else None}
-        for name, (f, s, u) in ALTERNATIVES.items():
+        for name, (f, s, u) in (ALTERNATIVES if complete else {}).items():
             alt = solve_group(final_subs, SolveConfig(formulation=f, solver=s, uniform_noise=u))
             trajs, off = {}, 0
             for r, c in zip(alt.robots, alt.counts):
@@ -123,12 +136,13 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
                                                                            for r in trajs}, linked)),
                                              "time_s": alt.time_s}
     metrics["bytes"] = {names[r]: d["bytes"] for r, d in robots.items()}
-    metrics["images_bytes"] = {names[r]: _image_bytes(setup, r, len(d["timestamps"])) for r, d in robots.items()}
+    if complete:  # reads every keyframe image again: not while the user waits for an interrupted run to end
+        metrics["images_bytes"] = {names[r]: _image_bytes(setup, r, d["timestamps"]) for r, d in robots.items()}
     metrics["n_solves"] = {names[r]: d["n_solves"] for r, d in robots.items()}
     metrics["estimate_stamp"] = {names[r]: (list(d["estimate"].stamp) if d["estimate"] is not None else None)
                                  for r, d in robots.items()}
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=float))
-    if run.get("_result") is not None:
+    if complete and run.get("_result") is not None:
         _plot(out / "trajectories.png", run["_result"])
     return metrics
 
@@ -143,15 +157,15 @@ def _per_pair(loops) -> dict:
     return out
 
 
-def _image_bytes(setup, robot: int, n_kf: int) -> dict:
+def _image_bytes(setup, robot: int, stamps: np.ndarray) -> dict:
     """What sending the keyframe images themselves would cost once: raw RGB and PNG-compressed."""
     import cv2
 
     seq = setup.dataset.agents[robot]
-    frames = list(range(0, len(seq), setup.stride))[:n_kf]
+    frames = frames_of(seq, stamps) if len(stamps) else []
     raw = png = 0
     for f in frames:
-        im = seq[f].color
+        im = seq[int(f)].color
         raw += im.nbytes
         png += len(cv2.imencode(".png", im[..., ::-1])[1])
     return {"raw": int(raw), "png": int(png), "keyframes": len(frames)}
