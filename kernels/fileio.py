@@ -55,7 +55,8 @@ def output_dir(path: str | os.PathLike, what: str = "output folder", *, create: 
     path = Path(path)
     for p in (path, *path.parents):
         if p.exists() and not p.is_dir():
-            raise InputError(f"{what} {path}: {p} is a file, expected a folder")
+            where = "" if p == path else f": {p}"
+            raise InputError(f"{what} {path}{where} is a file, expected a folder")
         if p.exists():
             if not create and not os.access(p, os.W_OK | os.X_OK):
                 raise InputError(f"{what} {path}: cannot write in {p} (permission denied)")

@@ -97,6 +97,8 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
 
     if stride < 1 or top_k < 1:
         raise InputError(f"stride and top_k must be >= 1, got stride={stride}, top_k={top_k}")
+    if threshold is not None and not -1.0 <= threshold <= 1.0:
+        raise InputError(f"threshold is a cosine similarity in [-1, 1], got {threshold}")
     output_file(out, "--out")
     ds = load_dataset(dataset)
     if len(ds.agents) < 2:

@@ -103,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:  # a file the checks could not foresee (disk full, permissions changed mid-run)
         if args.debug:
             raise
-        where = f": {e.filename}" if e.filename else ""
+        path = e.filename2 or e.filename  # os.replace(tmp, path): the path the user named is the second
+        where = f": {path}" if path else ""
         print(f"{name}: error: {e.strerror or e}{where}", file=sys.stderr)
         if argv is None:
             _end_now(1)

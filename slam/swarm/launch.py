@@ -39,6 +39,10 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
     from .run import KeyframeFeeder, prepare
     from .zenoh_transport import ZenohTransport
 
+    if robot < 0:
+        raise InputError(f"--id must be >= 0, got {robot}")
+    check_port_base(port_base, robot + 1)
+    output_dir(out, "--out")
     if place in ("bow", "vlad") and not place_checkpoint:
         raise InputError("a robot process needs the shared vocabulary: --place-checkpoint VOCAB.npz")
     setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
@@ -47,6 +51,7 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
     n = len(setup.dataset.agents)
     if not 0 <= robot < n:
         raise InputError(f"--id {robot}: the dataset has robots 0..{n - 1}")
+    check_port_base(port_base, n)
     seq = setup.dataset.agents[robot]
     clock = TickClock()
     tx = ZenohTransport(robot, list(range(n)), run=run, port_base=port_base, schedule=setup.schedule, clock=clock)
@@ -81,6 +86,13 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: f
     return d
 
 
+def check_port_base(port_base: int, robots: int) -> None:
+    """Robot K listens on TCP port port_base + K: every one of them must be a valid port."""
+    if not 1 <= port_base <= 65536 - max(robots, 1):
+        raise InputError(f"--port-base {port_base}: robots listen on port-base + id, which must lie in 1..65535 "
+                         f"for all {robots} robots")
+
+
 def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, timeout: float | None = None,
            **options) -> dict:
     """Start one `swarmsplat robot` process per robot, wait for them, and write the run's outputs. `options` are
@@ -88,6 +100,7 @@ def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, time
     from .outputs import write_outputs
     from .run import prepare
 
+    check_port_base(port_base, 1)
     out = output_dir(out, "--out")
     vocab = options.pop("place_checkpoint", None)
     place = options.get("place", "bow")
@@ -102,6 +115,7 @@ def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, time
 
     atomic_write_text(sched_path, yaml.safe_dump(setup.schedule.to_dict(), sort_keys=False))
     n = len(setup.dataset.agents)
+    check_port_base(port_base, n)
     run_name = f"r{os.getpid()}"
     cmd = lambda r: [sys.executable, "-m", "slam", "robot", "--id", str(r), str(dataset), "--out", str(out),  # noqa: E731
                      "--port-base", str(port_base), "--run", run_name, "--schedule", str(sched_path),
