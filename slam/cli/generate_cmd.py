@@ -35,11 +35,10 @@ def run(args) -> int:
         raise InputError("give --out DIR (and/or --preview PNG)")
     config = GeneratorConfig.preset(args.preset, agents=args.agents, frames=args.frames, width=args.width,
                                     height=args.height, fps=args.fps, seed=args.seed, mono=args.mono)
-    if args.out:
+    if args.out:  # a file in the way or an unwritable place: one line before any rendering
         output_dir(args.out, "--out", create=False)
     if args.preview:
         output_file(args.preview, "--preview", create=False)
-    if args.preview:
         from slam.synthetic.preview import plot_world
 
         world = generate_world(config.seed, config.world)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.errors import InputError
 from kernels.fileio import atomic_write_text
 
 from .optimiser import SolveConfig, solve_group
@@ -32,14 +33,17 @@ def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray], lin
 
     gt, est = {}, {}
     for r, seq in enumerate(setup.dataset.agents):
-        if r not in trajs or seq.gt_poses is None:
+        if r not in trajs or not len(trajs[r]) or seq.gt_poses is None:
             continue
         frames = frames_of(seq, stamps[r])[: len(trajs[r])]  # keyframes skipped as unreadable leave gaps
         gt[seq.name] = (np.asarray(stamps[r])[: len(frames)], seq.gt_poses[frames])
         est[seq.name] = (np.asarray(stamps[r]), trajs[r])
     if not est:
         return {}
-    res = ate_multi(gt, est, align="se3", by_index=True)
+    try:
+        res = ate_multi(gt, est, align="se3", by_index=True)
+    except InputError as e:  # too few keyframes to align (a run interrupted early)
+        return {"note": f"not aligned: {e}"}
     out = {"merged_rmse": res.joint.rmse, "per_robot_rmse": {k: v.rmse for k, v in res.per_agent.items()},
            "_result": res}
     names = [setup.dataset.agents[r].name for r in (linked or [])]
@@ -98,6 +102,8 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
     names = {r: s.name for r, s in enumerate(setup.dataset.agents)}
     (out / "odometry").mkdir(parents=True, exist_ok=True)
     for r, d in robots.items():
+        if not len(d["timestamps"]):  # no keyframe yet (a run interrupted early)
+            continue
         write_tum(out / f"{names[r]}.txt", d["timestamps"], d["trajectory"])
         write_tum(out / "odometry" / f"{names[r]}.txt", d["timestamps"], d["odometry"])
     stamps = {r: d["timestamps"] for r, d in robots.items()}
