@@ -19,7 +19,7 @@ _FILE_MODE = 0o666 & ~_UMASK
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside `path`; on success it replaces `path` in one rename, on error it is removed."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _check_writable_file(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
     os.close(fd)
     try:
@@ -32,6 +32,20 @@ def atomic_path(path: str | os.PathLike):
         except FileNotFoundError:
             pass
         raise
+
+
+def _check_writable_file(path: Path) -> None:
+    """Create `path`'s folder; InputError (one line naming the path) when `path` is a folder or lies under a file,
+    before anything is written."""
+    from .errors import InputError
+
+    if path.is_dir():
+        raise InputError(f"cannot write {path}: it is a folder, expected a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocker = next((p for p in path.parents if p.exists() and not p.is_dir()), path.parent)
+        raise InputError(f"cannot write {path}: {blocker} is a file, expected a folder") from None
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

@@ -74,7 +74,6 @@ CASES = [  # (argv with placeholders, a fragment the error line must contain)
     ("graph solve MISSING --out NEW", "not found"),
     ("graph solve G2O --out DIR", "is a folder"),
     ("graph solve G2O --out FILE/o.g2o", "is a file"),
-    ("graph solve G2O --out NEW --max-iterations 0", "--max-iterations"),
     ("graph solve G2O --out NEW --solver gnc --gnc-probability 2", "probability"),
     ("pairs MONO --out DIR", "is a folder"),
     ("pairs MONO --out FILE/p.csv", "is a file"),

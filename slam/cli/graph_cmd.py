@@ -26,12 +26,6 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from graph.formulations import build_problem
-    from kernels.errors import InputError
-    from kernels.fileio import output_file
-
-    output_file(args.out, "--out", create=False)
-    if args.max_iterations < 1:
-        raise InputError(f"--max-iterations must be at least 1, got {args.max_iterations}")
     from graph.g2o import read_g2o, write_g2o
     from graph.init import chordal_initialization
     from graph.pose_graph import key_str
