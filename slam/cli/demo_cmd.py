@@ -24,10 +24,8 @@ def register(sub) -> None:
 def run(args) -> int:
     import json
 
-    from kernels.fileio import output_dir
     from slam.demo import run_demo
 
-    output_dir(args.out, "--out", create=False)
     m = run_demo(args.out, preset=args.preset, kernels=args.kernels, device=args.device, seed=args.seed,
                  progress=not args.quiet)
     keys = ["ate_rmse_team", "psnr", "ssim", "depth_l1", "loops_accepted", "loop_candidates"]
