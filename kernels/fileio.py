@@ -19,7 +19,7 @@ _FILE_MODE = 0o666 & ~_UMASK
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside `path`; on success it replaces `path` in one rename, on error it is removed."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _check_writable_file(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
     os.close(fd)
     try:
@@ -34,6 +34,20 @@ def atomic_path(path: str | os.PathLike):
         raise
 
 
+def _check_writable_file(path: Path) -> None:
+    """Create `path`'s folder; InputError (one line naming the path) when `path` is a folder or lies under a file,
+    before anything is written."""
+    from .errors import InputError
+
+    if path.is_dir():
+        raise InputError(f"cannot write {path}: it is a folder, expected a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocker = next((p for p in path.parents if p.exists() and not p.is_dir()), path.parent)
+        raise InputError(f"cannot write {path}: {blocker} is a file, expected a folder") from None
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
@@ -44,3 +58,42 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
+
+
+def output_dir(path: str | os.PathLike, what: str = "output folder", *, create: bool = True) -> Path:
+    """Create folder `path` (and its parents) for a run's outputs; InputError, naming `what`, when it is a file,
+    lies under a file, or cannot be written. create=False: only check, creating nothing (the nearest existing
+    folder must be writable)."""
+    from .errors import InputError
+
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists() and not p.is_dir():
+            where = "" if p == path else f": {p}"
+            raise InputError(f"{what} {path}{where} is a file, expected a folder")
+        if p.exists():
+            if not create and not os.access(p, os.W_OK | os.X_OK):
+                raise InputError(f"{what} {path}: cannot write in {p} (permission denied)")
+            break
+    if not create:
+        return path
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise InputError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
+    return path
+
+
+def output_file(path: str | os.PathLike, what: str = "output file", *, create: bool = True) -> Path:
+    """Check that file `path` can be written (its folder is created unless create=False); InputError naming
+    `what` when it is a folder, lies under a file, or its folder cannot be written. `path` itself is not touched."""
+    from .errors import InputError
+
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{what} {path} is a folder, expected a file name")
+    output_dir(path.parent, what=what, create=create)
+    return path

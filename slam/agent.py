@@ -37,7 +37,8 @@ class Timings:
     mapping: float = 0.0
     loop_closure: float = 0.0
     frames: int = 0
-    skipped: list[int] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)  # frame indices, in input order
+    skip_reasons: dict[int, str] = field(default_factory=dict)  # frame index -> why it was skipped
 
 
 class Agent:
@@ -86,11 +87,21 @@ class Agent:
         img = self.cfg.image
         f = make_rgbd(color, depth, self.camera, min_depth=img.min_depth, max_depth=img.max_depth)
         if f.valid_fraction() < img.min_valid_fraction:
-            warnings.warn(f"{self.name}: frame {index} skipped: only {100 * f.valid_fraction():.1f}% of its depth is "
-                          f"valid (need {100 * img.min_valid_fraction:.0f}%)", RuntimeWarning, stacklevel=3)
-            self.time.skipped.append(index)
+            self.skip_frame(index, f"only {100 * f.valid_fraction():.1f}% of its depth is valid (need "
+                                   f"{100 * img.min_valid_fraction:.0f}%)")
             return None
         return f.resized(img.max_width)
+
+    def skip_frame(self, index: int, reason: str) -> None:
+        """Leave frame `index` out (too little valid depth, or unreadable: slam.run_guard.read_frame) with one
+        warning; it is listed with `reason` in metrics.json `skipped_frames`."""
+        warnings.warn(f"{self.name}: frame {index} skipped: {reason}", RuntimeWarning, stacklevel=4)
+        self.time.skipped.append(int(index))
+        self.time.skip_reasons[int(index)] = reason
+
+    def skipped_frames(self) -> list[dict]:
+        """[{"frame": index, "reason": why}] of every skipped frame, in input order (metrics.json)."""
+        return [{"frame": i, "reason": self.time.skip_reasons.get(i, "")} for i in self.time.skipped]
 
     def _track(self, frame: RGBD) -> np.ndarray:
         params = self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()

@@ -16,6 +16,7 @@ from typing import Any
 import yaml
 
 from kernels.errors import InputError
+from kernels.fileio import output_dir
 
 from .config import SlamConfig
 from .server import ServerConfig
@@ -116,8 +117,7 @@ def run_demo(out_dir: str | Path, *, preset: str = "default", kernels: str = "wa
     """
     from .team import run_team
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(out_dir, "--out")
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     data = ensure_dataset(out / "dataset", preset, seed=seed, progress=progress)

@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from kernels import se3
 from kernels.errors import InputError
-from kernels.fileio import atomic_write_text
+from kernels.fileio import atomic_write_text, output_file
 from registration.pair.base import direction_error_deg, rotation_error_deg
+
+from .jsonio import write_json
+from .run_guard import SkipLog, guarded, keep, read_frame
 
 COLUMNS = [
     "query_agent", "query_index", "query_time", "match_agent", "match_index", "match_time", "similarity",
@@ -39,13 +42,21 @@ class PairsSummary:
     descriptor_bytes: int
     mean_encoding_bytes: float
     average_precision: dict  # score name -> AP of the inlier detector (Fig. 3), with ground truth
+    skipped_frames: list = field(default_factory=list)  # {"agent", "frame", "reason"} of unreadable keyframes
 
     def line(self) -> str:
         gt = "" if self.n_gt_inliers is None else f", {self.n_gt_inliers} within 2 m of ground truth"
         ap = "".join(f", AP[{k}] {v:.3f}" for k, v in self.average_precision.items() if v == v)
-        return (f"{self.n_keyframes} keyframes, {self.n_candidates} candidates, {self.n_registered} registered, "
+        sk = f", {len(self.skipped_frames)} unreadable skipped" if self.skipped_frames else ""
+        return (f"{self.n_keyframes} keyframes{sk}, {self.n_candidates} candidates, {self.n_registered} registered, "
                 f"{self.n_accepted} accepted{gt}{ap}; descriptor {self.descriptor_bytes} B, encoding "
                 f"{self.mean_encoding_bytes:.0f} B per keyframe -> {self.out}")
+
+
+def metrics_path(out: str | Path) -> Path:
+    """The JSON beside the candidates CSV: status, counts and skipped_frames (pairs.csv -> pairs.metrics.json)."""
+    out = Path(out)
+    return out.with_name(out.stem + ".metrics.json")
 
 
 def gt_errors(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
@@ -58,12 +69,14 @@ def gt_errors(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
             "t_err_m_gt_scale": float(np.linalg.norm(t_scaled - T_gt[:3, 3]))}
 
 
+@guarded("pairs")
 def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical", place: str = "bow",
               checkpoint: str | None = None, place_checkpoint: str | None = None, threshold: float | None = 0.1,
               top_k: int = 1, stride: int = 1, r_thr: float | None = None, k: float | None = None,
               vocabulary_out: str | None = None, device: str = "cpu", trust_checkpoint: bool = False,
-              progress: bool = True) -> PairsSummary:
-    """Run the front-end over `dataset` and write one CSV row per candidate to `out` (atomically).
+              progress: bool = True, strict: bool = False) -> PairsSummary:
+    """Run the front-end over `dataset` and write one CSV row per candidate to `out` (atomically), and the run's
+    status, counts and skipped keyframes to `metrics_path(out)`.
 
     backend: pair registration (classical | mast3r | lightglue); checkpoint: its weights (mast3r).
     place: bow | vlad | cosplace | netvlad; place_checkpoint: its weights (or a bow/vlad vocabulary .npz). Without a
@@ -71,6 +84,8 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     threshold: cosine similarity threshold (None: every nearest neighbour); top_k: neighbours per keyframe;
     stride: use every stride-th frame as a keyframe. r_thr, k: the gate and logistic of eqs. (1)-(2).
     trust_checkpoint: let the MASt3R loader unpickle more than tensors (only for files from a trusted source).
+    strict: stop at an unreadable keyframe image (default: leave it out with a warning). An interrupt or a failure
+    writes the rows registered so far with status "interrupted" / "failed" and re-raises.
     """
     from tqdm import tqdm
 
@@ -82,6 +97,9 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
 
     if stride < 1 or top_k < 1:
         raise InputError(f"stride and top_k must be >= 1, got stride={stride}, top_k={top_k}")
+    if threshold is not None and not -1.0 <= threshold <= 1.0:
+        raise InputError(f"threshold is a cosine similarity in [-1, 1], got {threshold}")
+    output_file(out, "--out")
     ds = load_dataset(dataset)
     if len(ds.agents) < 2:
         raise InputError(f"{dataset}: inter-robot pairs need at least two agents, found {len(ds.agents)}")
@@ -100,19 +118,27 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     if place in ("bow", "vlad") and not recognizer.trained:
         every = [(a, i) for a in names for i in range(len(kf[a]))]
         pick = every[:: max(1, len(every) // 60)]  # up to ~60 training images, spread over all agents
-        recognizer.fit([image_of(a, i) for a, i in pick], seed=0)
+        frames = [read_frame(seqs[a], kf[a][i], SkipLog(quiet=True), strict=strict) for a, i in pick]
+        recognizer.fit([f.color for f in frames if f is not None], seed=0)
         if vocabulary_out:
             recognizer.save(vocabulary_out)
 
     db = PlaceDatabase(recognizer.dim)
-    desc = {}
+    desc, skips, rows = {}, {a: SkipLog(a) for a in names}, []
+    keep(lambda status, reason: _write_partial(out, rows, status, reason, skips))
     bar = tqdm(total=sum(map(len, kf.values())), desc="describe", disable=not progress, leave=False)
     for a in names:
-        rows = []
-        for i in range(len(kf[a])):
-            rows.append(recognizer.describe(image_of(a, i)))
+        described, readable = [], []
+        for f_index in kf[a]:
+            f = read_frame(seqs[a], f_index, skips[a], strict=strict)
+            if f is not None:  # an unreadable keyframe is left out: the keyframe indices skip it
+                described.append(recognizer.describe(f.color))
+                readable.append(f_index)
             bar.update(1)
-        desc[a] = np.stack(rows)
+        if not readable:
+            raise InputError(f"{dataset}: no keyframe image of agent {a} can be read")
+        kf[a] = readable
+        desc[a] = np.stack(described)
         db.add_many(a, range(len(kf[a])), desc[a])
     bar.close()
 
@@ -129,7 +155,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
 
     front = LoopFrontend(registrar, image_of, lambda a: seqs[a].camera, lambda a: len(kf[a]),
                          k=K_DEFAULT if k is None else k, r_thr=r_thr)
-    rows, n_reg, n_acc, n_in = [], 0, 0, 0
+    n_reg, n_acc, n_in = 0, 0, 0
     have_gt = all(s.gt_poses is not None for s in seqs.values())
     for m in tqdm(cands, desc="register", disable=not progress, leave=False):
         meas = front.evaluate((m.query_agent, m.query_index), (m.agent, m.index), m.similarity)
@@ -142,8 +168,20 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     enc_bytes = [e.nbytes for e in front.encodings.values()]
     ap = {sc: inlier_precision_recall(rows, sc)["ap"] for sc in ("similarity", "n_correspondences", "ratio")} \
         if have_gt else {}
-    return PairsSummary(Path(out), sum(map(len, kf.values())), len(cands), n_reg, n_acc, n_in if have_gt else None,
-                        recognizer.descriptor_bytes, float(np.mean(enc_bytes)) if enc_bytes else 0.0, ap)
+    summary = PairsSummary(Path(out), sum(map(len, kf.values())), len(cands), n_reg, n_acc,
+                           n_in if have_gt else None, recognizer.descriptor_bytes,
+                           float(np.mean(enc_bytes)) if enc_bytes else 0.0, ap,
+                           [r for s in skips.values() for r in s.rows])
+    write_json(metrics_path(out), {"status": "complete", **asdict(summary), "out": str(out)})
+    return summary
+
+
+def _write_partial(out, rows: list[dict], status: str, reason: str, skips: dict) -> Path:
+    """The candidates registered before an interrupt or a failure, and their metrics JSON."""
+    _write_csv(out, rows)
+    write_json(metrics_path(out), {"status": status, "reason": reason, "n_rows": len(rows), "out": str(out),
+                                   "skipped_frames": [r for s in skips.values() for r in s.rows]})
+    return Path(out)
 
 
 def inlier_precision_recall(rows: list[dict], score: str, *, outlier_m: float = 2.0) -> dict:

@@ -12,20 +12,25 @@ import numpy as np
 import torch
 
 from kernels.errors import InputError
-from kernels.fileio import atomic_write_text
+from kernels.fileio import atomic_write_text, output_dir
 
 from .agent import Agent
 from .config import SlamConfig
 from .jsonio import write_json
+from .partial_results import write_partial_agent
+from .run_guard import guarded, keep, read_frame
 
 
+@guarded("run")
 def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
                  frames: int | None = None, progress: bool = True, reference: bool = False,
-                 observer=None) -> dict:
+                 observer=None, strict: bool = False) -> dict:
     """Track and map `dataset_path` (any layout `slam.datasets.load_sequence` reads) with one agent.
 
     frames: process at most this many (None: config.max_frames, 0 meaning all). Returns the metrics dict that is
     also written to `out_dir/metrics.json`. observer: called with the agent after every frame (slam.view.live).
+    An unreadable frame is skipped with a warning (strict: the run stops with its error); an interrupt or a
+    failure mid-run writes what was done so far (slam.run_guard, slam.partial_results) and re-raises.
     """
     from .progress import bar
     import kernels
@@ -42,16 +47,18 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
         n = min(n, int(limit))
     if n == 0:
         raise InputError(f"{dataset_path}: the sequence has no frames")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
     agent = Agent(seq.camera, cfg, name=seq.name, reference=reference)
     t0 = time.perf_counter()
+    keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason, n_frames=n,
+                                                    wall_s=time.perf_counter() - t0))
     with bar(n, f"[{seq.name}] frames", unit="frame", enabled=progress) as b:
         for i in range(n):
-            f = seq[i]
-            agent.step(f.index, f.timestamp, f.color, f.depth)
+            f = read_frame(seq, i, agent, strict=strict)
+            if f is not None:  # None: unreadable, skipped with a warning
+                agent.step(f.index, f.timestamp, f.color, f.depth)
             b.update(1, f"{len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps")
             if observer is not None:
                 observer(agent)
@@ -75,11 +82,12 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
     _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
     t = agent.time
     metrics = {
+        "status": "complete",
         "agent": agent.name,
         "dataset": str(seq.root),
         "frames": n_frames,
         "frames_tracked": len(stamps),
-        "skipped_frames": list(t.skipped),
+        "skipped_frames": agent.skipped_frames(),
         "keyframes": len(agent.keyframes),
         "submaps": len(agent.gmap.submaps),
         "gaussians": len(agent.gmap),

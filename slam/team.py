@@ -22,10 +22,13 @@ import numpy as np
 
 from kernels import se3
 from kernels.errors import InputError
+from kernels.fileio import output_dir
 
 from .agent import Agent
 from .config import SlamConfig
 from .loop_log import LoopRecord
+from .partial_results import write_partial_team
+from .run_guard import guarded, keep, read_frame
 from .server import Server, ServerConfig
 
 
@@ -79,9 +82,10 @@ class Team:
         origins.append(origins[k - 1] @ rel)
 
     def run(self, sequences: Sequence, *, limits: Sequence[int] | None = None, stride: int = 1,
-            progress: Callable[[int, int, str], None] | None = None) -> float:
+            progress: Callable[[int, int, str], None] | None = None, strict: bool = False) -> float:
         """Feed every agent its sequence, one frame per agent per round, until all have ended. `limits[a]` caps
-        agent a's input frames; `stride` k uses every k-th frame (a faster, coarser run). Returns wall seconds.
+        agent a's input frames; `stride` k uses every k-th frame (a faster, coarser run). An unreadable frame is
+        skipped with a warning (strict: raise). Returns wall seconds.
         progress: called after every round with (rounds done, rounds in all, status line)."""
         if stride < 1:
             raise InputError(f"frame stride must be at least 1, got {stride}")
@@ -93,8 +97,9 @@ class Team:
             self.rounds = i
             for a, seq in enumerate(sequences):
                 if i * stride < n[a]:  # an agent whose sequence has ended simply leaves the rotation
-                    f = seq[i * stride]
-                    self.step(a, f.index, f.timestamp, f.color, f.depth)
+                    f = read_frame(seq, i * stride, self.agents[a], strict=strict)
+                    if f is not None:  # None: unreadable, skipped with a warning
+                        self.step(a, f.index, f.timestamp, f.color, f.depth)
             if progress:
                 progress(i + 1, rounds, self.status(i + 1, rounds, time.perf_counter() - t0))
         return time.perf_counter() - t0
@@ -141,10 +146,11 @@ class Team:
         return self._origins_no_lc[a][kf.submap_id] @ kf.T_local_cam
 
 
+@guarded("team")
 def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
              server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
              stride: int = 1, progress: bool = True, reference: bool = False, render_views: int = 8,
-             observer=None) -> dict:
+             observer=None, strict: bool = False) -> dict:
     """Run the team on a multi-agent RGB-D dataset (any layout `slam.datasets.load_dataset` reads) and write
     every output to `out_dir` (see slam.team_results). Returns the metrics written to metrics.json.
     `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from slam.split.split_sequence).
@@ -154,6 +160,8 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all).
     observer: `observer(team)` after every round, `observer(team, force=True)` after the map refinement
     (slam.view.live.LiveView, the live view).
+    strict: stop at an unreadable frame (default: skip it). An interrupt or a failure writes what was done so far
+    (slam.partial_results.write_partial_team) and re-raises.
     """
     import kernels
 
@@ -171,12 +179,15 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     for a in range(len(ds.agents)):  # the smaller of the global and the agent's own cap; 0 = no cap
         c = [int(x) for x in (cap, limits[a] if limits else None) if x]
         caps.append(min(c) if c else 0)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(out_dir, "--out")
     team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server, reference=reference)
     cpu0 = time.process_time()
+    t_start = time.perf_counter()
+    keep(lambda status, reason: write_partial_team(team, ds, out, status=status, reason=reason,
+                                                   wall_s=time.perf_counter() - t_start,
+                                                   run_info={"frame_stride": stride, "frame_caps": caps}))
     with TeamRounds(team, enabled=progress, observer=observer) as show:
-        wall = team.run(ds.agents, limits=caps, stride=stride, progress=show)
+        wall = team.run(ds.agents, limits=caps, stride=stride, progress=show, strict=strict)
     t_fin = time.perf_counter()
     team.finish()
     wall += time.perf_counter() - t_fin

@@ -83,7 +83,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
         t = ag.time
         agents.append({
-            "name": ag.name, "frames": len(seq), "frames_tracked": len(ag.poses), "skipped_frames": list(t.skipped),
+            "name": ag.name, "frames": len(seq), "frames_tracked": len(ag.poses), "skipped_frames": ag.skipped_frames(),
             "keyframes": len(ag.keyframes), "submaps": len(ag.gmap.submaps), "gaussians": len(ag.gmap),
             "component": names[srv.slots[a].component], "in_global_frame": srv.slots[a].component == 0,
             **traj["agents"][a], **render["agents"][a],
@@ -92,6 +92,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         })
     summary = summarise(srv.records)
     metrics = {
+        "status": "complete",
         "dataset": str(ds.root), "dataset_name": ds.name, "agents": agents,
         "ate_rmse_team": traj["team"], "ate_rmse_team_agents": traj["team_agents"],
         "joined_agents": [names[a] for a in comps.get(0, [])],

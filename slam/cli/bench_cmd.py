@@ -10,6 +10,22 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    import argparse
+    from unittest import mock
+
+    from kernels.errors import InputError
+    from kernels.fileio import output_file
     from perf.__main__ import main as perf_main
 
-    return perf_main(args.rest)
+    for flag in ("--json", "--md"):  # an unwritable output fails before the benchmarks run, not after
+        for i, a in enumerate(args.rest):
+            path = args.rest[i + 1] if a == flag and i + 1 < len(args.rest) else \
+                (a.split("=", 1)[1] if a.startswith(flag + "=") else None)
+            if path:
+                output_file(path, flag, create=False)
+
+    def one_line(parser, message):  # perf's own parser: the package's one-line error instead of usage + error
+        raise InputError(f"{message} (see swarmsplat bench --help)")
+
+    with mock.patch.object(argparse.ArgumentParser, "error", one_line):
+        return perf_main(args.rest)

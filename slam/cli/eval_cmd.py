@@ -34,8 +34,11 @@ def register(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from kernels.errors import InputError
-    from kernels.fileio import atomic_write_text
+    from kernels.fileio import atomic_write_text, output_file
 
+    for flag, path in (("--json", args.json), ("--plot", args.plot)):
+        if path:
+            output_file(path, flag, create=False)
     team = Path(args.gt).is_dir() or Path(args.est).is_dir()
     if team and not (Path(args.gt).is_dir() and Path(args.est).is_dir()):
         raise InputError("--gt and --est must both be files (one trajectory) or both folders (a team)")

@@ -27,6 +27,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from kernels.errors import InputError
+    from kernels.fileio import output_dir, output_file
     from slam.synthetic import GeneratorConfig, agent_poses, generate, generate_world
     from slam.synthetic.writer import check_output_dir
 
@@ -34,7 +35,10 @@ def run(args) -> int:
         raise InputError("give --out DIR (and/or --preview PNG)")
     config = GeneratorConfig.preset(args.preset, agents=args.agents, frames=args.frames, width=args.width,
                                     height=args.height, fps=args.fps, seed=args.seed, mono=args.mono)
+    if args.out:  # a file in the way or an unwritable place: one line before any rendering
+        output_dir(args.out, "--out", create=False)
     if args.preview:
+        output_file(args.preview, "--preview", create=False)
         from slam.synthetic.preview import plot_world
 
         world = generate_world(config.seed, config.world)

@@ -35,6 +35,9 @@ def register(sub) -> None:
     p.add_argument("--trust-checkpoint", action="store_true",
                    help="let the MASt3R loader unpickle more than tensors (only for a checkpoint from a trusted source)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable keyframe image (default: leave it out with a warning; "
+                        "pairs.csv -> pairs.metrics.json lists it under skipped_frames)")
     p.set_defaults(func=run)
 
 
@@ -44,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     summary = run_pairs(args.dataset, args.out, backend=args.backend, place=args.place, checkpoint=args.checkpoint,
                         place_checkpoint=args.place_checkpoint, threshold=args.threshold, top_k=args.top_k,
                         stride=args.stride, r_thr=args.r_thr, k=args.k, vocabulary_out=args.save_vocabulary,
-                        device=args.device, trust_checkpoint=args.trust_checkpoint, progress=not args.quiet)
+                        device=args.device, trust_checkpoint=args.trust_checkpoint, progress=not args.quiet,
+                        strict=args.strict)
     print(summary.line())
     return 0

@@ -23,5 +23,5 @@ def run(args) -> int:
     run_robot(args.dataset, args.id, args.out, start_time=args.start_time, port_base=args.port_base, run=args.run,
               stride=args.stride, schedule=args.schedule, place=args.place, place_checkpoint=args.place_checkpoint,
               backend=args.backend, formulation=args.formulation, solver=args.solver,
-              uniform_noise=args.uniform_noise, r_thr=args.r_thr, k=args.k)
+              uniform_noise=args.uniform_noise, r_thr=args.r_thr, k=args.k, strict=args.strict)
     return 0

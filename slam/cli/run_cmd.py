@@ -26,6 +26,9 @@ def register(sub) -> None:
                         "START/STOP means the start/end). Each agent starts in its own frame and joins the "
                         "global frame at its first accepted inter-agent loop")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame (default: skip it with a warning; metrics.json lists "
+                        "it under skipped_frames)")
     add_live_view_flags(p)
     add_backend_flags(p)
     p.set_defaults(func=run)
@@ -35,6 +38,7 @@ def run(args) -> int:
     import json
 
     from kernels.errors import InputError
+    from kernels.fileio import output_dir
     from slam.config import SlamConfig
     from slam.run import run_sequence
 
@@ -43,9 +47,10 @@ def run(args) -> int:
         from slam.split import parse_ranges
 
         ranges = parse_ranges(args.split)  # bad syntax fails before any loading
-    cfg = SlamConfig.from_yaml(args.config, overrides={"kernels": {"backend": args.kernels, "device": args.device}})
     if args.frames is not None and args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")
+    output_dir(args.out, "--out", create=False)  # a file or an unwritable place fails before any loading
+    cfg = SlamConfig.from_yaml(args.config, overrides={"kernels": {"backend": args.kernels, "device": args.device}})
     from slam.datasets import load_dataset
 
     ds = load_dataset(args.dataset)
@@ -64,7 +69,8 @@ def run(args) -> int:
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map (issue 7).
         from slam.team import run_team
 
-        m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live)
+        m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
+                     strict=args.strict)
         keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
             "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],
@@ -75,7 +81,8 @@ def run(args) -> int:
         }
         print(json.dumps(summary, indent=1))
         return serve_result(live, args.out)
-    m = run_sequence(args.dataset, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live)
+    m = run_sequence(args.dataset, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
+                     strict=args.strict)
     keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
     return serve_result(live, args.out)

@@ -22,6 +22,9 @@ def add_swarm_options(p) -> None:
     p.add_argument("--backend", default="classical", help="pair registration: classical, mast3r, lightglue")
     p.add_argument("--r-thr", type=float, help="correspondence-ratio gate R_thr of eq. 1 (default per pair backend: classical 0.15, measured in perf/results/flocc-fig5.md; mast3r and others 0.3 as the paper)")
     p.add_argument("--k", type=float, help="logistic steepness k of eq. 2 (default 5)")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable keyframe image (default: skip it with a warning; "
+                        "metrics.json lists it under skipped_frames)")
 
 
 def register(sub) -> None:
@@ -35,7 +38,7 @@ def register(sub) -> None:
 def run(args) -> int:
     opts = dict(formulation=args.formulation, solver=args.solver, uniform_noise=args.uniform_noise,
                 schedule=args.schedule, stride=args.stride, place=args.place, place_checkpoint=args.place_checkpoint,
-                backend=args.backend, r_thr=args.r_thr, k=args.k)
+                backend=args.backend, r_thr=args.r_thr, k=args.k, strict=args.strict)
     if args.processes:
         from slam.swarm.launch import launch
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.errors import InputError
 from kernels.fileio import atomic_write_text
 
 from .optimiser import SolveConfig, solve_group
@@ -32,14 +33,17 @@ def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray], lin
 
     gt, est = {}, {}
     for r, seq in enumerate(setup.dataset.agents):
-        if r not in trajs or seq.gt_poses is None:
+        if r not in trajs or not len(trajs[r]) or seq.gt_poses is None:
             continue
-        frames = np.arange(0, len(seq), setup.stride)[: len(trajs[r])]
-        gt[seq.name] = (np.asarray(stamps[r]), seq.gt_poses[frames])
+        frames = frames_of(seq, stamps[r])[: len(trajs[r])]  # keyframes skipped as unreadable leave gaps
+        gt[seq.name] = (np.asarray(stamps[r])[: len(frames)], seq.gt_poses[frames])
         est[seq.name] = (np.asarray(stamps[r]), trajs[r])
     if not est:
         return {}
-    res = ate_multi(gt, est, align="se3", by_index=True)
+    try:
+        res = ate_multi(gt, est, align="se3", by_index=True)
+    except InputError as e:  # too few keyframes to align (a run interrupted early)
+        return {"note": f"not aligned: {e}"}
     out = {"merged_rmse": res.joint.rmse, "per_robot_rmse": {k: v.rmse for k, v in res.per_agent.items()},
            "_result": res}
     names = [setup.dataset.agents[r].name for r in (linked or [])]
@@ -48,6 +52,14 @@ def _ate(setup, trajs: dict[int, np.ndarray], stamps: dict[int, np.ndarray], lin
         out["linked_robots"] = names
         out["linked_merged_rmse"] = sub.joint.rmse
     return out
+
+
+def frames_of(seq, stamps) -> np.ndarray:
+    """Frame indices of `seq` whose timestamps are `stamps` (a robot's keyframes, in order)."""
+    t = np.asarray(seq.timestamps, dtype=np.float64)
+    i = np.clip(np.searchsorted(t, np.asarray(stamps, dtype=np.float64)), 0, max(len(t) - 1, 0))
+    prev = np.clip(i - 1, 0, None)
+    return np.where(np.abs(t[prev] - stamps) < np.abs(t[i] - stamps), prev, i)
 
 
 def linked_robots(graph) -> list[int]:
@@ -77,9 +89,12 @@ def _public(d: dict) -> dict:
     return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
-def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *, mode: str) -> dict:
+def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *, mode: str,
+                  status: str = "complete", reason: str | None = None, skipped: list | None = None) -> dict:
     """robots: id -> {trajectory, odometry, timestamps, bytes, estimate, n_solves}; final_subs: the graphs of
-    the optimiser's last solve (robot id -> GraphSubmission), re-solved here for the comparison and the g2o."""
+    the optimiser's last solve (robot id -> GraphSubmission), re-solved here for the comparison and the g2o.
+    status: "complete", or "interrupted" / "failed" (with `reason`) for a run cut short, which skips the other
+    formulations' re-solves and the plot; skipped: {"agent", "frame", "reason"} of unreadable keyframes."""
     from graph.g2o import write_g2o
     from slam.trajectory import write_tum
 
@@ -87,6 +102,8 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
     names = {r: s.name for r, s in enumerate(setup.dataset.agents)}
     (out / "odometry").mkdir(parents=True, exist_ok=True)
     for r, d in robots.items():
+        if not len(d["timestamps"]):  # no keyframe yet (a run interrupted early)
+            continue
         write_tum(out / f"{names[r]}.txt", d["timestamps"], d["trajectory"])
         write_tum(out / "odometry" / f"{names[r]}.txt", d["timestamps"], d["odometry"])
     stamps = {r: d["timestamps"] for r, d in robots.items()}
@@ -95,7 +112,9 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
     run = _ate(setup, {r: d["trajectory"] for r, d in robots.items()}, stamps, linked)
     odo = _ate(setup, {r: d["odometry"] for r, d in robots.items()}, stamps, linked)
     cfg = setup.node_config.solve
-    metrics = {"mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
+    complete = status == "complete"
+    metrics = {"status": status, **({"reason": reason} if reason else {}), "skipped_frames": list(skipped or []),
+               "mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
                "schedule": setup.schedule.to_dict(), "stride": setup.stride,
                "ate": _public(run), "odometry_only_ate": _public(odo), "alternatives": {}}
     if sol is not None:
@@ -113,7 +132,7 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
         metrics["loop_closures"] = {"count": len(loops),
                                     "per_pair": _per_pair(loops), "mean_confidence": float(np.mean(
                                         [e.confidence for e in loops])) if loops else None}
-        for name, (f, s, u) in ALTERNATIVES.items():
+        for name, (f, s, u) in (ALTERNATIVES if complete else {}).items():
             alt = solve_group(final_subs, SolveConfig(formulation=f, solver=s, uniform_noise=u))
             trajs, off = {}, 0
             for r, c in zip(alt.robots, alt.counts):
@@ -123,12 +142,13 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
                                                                            for r in trajs}, linked)),
                                              "time_s": alt.time_s}
     metrics["bytes"] = {names[r]: d["bytes"] for r, d in robots.items()}
-    metrics["images_bytes"] = {names[r]: _image_bytes(setup, r, len(d["timestamps"])) for r, d in robots.items()}
+    if complete:  # reads every keyframe image again: not while the user waits for an interrupted run to end
+        metrics["images_bytes"] = {names[r]: _image_bytes(setup, r, d["timestamps"]) for r, d in robots.items()}
     metrics["n_solves"] = {names[r]: d["n_solves"] for r, d in robots.items()}
     metrics["estimate_stamp"] = {names[r]: (list(d["estimate"].stamp) if d["estimate"] is not None else None)
                                  for r, d in robots.items()}
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=float))
-    if run.get("_result") is not None:
+    if complete and run.get("_result") is not None:
         _plot(out / "trajectories.png", run["_result"])
     return metrics
 
@@ -143,15 +163,15 @@ def _per_pair(loops) -> dict:
     return out
 
 
-def _image_bytes(setup, robot: int, n_kf: int) -> dict:
+def _image_bytes(setup, robot: int, stamps: np.ndarray) -> dict:
     """What sending the keyframe images themselves would cost once: raw RGB and PNG-compressed."""
     import cv2
 
     seq = setup.dataset.agents[robot]
-    frames = list(range(0, len(seq), setup.stride))[:n_kf]
+    frames = frames_of(seq, stamps) if len(stamps) else []
     raw = png = 0
     for f in frames:
-        im = seq[f].color
+        im = seq[int(f)].color
         raw += im.nbytes
         png += len(cv2.imencode(".png", im[..., ::-1])[1])
     return {"raw": int(raw), "png": int(png), "keyframes": len(frames)}

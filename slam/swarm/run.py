@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from kernels.errors import InputError
+from kernels.fileio import output_dir
+from slam.run_guard import SkipLog, guarded, keep, read_frame
 
 from .node import NodeConfig, RobotNode
 from .optimiser import SolveConfig
@@ -32,13 +34,15 @@ class SwarmSetup:
     recognizer: object
     registrar: object
     node_config: NodeConfig
+    strict: bool = False  # stop at an unreadable keyframe image (default: skip it with a warning)
+    out: Path | None = None  # where an in-process run writes (its partial results too)
 
 
 def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | Path | None = None,
             place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
             checkpoint: str | None = None, formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
             vocabulary_out: str | Path | None = None, device: str = "cpu", r_thr: float | None = None,
-            k: float | None = None) -> SwarmSetup:
+            k: float | None = None, strict: bool = False) -> SwarmSetup:
     """Load the dataset, build the models (fitting VLAD if needed) and the schedule (default: `Schedule.default`)."""
     from registration.pair import make_registrar
     from registration.place_recognition import make_recognizer
@@ -64,26 +68,29 @@ def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | 
     if place in ("bow", "vlad") and not recognizer.trained:
         every = [(s, f) for s in ds.agents for f in range(0, len(s), stride)]
         pick = every[:: max(1, len(every) // 60)]
-        recognizer.fit([s[f].color for s, f in pick], seed=0)
+        frames = [read_frame(s, f, SkipLog(quiet=True), strict=strict) for s, f in pick]  # the feeder warns
+        recognizer.fit([f.color for f in frames if f is not None], seed=0)
         if vocabulary_out:
             recognizer.save(vocabulary_out)
     cfg = NodeConfig(r_thr=r_thr, k=k,
                      solve=SolveConfig(formulation=formulation, solver=solver, uniform_noise=uniform_noise))
-    return SwarmSetup(ds, stride, schedule, recognizer, registrar, cfg)
+    return SwarmSetup(ds, stride, schedule, recognizer, registrar, cfg, strict)
 
 
 class KeyframeFeeder:
-    """Hands a node its keyframes as the frames it has read by each tick arrive."""
+    """Hands a node its keyframes as the frames it has read by each tick arrive. An unreadable keyframe image is
+    skipped with a warning and logged in `skipped` (strict: raise)."""
 
-    def __init__(self, seq, stride: int):
-        self.seq, self.stride, self.next = seq, stride, 0
+    def __init__(self, seq, stride: int, strict: bool = False):
+        self.seq, self.stride, self.next, self.strict = seq, stride, 0, strict
+        self.skipped = SkipLog(seq.name)
 
     def feed(self, node: RobotNode, frames_read: int) -> int:
         n = 0
         while self.next < min(frames_read, len(self.seq)):
             if self.next % self.stride == 0:
-                fr = self.seq[self.next]
-                if fr.T_world_cam_odom is not None:
+                fr = read_frame(self.seq, self.next, self.skipped, strict=self.strict)
+                if fr is not None and fr.T_world_cam_odom is not None:
                     node.add_keyframe(fr.color, fr.T_world_cam_odom, fr.timestamp)
                     n += 1
             self.next += 1
@@ -93,17 +100,18 @@ class KeyframeFeeder:
 def make_nodes(setup: SwarmSetup, network: InProcessNetwork) -> tuple[list[RobotNode], list[KeyframeFeeder]]:
     nodes = [RobotNode(r, s.camera, network.endpoint(r), setup.recognizer, setup.registrar, setup.node_config)
              for r, s in enumerate(setup.dataset.agents)]
-    return nodes, [KeyframeFeeder(s, setup.stride) for s in setup.dataset.agents]
+    return nodes, [KeyframeFeeder(s, setup.stride, setup.strict) for s in setup.dataset.agents]
 
 
 def simulate(setup: SwarmSetup, *, faults: Faults | None = None, progress: bool = False, on_tick=None):
     """Run every tick of the schedule in-process. `on_tick(tick, network, nodes, feeders)` runs before each
-    tick (tests inject kills and link changes there). Returns (nodes, network)."""
+    tick (tests inject kills and link changes there). Returns (nodes, network, feeders)."""
     from tqdm import tqdm
 
     robots = list(range(len(setup.dataset.agents)))
     net = InProcessNetwork(robots, setup.schedule, faults)
     nodes, feeders = make_nodes(setup, net)
+    keep(lambda status, reason: write_partial_swarm(setup, nodes, feeders, status=status, reason=reason))
     for tick in tqdm(range(setup.schedule.ticks), desc="swarm", disable=not progress, leave=False):
         if on_tick is not None:
             on_tick(tick, net, nodes, feeders)
@@ -113,27 +121,51 @@ def simulate(setup: SwarmSetup, *, faults: Faults | None = None, progress: bool 
                 continue
             feeders[r].feed(nodes[r], setup.schedule.frames_at(tick))
             nodes[r].step(tick)
-    return nodes, net
+    return nodes, net, feeders
 
 
-def run_swarm(dataset: str | Path, out: str | Path, *, formulation: str = "is", solver: str = "lm",
-              schedule: str | Path | Schedule | None = None, stride: int = 4, place: str = "bow",
-              place_checkpoint: str | None = None, backend: str = "classical", checkpoint: str | None = None,
-              uniform_noise: bool = False, r_thr: float | None = None, k: float | None = None,
-              progress: bool = True) -> dict:
-    """Run the whole team in one process and write the outputs to `out` (see `outputs.write_outputs`).
-    Returns the metrics dictionary that is also written as `metrics.json`."""
-    from .outputs import write_outputs
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
-                    backend=backend, checkpoint=checkpoint, formulation=formulation, solver=solver,
-                    uniform_noise=uniform_noise, vocabulary_out=out / "vocabulary.npz", r_thr=r_thr, k=k)
-    nodes, net = simulate(setup, progress=progress)
+def robot_results(nodes) -> tuple[dict, dict]:
+    """(robot id -> what outputs.write_outputs needs, the final graphs: those of the lowest-id robot that solved)."""
     robots = {r: {"trajectory": n.trajectory(), "odometry": np.array(n.odometry), "timestamps": np.array(n.timestamps),
                   "bytes": n.tx.stats.to_dict(), "estimate": n.estimate, "n_solves": n.n_solves}
               for r, n in enumerate(nodes)}
     leader = min((n for n in nodes if n.last_solution is not None), key=lambda n: n.id, default=None)
     final = {int(r): leader.subs[int(r)] for r in leader.solved_basis} if leader else {}
-    return write_outputs(out, setup, robots, final, mode="in-process")
+    return robots, final
+
+
+def write_partial_swarm(setup: SwarmSetup, nodes, feeders, *, status: str, reason: str) -> Path | None:
+    """A swarm run cut short: every robot's keyframe trajectory so far and the outputs of `write_outputs` without
+    the re-solved alternatives, metrics.json with `status` and `reason`."""
+    from .outputs import write_outputs
+
+    if setup.out is None:
+        return None
+    robots, final = robot_results(nodes)
+    write_outputs(setup.out, setup, robots, final, mode="in-process", status=status, reason=reason,
+                  skipped=[row for f in feeders for row in f.skipped.rows])
+    return setup.out
+
+
+@guarded("swarm")
+def run_swarm(dataset: str | Path, out: str | Path, *, formulation: str = "is", solver: str = "lm",
+              schedule: str | Path | Schedule | None = None, stride: int = 4, place: str = "bow",
+              place_checkpoint: str | None = None, backend: str = "classical", checkpoint: str | None = None,
+              uniform_noise: bool = False, r_thr: float | None = None, k: float | None = None,
+              progress: bool = True, strict: bool = False) -> dict:
+    """Run the whole team in one process and write the outputs to `out` (see `outputs.write_outputs`).
+    Returns the metrics dictionary that is also written as `metrics.json`. An unreadable keyframe image is
+    skipped with a warning (strict: the run stops); an interrupt or failure mid-run writes the outputs so far
+    with "status" "interrupted" / "failed" (`write_partial_swarm`) and re-raises."""
+    from .outputs import write_outputs
+
+    out = output_dir(out, "--out")
+    setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
+                    backend=backend, checkpoint=checkpoint, formulation=formulation, solver=solver,
+                    uniform_noise=uniform_noise, vocabulary_out=out / "vocabulary.npz", r_thr=r_thr, k=k,
+                    strict=strict)
+    setup.out = out
+    nodes, net, feeders = simulate(setup, progress=progress)
+    robots, final = robot_results(nodes)
+    return write_outputs(out, setup, robots, final, mode="in-process",
+                         skipped=[row for f in feeders for row in f.skipped.rows])
