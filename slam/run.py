@@ -40,13 +40,14 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     kernels.use(cfg.kernels.backend, cfg.kernels.device)
     if cfg.kernels.torch_threads:
         torch.set_num_threads(cfg.kernels.torch_threads)
-    seq = load_sequence(dataset_path)
+    # A loaded sequence is taken as it is (e.g. the one agent of a dataset root holding a single sequence).
+    seq = load_sequence(dataset_path) if isinstance(dataset_path, (str, Path)) else dataset_path
     n = len(seq)
     limit = frames if frames is not None else cfg.max_frames
     if limit:
         n = min(n, int(limit))
     if n == 0:
-        raise InputError(f"{dataset_path}: the sequence has no frames")
+        raise InputError(f"{seq.root}: the sequence has no frames")
     out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 

@@ -15,8 +15,9 @@ def register(sub) -> None:
                                    "A multi-agent dataset, or a sequence cut into agents with --split, runs as a "
                                    "team (inter-agent loops, one global pose graph, merged map). "
                                    "--kernels/--device override the config file's kernels section.")
-    p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood, Replica) or a multi-agent "
-                                   "dataset (dataset.yaml, Multiagent Replica), which runs as a team")
+    p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood / ICL-NUIM, Replica, ScanNet "
+                                   "export, 7-Scenes seq-NN) or a multi-agent dataset (dataset.yaml, Multiagent "
+                                   "Replica, a 7-Scenes scene with several sequences), which runs as a team")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="YAML file overriding the default settings")
     p.add_argument("--frames", type=int, help="process at most N frames (per agent)")
@@ -81,7 +82,7 @@ def run(args) -> int:
         }
         print(json.dumps(summary, indent=1))
         return serve_result(live, args.out)
-    m = run_sequence(args.dataset, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
+    m = run_sequence(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
                      strict=args.strict)
     keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
