@@ -64,7 +64,9 @@ class KeyframeConfig(_Section):
 
 
 class MappingConfig(_Section):
-    max_width: int = Field(160, ge=16, description="resolution of the mapping renders")
+    max_width: int = Field(0, ge=0, description="width of the mapping renders; 0 (default) = the working "
+                                                "resolution (image.max_width). A lower width maps faster and "
+                                                "coarser; evaluation is at the working and input resolution")
     iterations: int = Field(30, ge=0, description="optimisation iterations per new keyframe")
     first_iterations: int = Field(100, ge=0, description="iterations for a submap's first keyframe")
     current_keyframe_fraction: float = Field(0.4, ge=0, le=1, description="share of iterations on the newest keyframe")
