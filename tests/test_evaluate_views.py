@@ -54,7 +54,7 @@ def test_scores_at_both_resolutions(fitted):
     assert s["psnr_input_resolution"] == pytest.approx(s_in["psnr"])
     # A map fitted at 64 px is sharper at 64 px than against the 128 px input, and both are a real fit.
     assert s["psnr"] > s["psnr_input_resolution"] > 15, s
-    assert 0 < s["depth_l1_input_resolution"] < 0.05 and s["ssim"] > s["ssim_input_resolution"]
+    assert 0 < s["depth_l1_input_resolution"] < 0.1 and s["ssim"] > s["ssim_input_resolution"]
     # A wrong pose scores worse at both resolutions.
     from kernels import se3
 
