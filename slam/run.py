@@ -16,6 +16,7 @@ from kernels.fileio import atomic_write_text, output_dir
 
 from .agent import Agent
 from .config import SlamConfig
+from .evaluate_views import keyframe_metrics
 from .jsonio import write_json
 from .partial_results import write_partial_agent
 from .run_guard import guarded, keep, read_frame
@@ -104,7 +105,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
     if metrics.get("ate_rmse") is not None:  # the same run's tracking-only trajectory, aligned the same way
         metrics["ate_rmse_no_lc"] = _trajectory_metrics(seq, stamps, T_no_lc, None)["ate_rmse"]
-    metrics.update(_render_metrics(agent, seq))
+    metrics.update(keyframe_metrics(agent, seq))  # working and input resolution (slam.evaluate_views)
     write_json(out / "metrics.json", metrics)
     return metrics
 
@@ -131,31 +132,6 @@ def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path | 
                       {seq.name: res.T_est_aligned[:, :3, 3]}, errors={seq.name: res.errors},
                       title=f"{seq.name}: ATE RMSE {100 * res.rmse:.2f} cm")
     return {"ate_rmse": res.rmse, "ate": {**res.to_dict(), "align": align}}
-
-
-def _render_metrics(agent: Agent, seq) -> dict:
-    """Training-view rendering quality: every keyframe rendered from its own submap at the mapping resolution,
-    against its input frame (PSNR and SSIM on colour, L1 on valid depth)."""
-    from .frames import make_rgbd
-    from .metrics import depth_l1, psnr, ssim
-
-    cfg = agent.cfg
-    ps, ss, dl, pv = [], [], [], []
-    for kf in agent.keyframes:
-        f = seq[kf.frame_index]
-        ref = make_rgbd(f.color, f.depth, seq.camera, min_depth=cfg.image.min_depth, max_depth=cfg.image.max_depth)
-        ref = ref.resized(cfg.image.max_width).resized(cfg.mapping.max_width)
-        color, depth = agent.render_keyframe(kf, ref.camera)
-        gt_c = ref.color_tensor()
-        ps.append(psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
-        ss.append(ssim(color.permute(2, 0, 1), gt_c.permute(2, 0, 1)))
-        if (ref.depth > 0).any():
-            dl.append(depth_l1(depth, torch.as_tensor(ref.depth)))
-            # Pixels without valid depth get no Gaussians; this PSNR leaves them out.
-            pv.append(psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1), mask=torch.as_tensor(ref.depth > 0)))
-    mean = lambda v: float(np.mean(v)) if v else None  # noqa: E731
-    return {"psnr": mean(ps), "ssim": mean(ss), "depth_l1": mean(dl), "psnr_valid_depth": mean(pv),
-            "render_views": len(ps)}
 
 
 def _by_source(log) -> dict:

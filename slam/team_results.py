@@ -14,13 +14,11 @@
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
 import yaml
 
 from kernels.errors import InputError
@@ -102,7 +100,9 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "depth_l1": render["depth_l1"], "render_views": render["views"],
         "psnr_novel": render["psnr_novel"], "ssim_novel": render["ssim_novel"], "novel_views": render["novel_views"],
         "psnr_before_refine": before.get("psnr"), "ssim_before_refine": before.get("ssim"),
-        "render_resolution": render["resolution"],
+        "render_resolution": render["resolution"], "input_resolution": render["input_resolution"],
+        **{k: render[k] for k in ("psnr_input_resolution", "ssim_input_resolution", "depth_l1_input_resolution",
+                                  "psnr_novel_input_resolution", "ssim_novel_input_resolution")},
         "map_refine": {"config": team.cfg.map_refine.model_dump(), "components": refine or {},
                        "evaluation_before_s": before.get("seconds")},
         "components": {names[r]: [names[m] for m in ms] for r, ms in comps.items()}, "maps": map_files,
@@ -182,46 +182,34 @@ def _spread(items: list, n: int) -> list:
 
 
 def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
-    """Merged-map rendering quality at the mapping resolution (cfg.mapping.max_width), against the input frame
-    brought to that resolution the way the pipeline does (area downsampling; no blur), colour clamped to [0, 1].
+    """Merged-map rendering quality at the working resolution (cfg.image.max_width, against the input frame
+    brought to it the way the pipeline does: area downsampling, no blur) and at the input resolution
+    (slam.evaluate_views), colour clamped to [0, 1].
 
     Training views: `views` keyframes per agent (evenly spread), rendered from the merged map of the agent's
     component at the keyframe's optimised pose. Held-out views (`novel`): `views` tracked frames per agent that
     are NOT keyframes — no mapping or refinement step ever saw them — at their pose with loop closures.
     Returns {"agents": [...], "psnr", "ssim", "depth_l1", "views", "psnr_novel", "ssim_novel", "novel_views",
-    "resolution", "grid"} (grid: rows for renders.png)."""
-    from .frames import make_rgbd
-    from .metrics import depth_l1, psnr, ssim
-    from .render import render, viewmat_from_pose
+    the same with the suffix _input_resolution, "resolution" (working [w, h]), "input_resolution" [w, h], "grid"}
+    (grid: rows for renders.png)."""
+    from .evaluate_views import INPUT, mean_scores, resolutions, score_view
 
     srv, cfg = team.server, team.cfg
     maps = {root: srv.merged_map(root) for root in srv.components()}
-    per, grid, res = [], [], None
-    acc = {k: [] for k in ("p", "s", "d", "np", "ns")}
+    per, grid, res = [], [], {}
+    acc = {"kf": [], "novel": []}
 
     def score(params, T, seq, index):
         f = seq[index]
-        ref = make_rgbd(f.color, f.depth, seq.camera, min_depth=cfg.image.min_depth, max_depth=cfg.image.max_depth)
-        ref = ref.resized(cfg.image.max_width).resized(cfg.mapping.max_width)
-        with torch.no_grad():
-            o = render(params, viewmat_from_pose(T), ref.camera)
-        color = o.color.clamp(0, 1)
-        gt_c = ref.color_tensor()
-        p = psnr(color.permute(2, 0, 1), gt_c.permute(2, 0, 1))
-        s = ssim(color.permute(2, 0, 1), gt_c.permute(2, 0, 1))
-        d = depth_l1(o.depth, torch.as_tensor(ref.depth)) if (ref.depth > 0).any() else None
-        return p, s, d, ref, color
+        return score_view(params, T, f.color, f.depth, seq.camera, cfg)
 
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
         params = maps[srv.slots[a].component]
-        ps, ss, dl, nps, nss = [], [], [], [], []
+        kfs, novel_s = [], []
         for kf in _spread(ag.keyframes, views):
-            p, s, d, ref, color = score(params, srv.global_pose(a, kf), seq, kf.frame_index)
-            ps.append(p)
-            ss.append(s)
-            if d is not None:
-                dl.append(d)
-            res = [int(ref.camera.width), int(ref.camera.height)]
+            s, ref, color = score(params, srv.global_pose(a, kf), seq, kf.frame_index)
+            kfs.append(s)
+            res = resolutions(seq.camera, cfg)
             if len(grid) < 3 * (a + 1):
                 grid.append((f"{ag.name} frame {kf.frame_index}", ref.color, (color.numpy() * 255).astype(np.uint8)))
         if novel and ag.poses:
@@ -229,16 +217,27 @@ def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
             _, T_all = srv.global_trajectory(a)
             held = [(rec.frame_index, T_all[i]) for i, rec in enumerate(ag.poses) if rec.frame_index not in kf_frames]
             for index, T in _spread(held, views):
-                p, s, _, _, _ = score(params, T, seq, index)
-                nps.append(p)
-                nss.append(s)
-        per.append({"psnr": _mean(ps), "ssim": _mean(ss), "depth_l1": _mean(dl), "render_views": len(ps),
-                    "psnr_novel": _mean(nps), "ssim_novel": _mean(nss), "novel_views": len(nps)})
-        for k, v in zip(("p", "s", "d", "np", "ns"), (ps, ss, dl, nps, nss)):
-            acc[k] += v
-    return {"agents": per, "psnr": _mean(acc["p"]), "ssim": _mean(acc["s"]), "depth_l1": _mean(acc["d"]),
-            "views": len(acc["p"]), "psnr_novel": _mean(acc["np"]), "ssim_novel": _mean(acc["ns"]),
-            "novel_views": len(acc["np"]), "resolution": res, "grid": grid}
+                s, _, _ = score(params, T, seq, index)
+                novel_s.append({k: s[k] for k in ("psnr", "ssim", "psnr" + INPUT, "ssim" + INPUT)})
+        m, mn = mean_scores(kfs), mean_scores(novel_s)
+        per.append({**_render_keys(m, mn), "render_views": len(kfs), "novel_views": len(novel_s)})
+        acc["kf"] += kfs
+        acc["novel"] += novel_s
+    m, mn = mean_scores(acc["kf"]), mean_scores(acc["novel"])
+    return {"agents": per, **_render_keys(m, mn), "views": len(acc["kf"]), "novel_views": len(acc["novel"]),
+            "resolution": res.get("render_resolution"), "input_resolution": res.get("input_resolution"),
+            "grid": grid}
+
+
+def _render_keys(m: dict, mn: dict) -> dict:
+    """metrics.json keys of one set of training-view scores `m` and held-out scores `mn` (slam.evaluate_views)."""
+    from .evaluate_views import INPUT
+
+    out = {k: m.get(k) for k in ("psnr", "ssim", "depth_l1")}
+    out.update(psnr_novel=mn.get("psnr"), ssim_novel=mn.get("ssim"))
+    out.update({k + INPUT: m.get(k + INPUT) for k in ("psnr", "ssim", "depth_l1")})
+    out.update(psnr_novel_input_resolution=mn.get("psnr" + INPUT), ssim_novel_input_resolution=mn.get("ssim" + INPUT))
+    return out
 
 
 def _render_grid(path: Path, rows: list) -> None:
@@ -259,8 +258,3 @@ def _render_grid(path: Path, rows: list) -> None:
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=90)
-
-
-def _mean(v: list) -> float | None:
-    v = [x for x in v if x is not None and math.isfinite(x)]
-    return float(np.mean(v)) if v else None

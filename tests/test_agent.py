@@ -97,8 +97,13 @@ def test_tiny_sequence_end_to_end(tmp_path, warp_cpu):
     out = tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--config", str(cfg), "--frames", "4", "--quiet"]) == 0
     m = json.loads((out / "metrics.json").read_text())
-    for key in ("ate_rmse", "psnr", "ssim", "depth_l1", "fps", "time_s"):
+    for key in ("ate_rmse", "psnr", "ssim", "depth_l1", "fps", "time_s", "psnr_input_resolution",
+                "ssim_input_resolution", "depth_l1_input_resolution"):
         assert m[key] is not None, key
+    # QUICK works at 160 px on the tiny preset's 160x120 input and maps at 80 px; evaluation is at the working
+    # resolution and the input resolution, here the same (so the same figures).
+    assert m["render_resolution"] == m["input_resolution"] == [160, 120]
+    assert m["psnr_input_resolution"] == m["psnr"]
     assert m["frames"] == 4 and m["keyframes"] >= 1 and m["gaussians"] > 0
     assert set(m["time_s"]) >= {"tracking", "mapping", "loop_closure"}
     stamps, T = read_tum(out / "trajectory.txt")
