@@ -18,6 +18,7 @@ from perf.common import machine_info, markdown_table
 SUBJECTS = {
     "generator": "perf.generator",
     "raster": "perf.raster",
+    "mapping": "perf.mapping",
     "icp": "perf.icp",
     "graph": "perf.graph",
     "frontend": "perf.frontend",

@@ -50,9 +50,9 @@ def _span(mx: float, dy: float, cb: float, inv_ca: float, det_q: float, lgm2ca: 
 @wp.kernel
 def _forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
              entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
-             tile_offset: int, color: wp.array3d(dtype=float), depth: wp.array2d(dtype=float),
-             dnorm: wp.array2d(dtype=float), alpha: wp.array2d(dtype=float), t_final: wp.array2d(dtype=float),
-             last: wp.array2d(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+             tile_offset: int, color: wp.array(dtype=float), depth: wp.array(dtype=float),
+             dnorm: wp.array(dtype=float), alpha: wp.array(dtype=float), t_final: wp.array(dtype=float),
+             last: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
     # Entry-outer order: each Gaussian of the tile (front to back) visits only the pixels of its alpha >= 1/255
     # ellipse; the per-pixel state lives in the output images (L1-resident for one tile). t_final holds the running
     # transmittance, negated once done (the next Gaussian would take it below 1e-4); a tile whose pixels are all
@@ -66,12 +66,13 @@ def _forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_st
     y1 = wp.min(y0 + TILE, height)
     for py in range(y0, y1):
         for px in range(x0, x1):
-            t_final[py, px] = 1.0
-            color[py, px, 0] = 0.0
-            color[py, px, 1] = 0.0
-            color[py, px, 2] = 0.0
-            depth[py, px] = 0.0
-            last[py, px] = 0
+            q = py * width + px
+            t_final[q] = 1.0
+            color[3 * q + 0] = 0.0
+            color[3 * q + 1] = 0.0
+            color[3 * q + 2] = 0.0
+            depth[q] = 0.0
+            last[q] = 0
     npix = (x1 - x0) * (y1 - y0)
     done = int(0)
     s0 = tile_start[t]
@@ -95,7 +96,8 @@ def _forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_st
                 dy = float(py) - my
                 span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
                 for px in range(span[0], span[1] + 1):
-                    T = t_final[py, px]
+                    q = py * width + px
+                    T = t_final[q]
                     if T > 0.0:
                         dx = float(px) - mx
                         power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
@@ -104,40 +106,41 @@ def _forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_st
                             if a >= ALPHA_MIN:
                                 test_T = T * (1.0 - a)
                                 if test_T < 1e-4:
-                                    t_final[py, px] = -T
+                                    t_final[q] = -T
                                     done += 1
                                 else:
                                     w = a * T
-                                    color[py, px, 0] = color[py, px, 0] + w * proj[g, 6]
-                                    color[py, px, 1] = color[py, px, 1] + w * proj[g, 7]
-                                    color[py, px, 2] = color[py, px, 2] + w * proj[g, 8]
-                                    depth[py, px] = depth[py, px] + w * proj[g, 9]
-                                    t_final[py, px] = test_T
-                                    last[py, px] = e - s0 + 1
+                                    color[3 * q + 0] = color[3 * q + 0] + w * proj[g, 6]
+                                    color[3 * q + 1] = color[3 * q + 1] + w * proj[g, 7]
+                                    color[3 * q + 2] = color[3 * q + 2] + w * proj[g, 8]
+                                    depth[q] = depth[q] + w * proj[g, 9]
+                                    t_final[q] = test_T
+                                    last[q] = e - s0 + 1
                                     count += 1
         hits[e] = count
     for py in range(y0, y1):
         for px in range(x0, x1):
-            T = wp.abs(t_final[py, px])
-            t_final[py, px] = T
+            q = py * width + px
+            T = wp.abs(t_final[q])
+            t_final[q] = T
             a = 1.0 - T
-            alpha[py, px] = a
-            color[py, px, 0] = color[py, px, 0] + T * bg[0]
-            color[py, px, 1] = color[py, px, 1] + T * bg[1]
-            color[py, px, 2] = color[py, px, 2] + T * bg[2]
+            alpha[q] = a
+            color[3 * q + 0] = color[3 * q + 0] + T * bg[0]
+            color[3 * q + 1] = color[3 * q + 1] + T * bg[1]
+            color[3 * q + 2] = color[3 * q + 2] + T * bg[2]
             dn = float(0.0)
             if a > DEPTH_EPS:
-                dn = depth[py, px] / a
-            dnorm[py, px] = dn
+                dn = depth[q] / a
+            dnorm[q] = dn
 
 
 @wp.kernel
 def _backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
               entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
-              tile_offset: int, t_final: wp.array2d(dtype=float), dnorm: wp.array2d(dtype=float),
-              last: wp.array2d(dtype=wp.int32), g_color: wp.array3d(dtype=float), g_depth: wp.array2d(dtype=float),
-              g_dnorm: wp.array2d(dtype=float), g_alpha: wp.array2d(dtype=float), t_run: wp.array2d(dtype=float),
-              behind: wp.array2d(dtype=float), g_dep: wp.array2d(dtype=float), g_entry: wp.array2d(dtype=float)):
+              tile_offset: int, t_final: wp.array(dtype=float), dnorm: wp.array(dtype=float),
+              last: wp.array(dtype=wp.int32), g_color: wp.array(dtype=float), g_depth: wp.array(dtype=float),
+              g_dnorm: wp.array(dtype=float), g_alpha: wp.array(dtype=float), t_run: wp.array(dtype=float),
+              behind: wp.array(dtype=float), g_dep: wp.array(dtype=float), g_entry: wp.array2d(dtype=float)):
     # Reverse compositing, entry-outer from the back of the tile list: t_run recovers T_k = T_{k+1} / (1 - a_k),
     # behind accumulates (dL/dC . colour + dL/dD depth) of everything behind Gaussian k, background and alpha
     # terms included. depth_normalised = depth / alpha folds into the depth and alpha gradients per pixel first.
@@ -153,19 +156,20 @@ def _backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_s
     n_live = int(0)
     for py in range(y0, y1):
         for px in range(x0, x1):
-            TN = t_final[py, px]
+            q = py * width + px
+            TN = t_final[q]
             a_px = 1.0 - TN
-            gd = g_depth[py, px]
-            ga = g_alpha[py, px]
+            gd = g_depth[q]
+            ga = g_alpha[q]
             if a_px > DEPTH_EPS:
-                gn = g_dnorm[py, px] / a_px
+                gn = g_dnorm[q] / a_px
                 gd = gd + gn
-                ga = ga - gn * dnorm[py, px]
-            g_dep[py, px] = gd
-            t_run[py, px] = TN
-            behind[py, px] = (g_color[py, px, 0] * bg[0] + g_color[py, px, 1] * bg[1] + g_color[py, px, 2] * bg[2]
+                ga = ga - gn * dnorm[q]
+            g_dep[q] = gd
+            t_run[q] = TN
+            behind[q] = (g_color[3 * q + 0] * bg[0] + g_color[3 * q + 1] * bg[1] + g_color[3 * q + 2] * bg[2]
                               - ga) * TN
-            n_live = wp.max(n_live, last[py, px])
+            n_live = wp.max(n_live, last[q])
     s0 = tile_start[t]
     s1 = tile_start[t + 1]
     for e in range(s0 + n_live, s1):
@@ -205,7 +209,8 @@ def _backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_s
                 dy = float(py) - my
                 span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
                 for px in range(span[0], span[1] + 1):
-                    if k < last[py, px]:
+                    q = py * width + px
+                    if k < last[q]:
                         dx = float(px) - mx
                         power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
                         if power <= 0.0 and power >= lo:
@@ -214,17 +219,17 @@ def _backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_s
                             a = wp.min(0.99, raw)
                             if a >= ALPHA_MIN:
                                 inv_1ma = 1.0 / (1.0 - a)
-                                T = t_run[py, px] * inv_1ma
-                                t_run[py, px] = T
+                                T = t_run[q] * inv_1ma
+                                t_run[q] = T
                                 w = a * T
-                                gr = g_color[py, px, 0]
-                                gg = g_color[py, px, 1]
-                                gb = g_color[py, px, 2]
-                                gd = g_dep[py, px]
+                                gr = g_color[3 * q + 0]
+                                gg = g_color[3 * q + 1]
+                                gb = g_color[3 * q + 2]
+                                gd = g_dep[q]
                                 front = gr * cr + gg * cg + gb * cbl + gd * z
-                                bh = behind[py, px]
+                                bh = behind[q]
                                 g_a = T * front - bh * inv_1ma
-                                behind[py, px] = bh + w * front
+                                behind[q] = bh + w * front
                                 v_r += w * gr
                                 v_g += w * gg
                                 v_bl += w * gb
@@ -280,11 +285,21 @@ def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> 
         f.result()
 
 
+def _flat(g):
+    # image gradients may be expanded (stride 0) or otherwise strided; the kernels index them flat
+    if g.is_contiguous():
+        return g.view(-1)
+    if all(st == 0 for st in g.stride()):
+        return g.as_strided((g.numel(),), (0,))
+    return g.contiguous().view(-1)
+
+
 _OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
 
 
 def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
                    hits, device) -> None:
+    color, depth, dnorm, alpha, t_final, last = (t.view(-1) for t in (color, depth, dnorm, alpha, t_final, last))
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
               tiles_x, 0, to_warp(color), to_warp(depth), to_warp(dnorm), to_warp(alpha), to_warp(t_final),
@@ -296,6 +311,8 @@ def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, de
 
 def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color, g_depth,
                     g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device) -> None:
+    t_final, dnorm, last, t_run, behind, g_dep = (t.view(-1) for t in (t_final, dnorm, last, t_run, behind, g_dep))
+    g_color, g_depth, g_dnorm, g_alpha = (_flat(g) for g in (g_color, g_depth, g_dnorm, g_alpha))
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
               tiles_x, 0, to_warp(t_final), to_warp(dnorm), to_warp(last), to_warp(g_color), to_warp(g_depth),
