@@ -16,7 +16,7 @@ import torch
 from .config import MappingConfig
 from .frames import RGBD
 from .gaussian_map import GaussianMap, GaussianParams, Submap
-from .render import render, rgbd_loss, viewmat_from_pose
+from .render import render, rgbd_loss_fused, viewmat_from_pose
 
 
 @dataclass
@@ -39,9 +39,10 @@ class MappingStats:
 def mapping_loss(out, color: torch.Tensor, depth: torch.Tensor, params: GaussianParams, cfg: MappingConfig,
                  lambda_color: float, isotropic_regulariser: float) -> torch.Tensor:
     """Eq. 3 (masked colour + depth loss with cfg's alpha and inlier masks) plus the isotropic-scale penalty on the
-    rendered Gaussians `params`; shared by submap mapping and the server's global refinement."""
-    loss = rgbd_loss(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
-                     inlier_k=cfg.inlier_k)
+    rendered Gaussians `params`; shared by submap mapping and the server's global refinement. Eq. 3 runs as
+    kernels (slam.render.rgbd_loss_fused, equal to slam.render.rgbd_loss)."""
+    loss = rgbd_loss_fused(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
+                           inlier_k=cfg.inlier_k)
     if isotropic_regulariser > 0:
         s = params.scales
         loss = loss + isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()

@@ -250,11 +250,15 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
 @wp.kernel
 def _view_grad(parts: wp.array2d(dtype=float), n: int, g_view: wp.array2d(dtype=float)):
     # g_view [4, 4] = the per-Gaussian parts summed: thread j < 9 -> rotation entry j, 9..11 -> translation, else 0
+    # summed in blocks of 256 (pairwise-like accuracy for large N, float32 only)
     j = wp.tid()
     s = float(0.0)
     if j < 12:
-        for i in range(n):
-            s += parts[i, j]
+        for b in range(0, n, 256):
+            sb = float(0.0)
+            for i in range(b, wp.min(b + 256, n)):
+                sb += parts[i, j]
+            s += sb
     if j < 9:
         g_view[j // 3, j % 3] = s
     elif j < 12:
