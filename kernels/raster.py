@@ -81,6 +81,8 @@ def _bin(sort, proj, ntiles, rect, n: int, ntx: int, nty: int, dev, device: str)
         if n_bad or n_entries <= cap:
             break
         cap = n_entries + n_entries // 4 + 1
+    if len(_capacity) > 256:  # N changes with every keyframe's seeding and pruning; keep the hints few
+        _capacity.clear()
     _capacity[key] = cap
     return n_entries, n_bad, tile_start, entries, emit_start, emit_pos
 

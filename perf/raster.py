@@ -186,7 +186,13 @@ def _floor(scene, repeat: int) -> tuple[dict, dict]:
         out = kernels.rasterize(**p)
         torch.autograd.backward([out.color, out.depth, out.alpha], grads)
 
-    return time_fn(fwd, repeat=repeat, warmup=3), time_fn(fwd_bwd, repeat=repeat, warmup=3)
+    res = []
+    for fn in (fwd, fwd_bwd):
+        c0 = time.process_time()
+        r = time_fn(fn, repeat=repeat, warmup=3)
+        r["cpu_s"] = (time.process_time() - c0) / (r["runs"] + 3)  # CPU seconds of all threads per call
+        res.append(r)
+    return res[0], res[1]
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
@@ -228,7 +234,8 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         o = _ours(floor_scene, False)
         rows.append({"backend": name, "image": f"{fw}x{fh} (floor)", "N": fn, "visible": int((o.radii > 0).sum()),
                      "pairs_M": int(o.n_touched.sum()) / 1e6, "fwd_ms": 1e3 * f["median_s"],
-                     "fwd_bwd_ms": 1e3 * fb["median_s"]})
+                     "fwd_bwd_ms": 1e3 * fb["median_s"], "fwd_cpu_ms": 1e3 * f["cpu_s"],
+                     "fwd_bwd_cpu_ms": 1e3 * fb["cpu_s"]})
         _log(f"{name} floor {fw}x{fh} N={fn}: fwd {1e3 * f['median_s']:.2f} ms, fwd+bwd {1e3 * fb['median_s']:.2f} ms")
         roof[name].append(fma_gflops(name, device))
     for row in rows:
@@ -268,7 +275,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         f"uses {FLOPS_PER_PAIR_FWD} + {FLOPS_PER_PAIR_BWD} flops per pair. Both are measured under the same load, "
         "so the fraction is less sensitive to other users than the times.",
         f"floor row ({fw}x{fh}, {fn} Gaussians): kernels.rasterize alone, forward without autograd and forward + "
-        "backward from fixed upstream gradients (no loss ops), median of repeated calls.",
+        "backward from fixed upstream gradients (no loss ops), median of repeated calls; fwd_cpu_ms / "
+        "fwd_bwd_cpu_ms there: process CPU time per call (on a busy machine the wall time of a ~1 ms call is mostly "
+        "waiting for a core).",
         "peer: perf/raster.py torch_tiles_rasterize (tile-based vectorised torch, autograd backward), one timed run "
         "each (forward without autograd, then forward+backward), same process and scene; ours: median of repeats "
         "after one warm-up; loss = sum(colour) + 0.1 sum(depth) + sum(alpha).",
@@ -278,7 +287,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
     if skipped:
         notes.append(f"peer not run (N > {PEER_MAX_N} or past the {PEER_BUDGET_S:.0f} s peer budget): "
                      + ", ".join(skipped))
-    columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_bwd_cpu_ms",
+    columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_cpu_ms", "fwd_bwd_cpu_ms",
                "Mpairs_per_s_fwd", "Mpairs_per_s_fwd_bwd", "roofline_gflops", "roofline_frac_fwd",
                "roofline_frac_fwd_bwd"]
     if device == "cpu":
