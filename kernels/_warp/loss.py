@@ -88,7 +88,7 @@ def errors(r_c, color, r_d, depth, alpha, power: float, e_c, e_d, m0, device: st
     h, w = depth.shape
     inputs = [to_warp(t.reshape(-1)) for t in (r_c, color, r_d, depth, alpha)] + [w, float(power), 0] + \
         [to_warp(t) for t in (e_c, e_d, m0)]
-    launch(_errors, h, inputs, 7, device, work=h * w)
+    launch(_errors, h, inputs, 7, device, work=h * w // 16)  # ~1 ms: one thread
 
 
 def masked_sums(e_c, e_d, m0, width: int, lam: float, lam_d: float, thr_c: float, thr_d: float, row_sums, mask,
@@ -96,11 +96,11 @@ def masked_sums(e_c, e_d, m0, width: int, lam: float, lam_d: float, thr_c: float
     h = row_sums.shape[0]
     inputs = [to_warp(t) for t in (e_c, e_d, m0)] + [width, float(lam), float(lam_d), float(thr_c), float(thr_d), 0,
                                                      to_warp(row_sums), to_warp(mask)]
-    launch(_masked_sums, h, inputs, 8, device, work=h * width)
+    launch(_masked_sums, h, inputs, 8, device, work=h * width // 16)
 
 
 def grads(r_c, color, r_d, depth, mask, s: float, lam: float, lam_d: float, g_c, g_d, device: str) -> None:
     h, w = depth.shape
     inputs = [to_warp(t.reshape(-1)) for t in (r_c, color, r_d, depth)] + [to_warp(mask), w, float(s), float(lam),
                                                                            float(lam_d), 0, to_warp(g_c), to_warp(g_d)]
-    launch(_grads, h, inputs, 9, device, work=h * w)
+    launch(_grads, h, inputs, 9, device, work=h * w // 16)

@@ -12,6 +12,8 @@ The layout of the projected rows is kernels.raster.PACKED: mean2d x, y, conic a,
 
 from __future__ import annotations
 
+import itertools
+
 import warp as wp
 
 from . import launch as _launch
@@ -260,7 +262,8 @@ MIN_SPLIT_WORK = 16384  # estimated pixel visits below which one launch on this 
 
 def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> None:
     """Launch a tile kernel over n_tiles tiles (inputs[_OFFSET_POS] = first tile); on the CPU cut into contiguous
-    chunks run on kernels/_warp/launch.py's thread pool. The first launch of a kernel compiles its module on this
+    chunks that this thread and kernels/_warp/launch.py's pool threads take in turn (dense chunks do not leave
+    one thread with the rest). The first launch of a kernel compiles its module on this
     thread; `work` (estimated pixel visits) below MIN_SPLIT_WORK runs as one launch."""
     threads = _launch._cpu_threads() if device == "cpu" else 1
     key = (kernel, device)
@@ -278,9 +281,17 @@ def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> 
         args[_OFFSET_POS] = cuts[k]
         wp.launch(kernel, dim=cuts[k + 1] - cuts[k], inputs=args, device=device, record_tape=False)
 
+    chunk = itertools.count()  # chunks are taken in turn by this thread and the pool's (next() holds the GIL)
+
+    def worker() -> None:
+        for k in iter(lambda: next(chunk), None):
+            if k >= n_chunks:
+                return
+            part(k)
+
     pool = _launch._pool(max(1, threads - 1))
-    futures = [pool.submit(part, k) for k in range(1, n_chunks)]
-    part(0)
+    futures = [pool.submit(worker) for _ in range(threads - 1)]
+    worker()
     for f in futures:
         f.result()
 
