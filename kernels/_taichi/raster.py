@@ -23,8 +23,8 @@ _i2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 
 @ti.func
 def _rows(my, ca, det_q, lg, y0, y1):
-    # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (one pixel of margin); (first, last).
-    ey = ti.sqrt(2.0 * lg * ca / det_q) + 1.0
+    # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (lg already widened); (first, last).
+    ey = ti.sqrt(2.0 * lg * ca / det_q)
     return ti.math.ivec2(ti.cast(ti.math.clamp(ti.ceil(my - ey), ti.cast(y0, ti.f32), ti.cast(y1, ti.f32)), ti.i32),
                          ti.cast(ti.math.clamp(ti.floor(my + ey), ti.cast(y0 - 1, ti.f32), ti.cast(y1 - 1, ti.f32)),
                                  ti.i32))
@@ -36,7 +36,7 @@ def _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1):
     disc = lgm2ca - det_q * dy * dy
     out = ti.math.ivec2(x0, x0 - 1)
     if disc >= 0.0:
-        h = ti.sqrt(disc) * inv_ca + 1.0
+        h = ti.sqrt(disc) * inv_ca
         xc = mx - cb * dy * inv_ca
         out = ti.math.ivec2(
             ti.cast(ti.math.clamp(ti.ceil(xc - h), ti.cast(x0, ti.f32), ti.cast(x1, ti.f32)), ti.i32),
@@ -83,7 +83,7 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
                 op = proj[g, 5]
                 inv_ca = 1.0 / ca
                 lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
-                rows = _rows(my, ca, det_q, -lo, y0, y1)
+                rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
                 for py in range(rows[0], rows[1] + 1):
                     dy = ti.cast(py, ti.f32) - my
                     span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
@@ -178,7 +178,7 @@ def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, widt
             if lo < 0.0 and det_q > 0.0:
                 inv_ca = 1.0 / ca
                 lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
-                rows = _rows(my, ca, det_q, -lo, y0, y1)
+                rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
                 for py in range(rows[0], rows[1] + 1):
                     dy = ti.cast(py, ti.f32) - my
                     span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)

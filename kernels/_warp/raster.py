@@ -29,20 +29,20 @@ DEPTH_EPS = 1e-6
 
 @wp.func
 def _rows(my: float, ca: float, det_q: float, lg: float, y0: int, y1: int):
-    # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (one pixel of margin); (first, last) inclusive.
-    ey = wp.sqrt(2.0 * lg * ca / det_q) + 1.0
+    # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (lg already widened); (first, last) inclusive.
+    ey = wp.sqrt(2.0 * lg * ca / det_q)
     return wp.vec2i(int(wp.clamp(wp.ceil(my - ey), float(y0), float(y1))),
                     int(wp.clamp(wp.floor(my + ey), float(y0 - 1), float(y1 - 1))))
 
 
 @wp.func
 def _span(mx: float, dy: float, cb: float, inv_ca: float, det_q: float, lgm2ca: float, x0: int, x1: int):
-    # Pixels of one row where alpha can reach 1/255: roots of 0.5 a dx^2 + b dy dx + 0.5 c dy^2 = lg, with the
-    # margin lgm = 1.01 lg + 0.01 (lgm2ca = 2 a lgm) and one pixel either side; (first, last) inclusive.
+    # Pixels of one row where alpha can reach 1/255: roots of 0.5 a dx^2 + b dy dx + 0.5 c dy^2 = lgm with the
+    # threshold widened to lgm = 1.01 lg + 0.01 (lgm2ca = 2 a lgm), far above float32 rounding; (first, last).
     disc = lgm2ca - det_q * dy * dy
     out = wp.vec2i(x0, x0 - 1)
     if disc >= 0.0:
-        h = wp.sqrt(disc) * inv_ca + 1.0
+        h = wp.sqrt(disc) * inv_ca
         xc = mx - cb * dy * inv_ca
         out = wp.vec2i(int(wp.clamp(wp.ceil(xc - h), float(x0), float(x1))),
                        int(wp.clamp(wp.floor(xc + h), float(x0 - 1), float(x1 - 1))))
@@ -93,7 +93,7 @@ def _forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_st
             op = proj[g, 5]
             inv_ca = 1.0 / ca
             lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
-            rows = _rows(my, ca, det_q, -lo, y0, y1)
+            rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
             for py in range(rows[0], rows[1] + 1):
                 dy = float(py) - my
                 span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
@@ -206,7 +206,7 @@ def _backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_s
         if lo < 0.0 and det_q > 0.0:
             inv_ca = 1.0 / ca
             lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
-            rows = _rows(my, ca, det_q, -lo, y0, y1)
+            rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
             for py in range(rows[0], rows[1] + 1):
                 dy = float(py) - my
                 span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
