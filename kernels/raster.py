@@ -1,14 +1,18 @@
 """Differentiable 3D Gaussian splatting rasteriser (the 3DGS rules), colour + depth + alpha, Warp or Taichi.
 
-Pipeline, one call:
-1. `_ProjectFn` (one kernel thread per Gaussian, hand-written backward): camera-space means, EWA 2D covariance
-   with the 0.3 px low-pass, its inverse (conic), 3-sigma radius and the 16x16-tile rectangle of every Gaussian;
-   culls outside near/far, off-screen and degenerate ones. Its backward gives the gradients of means, quats,
-   scales and the viewmat (including the rotation's effect on the projected covariance).
-2. Stable depth sort of the visible Gaussians (torch) and a packed [M, 10] attribute table in that order.
-3. `_RasterFn` (hand-written forward and backward kernels on the active backend, see kernels/_warp/raster.py
-   and kernels/_taichi/raster.py): a counting sort into per-tile lists (keeps depth order), per-tile
-   front-to-back compositing, and reverse compositing for the gradients, per tile-entry without atomics.
+One call is one autograd Function (`_RenderFn`) running five kernels on the active backend, with hand-written
+backward kernels and no per-Gaussian torch operations in between:
+1. projection (kernels/_<backend>/project.py, one thread per Gaussian): camera-space means, EWA 2D covariance
+   with the 0.3 px low-pass, its inverse (conic), 3-sigma radius, the 16x16-tile rectangle, the number of tiles
+   and the exp() skip threshold of every Gaussian; culls outside near/far, off-screen and degenerate ones and
+   flags invalid input values (non-finite, zero quaternion, opacity outside [0, 1]);
+2. binning (kernels/_<backend>/sort.py, one serial thread): a stable radix sort of the visible Gaussians by depth,
+   then a counting sort into per-tile lists that keeps the depth order, plus where every Gaussian's entries are;
+3. compositing (kernels/_<backend>/raster.py, one thread per tile): front to back over the tile's list, only
+   the pixels of each Gaussian's alpha >= 1/255 ellipse; writes colour, depth, depth / alpha and alpha;
+4. per-Gaussian hit counts (n_touched).
+Backward: reverse compositing per tile writes each tile entry's gradient, then the projection backward sums a
+Gaussian's entries and chains them to means, quats, scales, opacity, colour and the viewmat.
 
 The rules are spelled out in `kernels/_ref_raster.py`, the dense twin this module is tested against.
 The tracking gradient: parametrise `viewmat = kernels.se3.exp_torch(xi) @ viewmat0` (left perturbation in the
@@ -18,6 +22,7 @@ does the same contraction in closed form at xi = 0.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -27,8 +32,9 @@ from .checks import check_tensor
 from .errors import InputError
 
 TILE = 16  # pixels per tile side; the kernels hard-code the same value
-PACKED = 10  # packed attribute row: mean2d x, y, conic a, b, c, opacity, r, g, b, z
+PACKED = 10  # projected row: mean2d x, y, conic a, b, c, opacity, r, g, b, z
 DEPTH_EPS = 1e-6  # alpha below which depth_normalised is 0
+RADIX = 2048  # the binning's radix-sort histogram size (kernels/_<backend>/sort.py)
 
 
 class RenderOutput(NamedTuple):
@@ -51,104 +57,138 @@ def _empty(shape, dtype: torch.dtype, device) -> torch.Tensor:
     return torch.empty(shape, dtype=dtype, device=device)
 
 
-class _ProjectFn(torch.autograd.Function):
-    """EWA projection on the active backend: (means, quats, scales, opacities, colors, viewmat) -> proj [N, 10]
-    rows in the PACKED layout (zeros for culled Gaussians), radius [N] and tile rect [N, 4] (not differentiable)."""
+_I32, _F32 = torch.int32, torch.float32
+_capacity: dict = {}  # (N, width, height) -> tile-entry buffer size that sufficed last time (grown on demand)
+
+
+def _bin(sort, proj, ntiles, rect, n: int, ntx: int, nty: int, dev, device: str):
+    """Depth-ordered per-tile lists (kernels/_<backend>/sort.py). Returns (n_entries, n_invalid, tile_start,
+    entries, emit_start, emit_pos)."""
+    nb = max(n, 1)
+    status = _empty((3,), _I32, dev)
+    emit_start = _empty((nb,), _I32, dev)
+    scratch = torch.empty((5, max(nb, RADIX)), dtype=_I32, device=dev)
+    tile_start = _empty((ntx * nty + 1,), _I32, dev)
+    cursor = torch.empty((ntx * nty,), dtype=_I32, device=dev)
+    key = (n, ntx, nty)
+    cap = _capacity.get(key, 4 * n + ntx * nty)
+    while True:
+        entries = _empty((cap,), _I32, dev)
+        emit_pos = _empty((cap,), _I32, dev)
+        sort.bin_tiles(proj.view(_I32), ntiles, rect, n, ntx, ntx * nty, status, emit_start, scratch, tile_start,
+                       cursor, entries, emit_pos, device)
+        n_entries, n_bad, _n_visible = status.tolist()
+        if n_bad or n_entries <= cap:
+            break
+        cap = n_entries + n_entries // 4 + 1
+    if len(_capacity) > 256:  # N changes with every keyframe's seeding and pruning; keep the hints few
+        _capacity.clear()
+    _capacity[key] = cap
+    return n_entries, n_bad, tile_start, entries, emit_start, emit_pos
+
+
+class _RenderFn(torch.autograd.Function):
+    """(means, quats, scales, opacities, colors, viewmat [4,4] f32, background [3]) -> (color [H,W,3], depth,
+    depth_normalised, alpha [H,W], radii [N], n_touched [N]); hand-written backward to all seven inputs."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, viewmat, intr, width, height, near, far, impl, device):
+    def forward(ctx, means, quats, scales, opacities, colors, viewmat, background, intr, width, height, near, far,
+                impls, device):
+        project, sort, raster = impls
         n, dev = means.shape[0], means.device
-        proj = _empty((n, PACKED), torch.float32, dev)
-        radius = _empty((n,), torch.int32, dev)
-        rect = _empty((n, 4), torch.int32, dev)
+        nb = max(n, 1)  # Taichi rejects 0-sized arguments
+        proj = _empty((nb, PACKED), _F32, dev)
+        radius = _empty((nb,), _I32, dev)
+        rect = _empty((nb, 4), _I32, dev)
+        ntiles = _empty((nb,), _I32, dev)
+        pthr = _empty((nb,), _F32, dev)
         args = [t.detach().contiguous() for t in (means, quats, scales, opacities, colors, viewmat)]
-        impl.project_forward(*args, intr, width, height, float(near), float(far), proj, radius, rect, device)
-        ctx.save_for_backward(*args[:3], args[5], proj, radius)
-        ctx.dims = (intr, width, height, impl, device)
-        ctx.mark_non_differentiable(radius, rect)
-        return proj, radius, rect
-
-    @staticmethod
-    def backward(ctx, g_proj, _g_radius, _g_rect):
-        means, quats, scales, viewmat, proj, radius = ctx.saved_tensors
-        intr, width, height, impl, device = ctx.dims
-        n, dev = means.shape[0], means.device
-        g_means = _empty((n, 3), torch.float32, dev)
-        g_quats = _empty((n, 4), torch.float32, dev)
-        g_scales = _empty((n, 3), torch.float32, dev)
-        g_parts = _empty((n, 12), torch.float32, dev)  # per-Gaussian viewmat gradient: R row-major, then t
-        g_proj = g_proj.contiguous()
-        impl.project_backward(means, quats, scales, viewmat, intr, width, height, proj.detach(), radius, g_proj,
-                              g_means, g_quats, g_scales, g_parts, device)
-        g_view = torch.zeros(4, 4, dtype=torch.float32, device=dev)
-        total = g_parts.sum(0)
-        g_view[:3, :3] = total[:9].reshape(3, 3)
-        g_view[:3, 3] = total[9:]
-        return (g_means, g_quats, g_scales, g_proj[:, 5], g_proj[:, 6:9], g_view,
-                None, None, None, None, None, None, None)
-
-
-class _RasterFn(torch.autograd.Function):
-    """packed [M, 10] depth-sorted attributes -> (color [H,W,3], depth [H,W], alpha [H,W]); hand-written backward."""
-
-    @staticmethod
-    def forward(ctx, packed, rect, background, width, height, impl, device):
-        packed = packed.detach()  # the kernels see plain tensors; gradients come from backward()
-        # Skip exp() where alpha cannot reach 1/255: power < -log(255 o) (minus a margin so that the exact
-        # alpha test after exp, the one the twin applies, still makes every decision).
-        pthr = (-torch.log(255.0 * packed[:, 5].detach()) - 1e-5).contiguous()
+        project.project_forward(*args, intr, width, height, float(near), float(far), proj, radius, rect, ntiles,
+                                pthr, device)
         ntx, nty = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-        n_entries = int(((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])).sum()) if rect.shape[0] else 0
-        tile_start = _empty((ntx * nty + 1,), torch.int32, packed.device)
-        entries = _empty((max(n_entries, 1),), torch.int32, packed.device)
-        impl.bin_tiles(rect, ntx, nty, tile_start, entries, device)
-        color = _empty((height, width, 3), torch.float32, packed.device)
-        depth = _empty((height, width), torch.float32, packed.device)
-        t_final = _empty((height, width), torch.float32, packed.device)
-        last = _empty((height, width), torch.int32, packed.device)
-        hits = _empty((max(n_entries, 1),), torch.int32, packed.device)
-        impl.render_forward(packed, pthr, tile_start, entries, background, width, height, color, depth, t_final, last, hits,
-                            device)
-        ctx.save_for_backward(packed, pthr, tile_start, entries, background, t_final, last)
-        ctx.dims = (width, height, n_entries, impl, device)
-        ctx.mark_non_differentiable(hits)
-        alpha = 1.0 - t_final
-        return color, depth, alpha, hits[:n_entries], entries[:n_entries]
+        n_entries, n_bad, tile_start, entries, emit_start, emit_pos = _bin(sort, proj, ntiles, rect, n, ntx, nty,
+                                                                           dev, device)
+        if n_bad:
+            _explain_invalid(means, quats, scales, opacities, colors)
+        color = _empty((height, width, 3), _F32, dev)
+        depth = _empty((height, width), _F32, dev)
+        dnorm = _empty((height, width), _F32, dev)
+        alpha = _empty((height, width), _F32, dev)
+        t_final = _empty((height, width), _F32, dev)
+        last = _empty((height, width), _I32, dev)
+        hits = _empty((max(n_entries, 1),), _I32, dev)
+        bg = background.detach().contiguous()
+        raster.render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha,
+                              t_final, last, hits, device)
+        n_touched = _empty((n,), _I32, dev)
+        sort.count_touched(n, ntiles, emit_start, emit_pos, hits, n_touched, device)
+        ctx.save_for_backward(*args[:3], args[5], proj, pthr, ntiles, tile_start, entries, emit_start, emit_pos, bg,
+                              t_final, dnorm, last)
+        ctx.dims = (intr, width, height, n_entries, impls, device)
+        radii = radius[:n]
+        ctx.mark_non_differentiable(radii, n_touched)
+        return color, depth, dnorm, alpha, radii, n_touched
 
     @staticmethod
-    def backward(ctx, g_color, g_depth, g_alpha, _g_hits, _g_entries):
-        packed, pthr, tile_start, entries, background, t_final, last = ctx.saved_tensors
-        width, height, n_entries, impl, device = ctx.dims
-        g_packed = torch.zeros_like(packed)
-        if n_entries:
-            g_color = g_color.contiguous() if g_color is not None else torch.zeros(height, width, 3, device=packed.device)
-            g_depth = g_depth.contiguous() if g_depth is not None else torch.zeros(height, width, device=packed.device)
-            g_alpha = g_alpha.contiguous() if g_alpha is not None else torch.zeros(height, width, device=packed.device)
-            g_entry = _empty((n_entries, PACKED), torch.float32, packed.device)
-            t_run = _empty((height, width), torch.float32, packed.device)  # per-pixel scratch of the reverse pass
-            behind = _empty((height, width), torch.float32, packed.device)
-            impl.render_backward(packed, pthr, tile_start, entries, background, width, height, t_final, last,
-                                 g_color, g_depth, g_alpha, t_run, behind, g_entry, device)
-            g_packed.index_add_(0, entries[:n_entries].long(), g_entry)
+    def backward(ctx, g_color, g_depth, g_dnorm, g_alpha, _g_radii, _g_touched):
+        (means, quats, scales, viewmat, proj, pthr, ntiles, tile_start, entries, emit_start, emit_pos, bg, t_final,
+         dnorm, last) = ctx.saved_tensors
+        intr, width, height, n_entries, (project, _sort, raster), device = ctx.dims
+        n, dev = means.shape[0], means.device
         g_bg = None
-        if ctx.needs_input_grad[2] and g_color is not None:
-            g_bg = (t_final[..., None] * g_color).sum((0, 1))  # colour = ... + T_final * background
-        return g_packed, None, g_bg, None, None, None, None
+        if ctx.needs_input_grad[6]:
+            g_bg = torch.zeros(3, dtype=_F32, device=dev) if g_color is None else \
+                (t_final[..., None] * g_color).sum((0, 1))  # colour = ... + T_final * background
+        if n == 0 or n_entries == 0:
+            z = torch.zeros_like
+            return (z(means), z(quats), z(scales), torch.zeros(n, dtype=_F32, device=dev), z(means),
+                    torch.zeros(4, 4, dtype=_F32, device=dev), g_bg) + (None,) * 7
+        img = (height, width)
+        # image gradients may be strided (e.g. expanded from a sum); the backend makes them contiguous if it must
+        zero = torch.zeros((), dtype=_F32, device=dev)
+        g_color = zero.expand(*img, 3) if g_color is None else g_color
+        g_depth, g_dnorm, g_alpha = (zero.expand(img) if g is None else g for g in (g_depth, g_dnorm, g_alpha))
+        g_entry = _empty((n_entries, PACKED), _F32, dev)
+        t_run, behind, g_dep = (_empty(img, _F32, dev) for _ in range(3))  # per-pixel scratch of the reverse pass
+        raster.render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color,
+                               g_depth, g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device)
+        g_means = _empty((n, 3), _F32, dev)
+        g_quats = _empty((n, 4), _F32, dev)
+        g_scales = _empty((n, 3), _F32, dev)
+        g_opac = _empty((n,), _F32, dev)
+        g_colors = _empty((n, 3), _F32, dev)
+        g_parts = _empty((n, 12), _F32, dev)  # per-Gaussian viewmat gradient: R row-major, then t
+        g_view = _empty((4, 4), _F32, dev)
+        project.project_backward(means, quats, scales, viewmat, intr, width, height, proj, ntiles, emit_start,
+                                 emit_pos, g_entry, g_means, g_quats, g_scales, g_opac, g_colors, g_parts, g_view,
+                                 device)
+        return (g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_bg) + (None,) * 7
+
+
+def _explain_invalid(means, quats, scales, opacities, colors) -> None:
+    """The projection flagged invalid values: name the argument (slow path, only on error)."""
+    n = means.shape[0]
+    for name, x, shape in (("means", means, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
+                           ("opacities", opacities, (n,)), ("colors", colors, (n, 3))):
+        check_tensor(name, x, shape, dtypes=(_F32,), device=x.device)  # names the non-finite argument
+    if not bool(((opacities >= 0) & (opacities <= 1)).all()):
+        raise InputError("argument 'opacities': expected values in [0, 1]")
+    raise InputError("argument 'quats': contains a zero-length quaternion")
 
 
 def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, dev):
-    """Shapes, dtypes and devices per argument; values (finite, opacity range, quaternion length) in one fused
-    pass over the [N]-sized tensors — every small torch op costs thread wake-ups on a busy CPU — and per
-    argument only on the error path, to name the culprit."""
-    f32, f = (torch.float32,), (torch.float32, torch.float64)
+    """Shapes, dtypes and devices per argument, the camera's values here; the per-Gaussian values (finite, opacity
+    range, quaternion length) are checked by the projection kernel, which flags them for `_explain_invalid`.
+    Returns (viewmat as float32, intrinsics (fx, fy, cx, cy))."""
+    f32, f = (_F32,), (torch.float32, torch.float64)
     check_tensor("means", means, (None, 3), dtypes=f32, device=dev, finite=False)
     n = means.shape[0]
-    per_gaussian = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
+    per_gaussian = {"quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
                     "opacities": (opacities, (n,)), "colors": (colors, (n, 3))}
     for name, (x, shape) in per_gaussian.items():
         check_tensor(name, x, shape, dtypes=f32, device=dev, finite=False)
-    check_tensor("viewmat", viewmat, (4, 4), dtypes=f, device=dev)
-    check_tensor("K", K, (3, 3), dtypes=f, device=dev)
+    check_tensor("viewmat", viewmat, (4, 4), dtypes=f, device=dev, finite=False)
+    check_tensor("K", K, (3, 3), dtypes=f, device=dev, finite=False)
     if background is not None:
         check_tensor("background", background, (3,), dtypes=f, device=dev)
     for name, v in (("width", width), ("height", height)):
@@ -156,23 +196,26 @@ def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, b
             raise InputError(f"argument '{name}': expected a positive int, got {v!r}")
     if not (0.0 < float(near) < float(far)):
         raise InputError(f"arguments 'near', 'far': expected 0 < near < far, got near={near}, far={far}")
-    if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
+    viewmat32 = viewmat.to(_F32)
+    k = K.detach().reshape(-1).tolist()
+    for name, vals in (("viewmat", viewmat32.detach().reshape(-1).tolist()), ("K", k)):
+        if not all(math.isfinite(v) for v in vals):
+            raise InputError(f"argument '{name}': contains NaN or Inf")
+    if k[0] <= 0 or k[4] <= 0:
         raise InputError("argument 'K': focal lengths K[0,0], K[1,1] must be positive")
-    if n == 0:
-        return
-    with torch.no_grad():
-        table = torch.cat([means, quats, scales, opacities[:, None], colors], 1)  # [N, 14]
-        qlen2 = (table[:, 3:7] * table[:, 3:7]).sum(-1)
-        # sum(x * 0) is NaN exactly when some x is NaN or Inf; one reduction instead of one per argument
-        ok = bool(torch.isfinite((table * 0).sum())) and bool((qlen2 >= 1e-20).all())
-        ok = ok and bool(((opacities >= 0) & (opacities <= 1)).all())
-    if ok:
-        return
-    for name, (x, shape) in per_gaussian.items():
-        check_tensor(name, x, shape, dtypes=f32, device=dev)  # names the non-finite argument
-    if not bool(((opacities >= 0) & (opacities <= 1)).all()):
-        raise InputError("argument 'opacities': expected values in [0, 1]")
-    raise InputError("argument 'quats': contains a zero-length quaternion")
+    return viewmat32, (k[0], k[4], k[2], k[5])
+
+
+_IMPLS: dict = {}
+
+
+def _impls(b):
+    """(project, sort, raster) modules of the active backend, cached."""
+    if b.name not in _IMPLS:
+        from . import backend_module
+
+        _IMPLS[b.name] = tuple(backend_module(m) for m in ("project", "sort", "raster"))
+    return _IMPLS[b.name]
 
 
 def rasterize(
@@ -197,29 +240,15 @@ def rasterize(
     `kernels/_ref_raster.py` for the exact rules.
     """
     b = active()
-    _check(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, b.torch_device)
-    from . import backend_module
-
-    impl = backend_module("raster")
+    viewmat32, intr = _check(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near,
+                             far, b.torch_device)
     dev = means.device
-    viewmat32 = viewmat.to(torch.float32)
-    intr = tuple(float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    bg = torch.zeros(3, dtype=torch.float32, device=dev) if background is None else background.to(torch.float32)
-    n = means.shape[0]
-    proj, radius, rect = _ProjectFn.apply(means, quats, scales, opacities, colors, viewmat32, intr, int(width),
-                                          int(height), near, far, backend_module("project"), b.device)
-    idx = torch.nonzero(radius > 0).squeeze(1)
-    order = idx[torch.sort(proj.detach()[idx, 9], stable=True).indices]  # front to back, ties by index
-    packed = proj[order]
-    color, depth, alpha, hits, entries = _RasterFn.apply(
-        packed.contiguous(), rect[order].contiguous(), bg.contiguous(), int(width), int(height), impl, b.device)
-    n_touched = torch.zeros(n, dtype=torch.int32, device=dev)
-    if hits.numel():
-        per_sorted = torch.zeros(order.shape[0], dtype=torch.int32, device=dev)
-        per_sorted.index_add_(0, entries.long(), hits)
-        n_touched[order] = per_sorted
-    return RenderOutput(color=color, depth=depth, depth_normalised=finish_depth(depth, alpha), alpha=alpha,
-                        radii=radius, n_touched=n_touched)
+    bg = torch.zeros(3, dtype=_F32, device=dev) if background is None else background.to(_F32)
+    color, depth, dnorm, alpha, radii, n_touched = _RenderFn.apply(
+        means, quats, scales, opacities, colors, viewmat32, bg, intr, int(width), int(height), near, far, _impls(b),
+        b.device)
+    return RenderOutput(color=color, depth=depth, depth_normalised=dnorm, alpha=alpha, radii=radii,
+                        n_touched=n_touched)
 
 
 def twist_gradient(v_viewmat: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:

@@ -19,6 +19,7 @@ from perf.common import machine_info, markdown_table
 SUBJECTS = {
     "generator": "perf.generator",
     "raster": "perf.raster",
+    "mapping": "perf.mapping",
     "icp": "perf.icp",
     "graph": "perf.graph",
     "graph-benchmarks": "perf.graph_benchmarks",

@@ -1,9 +1,16 @@
-"""Gaussian rasteriser benchmark: forward and forward+backward on each backend against a tile-based torch peer.
+"""Gaussian rasteriser benchmark: forward and forward+backward on each backend against a tile-based torch peer,
+Gaussian-pixel pairs per second, the fraction of a compute roofline measured in the same run, and the per-call
+floor (160x120, 1k Gaussians).
 
 The peer (`torch_tiles_rasterize` below) is the straightforward vectorised torch implementation of the same
 3DGS rules: the same projection, then per 16x16 tile one batched [pixels, Gaussians] alpha matrix, a cumprod
 for transmittance (with the 1e-4 stop), a matmul for colour and depth, and autograd for the backward. It runs
 in the same process on the same scene; ratios are of medians after warm-up.
+
+Roofline: perf/roofline.py's fused-multiply-add loop compiled by the same backend, run before and after the
+cases (median of both). The fraction is pairs/s x the arithmetic the kernels do per composited pair (counted in
+their source: FLOPS_PER_PAIR_FWD / _BWD, exp() counted as 10) over the loop's flop rate. Pixels that are
+evaluated but not composited are not counted, so the fraction is a lower bound.
 """
 
 from __future__ import annotations
@@ -20,7 +27,10 @@ from perf.common import time_fn
 DESCRIPTION = "kernels.rasterize (colour+depth+alpha, 3DGS rules): forward and forward+backward vs a tile-based torch peer"
 
 TILE = 16
-PEER_MAX_N = 50_000  # the peer takes minutes above this
+PEER_MAX_N = 10_000  # the peer takes minutes per call above this (640x480 / 50k: 145 s forward, quiet machine)
+FLOPS_PER_PAIR_FWD = 33  # power 10, exp 10, alpha 2, transmittance 2, weight 1, colour + depth 8
+FLOPS_PER_PAIR_BWD = 67  # the backward kernel's per-pair arithmetic (exp again, 1 / (1 - a), ten gradient sums)
+FLOOR_CASE = (160, 120, 1_000)
 PEER_BUDGET_S = 900.0  # wall-time budget for all peer runs
 
 
@@ -159,16 +169,46 @@ def _log(msg: str) -> None:
     print(f"[perf raster] {msg}", file=sys.stderr, flush=True)
 
 
+def _floor(scene, repeat: int) -> tuple[dict, dict]:
+    """Per-call floor: kernels.rasterize forward, and forward + backward from fixed upstream gradients (no loss
+    ops), median of `repeat` calls."""
+    import kernels
+
+    p = _params(scene, True)
+    o = kernels.rasterize(**p)
+    grads = [torch.rand_like(o.color), torch.rand_like(o.depth), torch.rand_like(o.alpha)]
+
+    def fwd():
+        with torch.no_grad():
+            kernels.rasterize(**p)
+
+    def fwd_bwd():
+        out = kernels.rasterize(**p)
+        torch.autograd.backward([out.color, out.depth, out.alpha], grads)
+
+    res = []
+    for fn in (fwd, fwd_bwd):
+        c0 = time.process_time()
+        r = time_fn(fn, repeat=repeat, warmup=3)
+        r["cpu_s"] = (time.process_time() - c0) / (r["runs"] + 3)  # CPU seconds of all threads per call
+        res.append(r)
+    return res[0], res[1]
+
+
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import kernels
 
-    sizes = [(320, 240)] if quick else [(640, 480), (320, 240)]
-    counts = [10_000] if quick else [50_000, 10_000, 200_000]
+    from perf.roofline import fma_gflops
+
+    cases = [(320, 240, 10_000)] if quick else [(640, 480, 50_000), (640, 480, 10_000), (320, 240, 60_000),
+                                                (320, 240, 10_000)]
     repeat = 3 if quick else 5
     rows, notes = [], [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
-    # Ours first on every size, then the peer (tens of seconds to minutes per call) on the most important sizes
-    # first, within PEER_BUDGET_S of wall time, so a busy machine still yields the 640x480 / 50k comparison.
-    cases = [(w, h, n) for (w, h) in sizes for n in counts]
+    roof = {}
+    for name in backends:
+        kernels.use(name, device)
+        roof[name] = [fma_gflops(name, device)]
+    # Ours first on every size, then the peer (seconds per call) within PEER_BUDGET_S of wall time.
     for width, height, n in cases:
         scene = make_scene(n, width, height)
         if device == "cuda":
@@ -183,9 +223,28 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
             touched = int(o.n_touched.sum())
             rows.append({"backend": name, "image": f"{width}x{height}", "N": n, "visible": int((o.radii > 0).sum()),
                          "pairs_M": touched / 1e6, "fwd_ms": 1e3 * f["median_s"], "fwd_bwd_ms": 1e3 * fb["median_s"],
-                         "Gpairs_per_s_fwd": touched / f["median_s"] / 1e9, "fwd_bwd_cpu_ms": 1e3 * fb_cpu,
-                         "_color": o.color.cpu()})
+                         "fwd_bwd_cpu_ms": 1e3 * fb_cpu, "Mpairs_per_s_fwd": touched / f["median_s"] / 1e6,
+                         "Mpairs_per_s_fwd_bwd": touched / fb["median_s"] / 1e6, "_color": o.color.cpu()})
             _log(f"{name} {width}x{height} N={n}: fwd {1e3 * f['median_s']:.0f} ms, fwd+bwd {1e3 * fb['median_s']:.0f} ms")
+    fw, fh, fn = FLOOR_CASE
+    floor_scene = make_scene(fn, fw, fh)
+    for name in backends:
+        kernels.use(name, device)
+        f, fb = _floor(floor_scene, 10 if quick else 50)
+        o = _ours(floor_scene, False)
+        rows.append({"backend": name, "image": f"{fw}x{fh} (floor)", "N": fn, "visible": int((o.radii > 0).sum()),
+                     "pairs_M": int(o.n_touched.sum()) / 1e6, "fwd_ms": 1e3 * f["median_s"],
+                     "fwd_bwd_ms": 1e3 * fb["median_s"], "fwd_cpu_ms": 1e3 * f["cpu_s"],
+                     "fwd_bwd_cpu_ms": 1e3 * fb["cpu_s"]})
+        _log(f"{name} floor {fw}x{fh} N={fn}: fwd {1e3 * f['median_s']:.2f} ms, fwd+bwd {1e3 * fb['median_s']:.2f} ms")
+        roof[name].append(fma_gflops(name, device))
+    for row in rows:
+        gf = sorted(roof[row["backend"]])[len(roof[row["backend"]]) // 2]
+        row["roofline_gflops"] = gf
+        if "Mpairs_per_s_fwd" in row:
+            row["roofline_frac_fwd"] = row["Mpairs_per_s_fwd"] * 1e6 * FLOPS_PER_PAIR_FWD / (gf * 1e9)
+            row["roofline_frac_fwd_bwd"] = (row["Mpairs_per_s_fwd_bwd"] * 1e6 * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD)
+                                            / (gf * 1e9))
     skipped = []
     start = time.perf_counter()
     for width, height, n in cases if device == "cpu" else []:  # the peer is written for the CPU
@@ -196,32 +255,41 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         peer_f = time_fn(lambda: _peer(scene, False), repeat=1, warmup=0)
         peer_fb = time_fn(lambda: _peer(scene, True), repeat=1, warmup=0)
         _log(f"peer {width}x{height} N={n}: fwd {peer_f['median_s']:.1f} s, fwd+bwd {peer_fb['median_s']:.1f} s")
-        ref = _peer(scene, False) if n == min(counts) else None
+        ref = _peer(scene, False)
         for row in rows:
             if (row["image"], row["N"]) == (f"{width}x{height}", n):
                 row.update(peer_fwd_ms=1e3 * peer_f["median_s"], peer_fwd_bwd_ms=1e3 * peer_fb["median_s"],
                            speedup_fwd=peer_f["median_s"] * 1e3 / row["fwd_ms"],
                            speedup_fwd_bwd=peer_fb["median_s"] * 1e3 / row["fwd_bwd_ms"])
-                if ref is not None:
-                    notes.append(f"{row['backend']} {width}x{height} N={n}: max |colour - peer colour| = "
-                                 f"{(row['_color'] - ref).abs().max().item():.2e}")
+                notes.append(f"{row['backend']} {width}x{height} N={n}: max |colour - peer colour| = "
+                             f"{(row['_color'] - ref).abs().max().item():.2e}")
     for row in rows:
-        row.pop("_color")
+        row.pop("_color", None)
     notes.append(f"load average at end: {os.getloadavg()[0]:.1f}; fwd_bwd_cpu_ms is process CPU time per "
                  "forward+backward (all threads), less sensitive to other users than wall time")
     notes += [
         "pairs_M: Gaussian-pixel pairs composited (sum of n_touched, after culling, the 1/255 skip and the 1e-4 stop); "
-        "Gpairs_per_s_fwd = pairs / forward time.",
+        "Mpairs_per_s_* = pairs / median time.",
+        f"roofline_gflops: perf/roofline.py's FMA loop on the same backend in this run (median of before and after "
+        f"the cases); roofline_frac_fwd = Mpairs/s x {FLOPS_PER_PAIR_FWD} flops / roofline, roofline_frac_fwd_bwd "
+        f"uses {FLOPS_PER_PAIR_FWD} + {FLOPS_PER_PAIR_BWD} flops per pair. Both are measured under the same load, "
+        "so the fraction is less sensitive to other users than the times.",
+        f"floor row ({fw}x{fh}, {fn} Gaussians): kernels.rasterize alone, forward without autograd and forward + "
+        "backward from fixed upstream gradients (no loss ops), median of repeated calls; fwd_cpu_ms / "
+        "fwd_bwd_cpu_ms there: process CPU time per call (on a busy machine the wall time of a ~1 ms call is mostly "
+        "waiting for a core).",
         "peer: perf/raster.py torch_tiles_rasterize (tile-based vectorised torch, autograd backward), one timed run "
         "each (forward without autograd, then forward+backward), same process and scene; ours: median of repeats "
         "after one warm-up; loss = sum(colour) + 0.1 sum(depth) + sum(alpha).",
-        "Warp on the CPU: tile chunks launched from a thread pool (each launch runs on one OS thread and releases "
-        "the GIL); Taichi parallelises the tile loop itself.",
+        "Warp on the CPU: tile chunks launched from kernels/_warp/launch.py's thread pool (each launch runs on one "
+        "OS thread and releases the GIL); Taichi parallelises the tile loop itself.",
     ]
     if skipped:
         notes.append(f"peer not run (N > {PEER_MAX_N} or past the {PEER_BUDGET_S:.0f} s peer budget): "
                      + ", ".join(skipped))
-    columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_bwd_cpu_ms", "Gpairs_per_s_fwd"]
+    columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_cpu_ms", "fwd_bwd_cpu_ms",
+               "Mpairs_per_s_fwd", "Mpairs_per_s_fwd_bwd", "roofline_gflops", "roofline_frac_fwd",
+               "roofline_frac_fwd_bwd"]
     if device == "cpu":
         columns += ["peer_fwd_ms", "peer_fwd_bwd_ms", "speedup_fwd", "speedup_fwd_bwd"]
     return {"rows": rows, "columns": columns, "notes": notes}

@@ -16,7 +16,7 @@ import torch
 from .config import MappingConfig
 from .frames import RGBD
 from .gaussian_map import GaussianMap, GaussianParams, Submap
-from .render import render, rgbd_loss, viewmat_from_pose
+from .render import render, rgbd_loss_fused, viewmat_from_pose
 
 
 @dataclass
@@ -39,9 +39,10 @@ class MappingStats:
 def mapping_loss(out, color: torch.Tensor, depth: torch.Tensor, params: GaussianParams, cfg: MappingConfig,
                  lambda_color: float, isotropic_regulariser: float) -> torch.Tensor:
     """Eq. 3 (masked colour + depth loss with cfg's alpha and inlier masks) plus the isotropic-scale penalty on the
-    rendered Gaussians `params`; shared by submap mapping and the server's global refinement."""
-    loss = rgbd_loss(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
-                     inlier_k=cfg.inlier_k)
+    rendered Gaussians `params`; shared by submap mapping and the server's global refinement. Eq. 3 runs as
+    kernels (slam.render.rgbd_loss_fused, equal to slam.render.rgbd_loss)."""
+    loss = rgbd_loss_fused(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
+                           inlier_k=cfg.inlier_k)
     if isotropic_regulariser > 0:
         s = params.scales
         loss = loss + isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
@@ -82,6 +83,22 @@ def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, gener
                                       torch.as_tensor(radius, dtype=torch.float32), cfg.init_opacity)
 
 
+def make_optimizer(p: GaussianParams, cfg: MappingConfig, lr_scale: float = 1.0) -> torch.optim.Adam:
+    """Adam over the five parameter groups with cfg's learning rates (times lr_scale). Uses torch's fused
+    implementation (one kernel per group, no per-tensor Python loop) where the tensors' device has it."""
+    groups = [
+        {"params": [p.means], "lr": cfg.lr_means * lr_scale},
+        {"params": [p.log_scales], "lr": cfg.lr_log_scales * lr_scale},
+        {"params": [p.quats], "lr": cfg.lr_quats * lr_scale},
+        {"params": [p.logit_opacities], "lr": cfg.lr_opacities * lr_scale},
+        {"params": [p.colors], "lr": cfg.lr_colors * lr_scale},
+    ]
+    try:
+        return torch.optim.Adam(groups, eps=1e-15, fused=True)
+    except (RuntimeError, ValueError):  # a device / dtype without the fused kernel
+        return torch.optim.Adam(groups, eps=1e-15)
+
+
 class Mapper:
     def __init__(self, cfg: MappingConfig, *, reference: bool = False):
         self.cfg = cfg
@@ -104,13 +121,7 @@ class Mapper:
         if iterations <= 0 or len(submap.params) == 0:
             return float("nan"), float("nan"), 0
         p = submap.params.detached().requires_grad_(True)
-        opt = torch.optim.Adam([
-            {"params": [p.means], "lr": cfg.lr_means},
-            {"params": [p.log_scales], "lr": cfg.lr_log_scales},
-            {"params": [p.quats], "lr": cfg.lr_quats},
-            {"params": [p.logit_opacities], "lr": cfg.lr_opacities},
-            {"params": [p.colors], "lr": cfg.lr_colors},
-        ], eps=1e-15)
+        opt = make_optimizer(p, cfg)
         targets = [(viewmat_from_pose(k.T_local_cam), k.rgbd.color_tensor(), k.rgbd.depth_tensor(), k.rgbd.camera)
                    for k in keyframes]
         losses = []

@@ -69,3 +69,57 @@ def rgbd_loss(out, color: torch.Tensor, depth: torch.Tensor, *, lambda_color: fl
                 m = m * inl
     w = m.sum().clamp_min(1.0)
     return (m * (lambda_color * e_c + (1.0 - lambda_color) * e_d)).sum() / w
+
+
+class _Eq3Loss(torch.autograd.Function):
+    """rgbd_loss's rules (normalise=False, alpha_min=0) in kernel passes (kernels/_<backend>/loss.py) and two torch
+    medians; the backward is one more kernel pass."""
+
+    @staticmethod
+    def forward(ctx, r_c, r_d, alpha, color, depth, lambda_color, alpha_power, inlier_k, impl, device):
+        h, w = depth.shape
+        dev = depth.device
+        flat = lambda t: t.detach().contiguous()  # noqa: E731
+        r_c, r_d, alpha, color, depth = (flat(t) for t in (r_c, r_d, alpha, color, depth))
+        e_c, e_d, m0, mask = (torch.empty(h * w, dtype=torch.float32, device=dev) for _ in range(4))
+        impl.errors(r_c, color, r_d, depth, alpha, alpha_power, e_c, e_d, m0, device)
+        thr_c = thr_d = float("inf")
+        if inlier_k is not None:
+            valid = depth.reshape(-1) > 0
+            sel = None if alpha_power <= 0 else m0 > 0  # alpha^0 = 1 everywhere
+            if sel is None or bool(sel.any()):
+                mc = e_c.median() if sel is None else e_c[sel].median()
+                sv = valid if sel is None else sel & valid
+                md = e_d[sv].median() if bool(sv.any()) else torch.tensor(0.0)
+                thr_c, thr_d = float(inlier_k * mc + 1e-6), float(inlier_k * md + 1e-6)
+        lam_d = float(torch.tensor(1.0 - lambda_color, dtype=torch.float32))  # as torch rounds the Python scalar
+        row_sums = torch.empty(h, 2, dtype=torch.float32, device=dev)
+        impl.masked_sums(e_c, e_d, m0, w, lambda_color, lam_d, thr_c, thr_d, row_sums, mask, device)
+        sw, sl = row_sums.sum(0).tolist()
+        ctx.weight = max(sw, 1.0)
+        ctx.save_for_backward(r_c, color, r_d, depth, mask)
+        ctx.args = (lambda_color, lam_d, impl, device)
+        return torch.tensor(sl / ctx.weight, dtype=torch.float32, device=dev)
+
+    @staticmethod
+    def backward(ctx, g):
+        r_c, color, r_d, depth, mask = ctx.saved_tensors
+        lam, lam_d, impl, device = ctx.args
+        s = float(g / ctx.weight)  # float32, as autograd's DivBackward
+        g_c, g_d = torch.empty_like(r_c), torch.empty_like(r_d)
+        impl.grads(r_c, color, r_d, depth, mask, s, lam, lam_d, g_c.view(-1), g_d.view(-1), device)
+        return (g_c, g_d) + (None,) * 8
+
+
+def rgbd_loss_fused(out, color: torch.Tensor, depth: torch.Tensor, *, lambda_color: float, alpha_power: float,
+                    inlier_k: float | None = None) -> torch.Tensor:
+    """`rgbd_loss` (normalise=False, alpha_min=0: the mapping loss) on the active kernel backend: per-pixel work
+    in two kernels instead of ~40 torch operations and their autograd graph; same value and gradients.
+    Falls back to `rgbd_loss` for tensors that are not float32."""
+    if not all(t.dtype == torch.float32 for t in (out.color, out.depth, color, depth)):
+        return rgbd_loss(out, color, depth, lambda_color=lambda_color, alpha_power=alpha_power, inlier_k=inlier_k)
+    import kernels
+
+    b = kernels.active()
+    return _Eq3Loss.apply(out.color, out.depth, out.alpha, color, depth, float(lambda_color), float(alpha_power),
+                          None if inlier_k is None else float(inlier_k), kernels.backend_module("loss"), b.device)

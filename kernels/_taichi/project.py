@@ -1,7 +1,9 @@
 """Taichi kernels of the EWA projection (one iteration per Gaussian) and its hand-written backward.
 
 Same contract and algebra as kernels/_warp/project.py: rows in the kernels.raster.PACKED layout (zeros for culled
-Gaussians), radius, tile rectangle; backward to means, quats, scales and per-Gaussian [12] viewmat slices.
+Gaussians), radius, tile rectangle, tile count (-1 for invalid inputs), exp() skip threshold; backward sums each
+Gaussian's tile-entry gradients, then chains to means, quats, scales, opacity, colour and per-Gaussian [12]
+viewmat slices, summed by `_view_grad`. Finiteness is tested on the bit pattern (Taichi compiles with fast math).
 """
 
 import taichi as ti
@@ -22,6 +24,11 @@ def _rotmat(w, x, y, z):
 
 
 @ti.func
+def _finite(x):
+    return (ti.bit_cast(x, ti.i32) & 0x7F800000) != 0x7F800000
+
+
+@ti.func
 def _view_rot(view: ti.template()):
     return ti.Matrix([[view[0, 0], view[0, 1], view[0, 2]], [view[1, 0], view[1, 1], view[1, 2]],
                       [view[2, 0], view[2, 1], view[2, 2]]], ti.f32)
@@ -30,16 +37,32 @@ def _view_rot(view: ti.template()):
 @ti.kernel
 def _project_fwd(means: _f2, quats: _f2, scales: _f2, opac: _f1, colors: _f2, view: _f2, fx: ti.f32, fy: ti.f32,
                  cx: ti.f32, cy: ti.f32, width: ti.i32, height: ti.i32, near: ti.f32, far: ti.f32, proj: _f2,
-                 radius: _i1, rect: _i2):
+                 radius: _i1, rect: _i2, ntiles: _i1, pthr: _f1):
     for i in range(means.shape[0]):
         for k in ti.static(range(10)):
             proj[i, k] = 0.0
         for k in ti.static(range(4)):
             rect[i, k] = 0
         radius[i] = 0
+        ntiles[i] = 0
+        pthr[i] = 0.0
+        ok = _finite(opac[i]) and opac[i] >= 0.0 and opac[i] <= 1.0
+        qlen2 = 0.0
+        for k in ti.static(range(3)):
+            ok = ok and _finite(means[i, k]) and _finite(scales[i, k]) and _finite(colors[i, k])
+        for k in ti.static(range(4)):
+            ok = ok and _finite(quats[i, k])
+            qlen2 += quats[i, k] * quats[i, k]
+        z = 0.0
+        if not ok or qlen2 < 1e-20:
+            ntiles[i] = -1
+            z = -1.0  # culls below
         Rv = _view_rot(view)
         p = Rv @ ti.Vector([means[i, 0], means[i, 1], means[i, 2]]) + ti.Vector([view[0, 3], view[1, 3], view[2, 3]])
-        z = p[2]
+        if z == 0.0:
+            z = p[2]
+        else:
+            z = -1.0
         if z >= near and z <= far:
             inv_z = 1.0 / z
             lim_x = 0.15 * width / fx
@@ -88,21 +111,35 @@ def _project_fwd(means: _f2, quats: _f2, scales: _f2, opac: _f1, colors: _f2, vi
                     rect[i, 1] = ti.cast(y0, ti.i32)
                     rect[i, 2] = ti.cast(x1, ti.i32)
                     rect[i, 3] = ti.cast(y1, ti.i32)
+                    ntiles[i] = (rect[i, 2] - rect[i, 0]) * (rect[i, 3] - rect[i, 1])
+                    pthr[i] = -ti.log(255.0 * opac[i]) - 1e-5
 
 
 @ti.kernel
 def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
-                 width: ti.i32, height: ti.i32, proj: _f2, radius: _i1, g_proj: _f2, g_means: _f2, g_quats: _f2,
-                 g_scales: _f2, g_view: _f2):
+                 width: ti.i32, height: ti.i32, proj: _f2, ntiles: _i1, emit_start: _i1, emit_pos: _i1, g_entry: _f2,
+                 g_means: _f2, g_quats: _f2, g_scales: _f2, g_opac: _f1, g_colors: _f2, g_view: _f2):
     for i in range(means.shape[0]):
         for k in ti.static(range(3)):
             g_means[i, k] = 0.0
             g_scales[i, k] = 0.0
+            g_colors[i, k] = 0.0
         for k in ti.static(range(4)):
             g_quats[i, k] = 0.0
         for k in ti.static(range(12)):
             g_view[i, k] = 0.0
-        if radius[i] != 0:
+        g_opac[i] = 0.0
+        nt = ntiles[i]
+        if nt > 0:
+            gr = ti.Vector([0.0] * 10)  # this Gaussian's row gradient: the sum of its tile entries' (no atomics)
+            k0 = emit_start[i]
+            for k in range(k0, k0 + nt):
+                e = emit_pos[k]
+                for j in ti.static(range(10)):
+                    gr[j] += g_entry[e, j]
+            g_opac[i] = gr[5]
+            for j in ti.static(range(3)):
+                g_colors[i, j] = gr[6 + j]
             Rv = _view_rot(view)
             m = ti.Vector([means[i, 0], means[i, 1], means[i, 2]])
             p = Rv @ m + ti.Vector([view[0, 3], view[1, 3], view[2, 3]])
@@ -129,7 +166,7 @@ def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy:
             T0 = f0 * (m0 - u * m2)
             T1 = f1 * (m1 - v * m2)
             A, B, C = proj[i, 2], proj[i, 3], proj[i, 4]
-            gA, gB, gC = g_proj[i, 2], g_proj[i, 3], g_proj[i, 4]
+            gA, gB, gC = gr[2], gr[3], gr[4]
             ga = -(A * A * gA + A * B * gB + B * B * gC)
             gb = -(2.0 * A * B * gA + (A * C + B * B) * gB + 2.0 * B * C * gC)
             gc = -(B * B * gA + B * C * gB + C * C * gC)
@@ -139,7 +176,7 @@ def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy:
             gM1 = f1 * gT1
             gM2 = -(u * f0) * gT0 - (v * f1) * gT1
             g_inv_z = (gT0.dot(T0) + gT1.dot(T1)) * p[2]
-            g_mx, g_my = g_proj[i, 0], g_proj[i, 1]
+            g_mx, g_my = gr[0], gr[1]
             gx = g_mx * f0
             gy = g_my * f1
             g_inv_z += g_mx * fx * p[0] + g_my * fy * p[1]
@@ -151,7 +188,7 @@ def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy:
                 gv = -f1 * gT1.dot(m2)
                 gy += gv * inv_z
                 g_inv_z += gv * p[1]
-            gz = g_proj[i, 9] - g_inv_z * inv_z * inv_z
+            gz = gr[9] - g_inv_z * inv_z * inv_z
             gp = ti.Vector([gx, gy, gz])
             gMc = ti.Matrix([[gM0[0], gM0[1], gM0[2]], [gM1[0], gM1[1], gM1[2]], [gM2[0], gM2[1], gM2[2]]])
             gN = gMc @ S
@@ -180,23 +217,44 @@ def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy:
                 g_view[i, 9 + r] = gp[r]
 
 
+@ti.kernel
+def _view_grad(parts: _f2, n: ti.i32, g_view: _f2):
+    for j in range(16):  # g_view [4, 4]: j < 9 rotation entry j, 9..11 translation, else 0
+        s = 0.0
+        if j < 12:  # summed in blocks of 256 (pairwise-like accuracy for large N, float32 only)
+            for b in range((n + 255) // 256):
+                sb = 0.0
+                for i in range(b * 256, ti.min(b * 256 + 256, n)):
+                    sb += parts[i, j]
+                s += sb
+        if j < 9:
+            g_view[j // 3, j % 3] = s
+        elif j < 12:
+            g_view[j - 9, 3] = s
+        else:
+            g_view[3, j - 12] = 0.0
+
+
 def project_forward(means, quats, scales, opac, colors, view, intr, width, height, near, far, proj, radius, rect,
-                    device) -> None:
+                    ntiles, pthr, device) -> None:
     if means.shape[0] == 0:
         return
     fx, fy, cx, cy = intr
-    _project_fwd(means, quats, scales, opac, colors, view, fx, fy, cx, cy, width, height, near, far, proj, radius, rect)
+    _project_fwd(means, quats, scales, opac, colors, view, fx, fy, cx, cy, width, height, near, far, proj, radius, rect,
+                 ntiles, pthr)
     if device == "cuda":
         ti.sync()
 
 
-def project_backward(means, quats, scales, view, intr, width, height, proj, radius, g_proj, g_means, g_quats,
-                     g_scales, g_view, device) -> None:
-    if means.shape[0] == 0:
+def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
+                     g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_view_out, device) -> None:
+    """g_view [N, 12] per-Gaussian viewmat parts (scratch), g_view_out [4, 4] their sum."""
+    n = means.shape[0]
+    if n == 0:
         return
     fx, fy, cx, cy = intr
-    _project_bwd(means, quats, scales, view, fx, fy, cx, cy, width, height, proj, radius, g_proj, g_means, g_quats,
-                 g_scales, g_view)
+    _project_bwd(means, quats, scales, view, fx, fy, cx, cy, width, height, proj, ntiles, emit_start, emit_pos,
+                 g_entry, g_means, g_quats, g_scales, g_opac, g_colors, g_view)
+    _view_grad(g_view, n, g_view_out)
     if device == "cuda":
         ti.sync()
-

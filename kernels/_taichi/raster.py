@@ -1,17 +1,18 @@
-"""Taichi kernels of the Gaussian rasteriser: tile binning, forward compositing, reverse compositing.
+"""Taichi kernels of the Gaussian rasteriser: forward compositing and reverse compositing over per-tile lists.
 
-The same design as kernels/_warp/raster.py: one loop iteration owns a 16x16 tile, its pixels and its entries in
-the tile list, so the backward writes per-entry gradients without atomics. Taichi parallelises the outermost
-loop over all CPU cores by itself. The layout of `packed` rows is kernels.raster.PACKED:
+The same design as kernels/_warp/raster.py (read its docstring): one loop iteration owns a 16x16 tile, its pixels
+and its entries (Gaussian indices, front to back, from kernels/_taichi/sort.py), so the backward writes per-entry
+gradients without atomics; each Gaussian visits only the per-row spans of its alpha >= 1/255 ellipse. Taichi
+parallelises the outermost loop over all CPU cores by itself. Projected rows use kernels.raster.PACKED:
 mean2d x, y, conic a, b, c, opacity, r, g, b, z.
 """
 
 
 import taichi as ti
-import torch
 
 TILE = 16
 ALPHA_MIN = 1.0 / 255.0
+DEPTH_EPS = 1e-6
 
 _f2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 _f1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -20,54 +21,33 @@ _i1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 _i2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 
 
-@ti.kernel
-def _bin(rect: _i2, m: ti.i32, tiles_x: ti.i32, n_tiles: ti.i32, tile_start: _i1, entries: _i1):
-    # Serial counting sort of (tile, depth-rank) pairs: visiting Gaussians in depth order keeps each tile's list
-    # front to back. tile_start doubles as the write cursor and is shifted back at the end.
-    ti.loop_config(serialize=True)
-    for t in range(n_tiles + 1):
-        tile_start[t] = 0
-    ti.loop_config(serialize=True)
-    for g in range(m):
-        for ty in range(rect[g, 1], rect[g, 3]):
-            for tx in range(rect[g, 0], rect[g, 2]):
-                tile_start[ty * tiles_x + tx + 1] += 1
-    ti.loop_config(serialize=True)
-    for t in range(n_tiles):
-        tile_start[t + 1] += tile_start[t]
-    ti.loop_config(serialize=True)
-    for g in range(m):
-        for ty in range(rect[g, 1], rect[g, 3]):
-            for tx in range(rect[g, 0], rect[g, 2]):
-                t = ty * tiles_x + tx
-                entries[tile_start[t]] = g
-                tile_start[t] += 1
-    ti.loop_config(serialize=True)
-    for i in range(n_tiles):
-        t = n_tiles - i
-        tile_start[t] = tile_start[t - 1]
-    tile_start[0] = 0
+@ti.func
+def _rows(my, ca, det_q, lg, y0, y1):
+    # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (lg already widened); (first, last).
+    ey = ti.sqrt(2.0 * lg * ca / det_q)
+    return ti.math.ivec2(ti.cast(ti.math.clamp(ti.ceil(my - ey), ti.cast(y0, ti.f32), ti.cast(y1, ti.f32)), ti.i32),
+                         ti.cast(ti.math.clamp(ti.floor(my + ey), ti.cast(y0 - 1, ti.f32), ti.cast(y1 - 1, ti.f32)),
+                                 ti.i32))
 
 
 @ti.func
-def _pixel_box(mx, my, ca, cb, cc, lg, x0, y0, x1, y1):
-    # Pixels of the tile [x0, x1) x [y0, y1) where alpha can reach 1/255 (see kernels/_warp/raster.py); returns
-    # (bx0, by0, bx1, by1) inclusive, empty when bx1 < bx0.
-    det_q = ca * cc - cb * cb
-    out = ti.math.ivec4(0, 0, -1, -1)
-    if lg > 0.0 and det_q > 0.0:
-        ex = ti.sqrt(2.0 * lg * cc / det_q) + 1.0
-        ey = ti.sqrt(2.0 * lg * ca / det_q) + 1.0
-        out = ti.math.ivec4(ti.cast(ti.max(ti.cast(x0, ti.f32), ti.ceil(mx - ex)), ti.i32),
-                            ti.cast(ti.max(ti.cast(y0, ti.f32), ti.ceil(my - ey)), ti.i32),
-                            ti.cast(ti.min(ti.cast(x1 - 1, ti.f32), ti.floor(mx + ex)), ti.i32),
-                            ti.cast(ti.min(ti.cast(y1 - 1, ti.f32), ti.floor(my + ey)), ti.i32))
+def _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1):
+    # Pixels of one row where alpha can reach 1/255 (see kernels/_warp/raster.py); (first, last) inclusive.
+    disc = lgm2ca - det_q * dy * dy
+    out = ti.math.ivec2(x0, x0 - 1)
+    if disc >= 0.0:
+        h = ti.sqrt(disc) * inv_ca
+        xc = mx - cb * dy * inv_ca
+        out = ti.math.ivec2(
+            ti.cast(ti.math.clamp(ti.ceil(xc - h), ti.cast(x0, ti.f32), ti.cast(x1, ti.f32)), ti.i32),
+            ti.cast(ti.math.clamp(ti.floor(xc + h), ti.cast(x0 - 1, ti.f32), ti.cast(x1 - 1, ti.f32)), ti.i32))
     return out
 
 
 @ti.kernel
-def _forward(packed: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
-             tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, t_final: _f2, last: _i2, hits: _i1):
+def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
+             tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, dnorm: _f2, alpha: _f2, t_final: _f2,
+             last: _i2, hits: _i1):
     # Entry-outer per tile, as the Warp kernel: t_final holds the running transmittance, negated once done.
     ti.loop_config(block_dim=1)  # one tile per task: tiles differ wildly in cost
     for t in range(n_tiles):
@@ -85,55 +65,69 @@ def _forward(packed: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, wid
                 color[py, px, 2] = 0.0
                 depth[py, px] = 0.0
                 last[py, px] = 0
+        npix = (x1 - x0) * (y1 - y0)
+        done = 0
         s0 = tile_start[t]
         s1 = tile_start[t + 1]
         for e in range(s0, s1):
-            g = entries[e]
-            mx = packed[g, 0]
-            my = packed[g, 1]
-            ca = packed[g, 2]
-            cb = packed[g, 3]
-            cc = packed[g, 4]
-            op = packed[g, 5]
-            lo = pthr[g]
-            box = _pixel_box(mx, my, ca, cb, cc, -lo, x0, y0, x1, y1)
             count = 0
-            for py in range(box[1], box[3] + 1):
-                dy = ti.cast(py, ti.f32) - my
-                for px in range(box[0], box[2] + 1):
-                    T = t_final[py, px]
-                    if T > 0.0:
-                        dx = ti.cast(px, ti.f32) - mx
-                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                        if power <= 0.0 and power >= lo:
-                            a = ti.min(0.99, op * ti.exp(power))
-                            if a >= ALPHA_MIN:
-                                test_T = T * (1.0 - a)
-                                if test_T < 1e-4:
-                                    t_final[py, px] = -T
-                                else:
-                                    w = a * T
-                                    color[py, px, 0] += w * packed[g, 6]
-                                    color[py, px, 1] += w * packed[g, 7]
-                                    color[py, px, 2] += w * packed[g, 8]
-                                    depth[py, px] += w * packed[g, 9]
-                                    t_final[py, px] = test_T
-                                    last[py, px] = e - s0 + 1
-                                    count += 1
+            g = entries[e]
+            lo = pthr[g]
+            ca = proj[g, 2]
+            cb = proj[g, 3]
+            cc = proj[g, 4]
+            det_q = ca * cc - cb * cb
+            if done < npix and lo < 0.0 and det_q > 0.0:
+                mx = proj[g, 0]
+                my = proj[g, 1]
+                op = proj[g, 5]
+                inv_ca = 1.0 / ca
+                lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
+                rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
+                for py in range(rows[0], rows[1] + 1):
+                    dy = ti.cast(py, ti.f32) - my
+                    span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
+                    for px in range(span[0], span[1] + 1):
+                        T = t_final[py, px]
+                        if T > 0.0:
+                            dx = ti.cast(px, ti.f32) - mx
+                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            if power <= 0.0 and power >= lo:
+                                a = ti.min(0.99, op * ti.exp(power))
+                                if a >= ALPHA_MIN:
+                                    test_T = T * (1.0 - a)
+                                    if test_T < 1e-4:
+                                        t_final[py, px] = -T
+                                        done += 1
+                                    else:
+                                        w = a * T
+                                        color[py, px, 0] += w * proj[g, 6]
+                                        color[py, px, 1] += w * proj[g, 7]
+                                        color[py, px, 2] += w * proj[g, 8]
+                                        depth[py, px] += w * proj[g, 9]
+                                        t_final[py, px] = test_T
+                                        last[py, px] = e - s0 + 1
+                                        count += 1
             hits[e] = count
         for py in range(y0, y1):
             for px in range(x0, x1):
                 T = ti.abs(t_final[py, px])
                 t_final[py, px] = T
+                a = 1.0 - T
+                alpha[py, px] = a
                 color[py, px, 0] += T * bg[0]
                 color[py, px, 1] += T * bg[1]
                 color[py, px, 2] += T * bg[2]
+                dn = 0.0
+                if a > DEPTH_EPS:
+                    dn = depth[py, px] / a
+                dnorm[py, px] = dn
 
 
 @ti.kernel
-def _backward(packed: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
-              tiles_x: ti.i32, n_tiles: ti.i32, t_final: _f2, last: _i2, g_color: _f3, g_depth: _f2, g_alpha: _f2,
-              t_run: _f2, behind: _f2, g_entry: _f2):
+def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
+              tiles_x: ti.i32, n_tiles: ti.i32, t_final: _f2, dnorm: _f2, last: _i2, g_color: _f3, g_depth: _f2,
+              g_dnorm: _f2, g_alpha: _f2, t_run: _f2, behind: _f2, g_dep: _f2, g_entry: _f2):
     # Reverse compositing, entry-outer from the back of each tile list (see the Warp kernel for the algebra).
     ti.loop_config(block_dim=1)
     for t in range(n_tiles):
@@ -143,65 +137,84 @@ def _backward(packed: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, wi
         y0 = ty * TILE
         x1 = ti.min(x0 + TILE, width)
         y1 = ti.min(y0 + TILE, height)
+        n_live = 0
         for py in range(y0, y1):
             for px in range(x0, x1):
                 TN = t_final[py, px]
+                a_px = 1.0 - TN
+                gd = g_depth[py, px]
+                ga = g_alpha[py, px]
+                if a_px > DEPTH_EPS:
+                    gn = g_dnorm[py, px] / a_px
+                    gd += gn
+                    ga -= gn * dnorm[py, px]
+                g_dep[py, px] = gd
                 t_run[py, px] = TN
                 behind[py, px] = (g_color[py, px, 0] * bg[0] + g_color[py, px, 1] * bg[1]
-                                  + g_color[py, px, 2] * bg[2] - g_alpha[py, px]) * TN
+                                  + g_color[py, px, 2] * bg[2] - ga) * TN
+                n_live = ti.max(n_live, last[py, px])
         s0 = tile_start[t]
         s1 = tile_start[t + 1]
-        for i in range(s1 - s0):
-            e = s1 - 1 - i
-            k = e - s0
+        for e in range(s0 + n_live, s1):
+            for j in ti.static(range(10)):
+                g_entry[e, j] = 0.0
+        for i in range(n_live):
+            k = n_live - 1 - i
+            e = s0 + k
             g = entries[e]
-            mx = packed[g, 0]
-            my = packed[g, 1]
-            ca = packed[g, 2]
-            cb = packed[g, 3]
-            cc = packed[g, 4]
-            op = packed[g, 5]
-            cr = packed[g, 6]
-            cg = packed[g, 7]
-            cbl = packed[g, 8]
-            z = packed[g, 9]
+            mx = proj[g, 0]
+            my = proj[g, 1]
+            ca = proj[g, 2]
+            cb = proj[g, 3]
+            cc = proj[g, 4]
+            op = proj[g, 5]
+            cr = proj[g, 6]
+            cg = proj[g, 7]
+            cbl = proj[g, 8]
+            z = proj[g, 9]
             lo = pthr[g]
-            box = _pixel_box(mx, my, ca, cb, cc, -lo, x0, y0, x1, y1)
+            det_q = ca * cc - cb * cb
             v = ti.Vector([0.0] * 10)  # d/d(mean2d x, y, conic a, b, c, opacity, r, g, b, z)
-            for py in range(box[1], box[3] + 1):
-                dy = ti.cast(py, ti.f32) - my
-                for px in range(box[0], box[2] + 1):
-                    if k < last[py, px]:
-                        dx = ti.cast(px, ti.f32) - mx
-                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                        if power <= 0.0 and power >= lo:
-                            G = ti.exp(power)
-                            raw = op * G
-                            a = ti.min(0.99, raw)
-                            if a >= ALPHA_MIN:
-                                T = t_run[py, px] / (1.0 - a)
-                                t_run[py, px] = T
-                                w = a * T
-                                gr = g_color[py, px, 0]
-                                gg = g_color[py, px, 1]
-                                gb = g_color[py, px, 2]
-                                gd = g_depth[py, px]
-                                front = gr * cr + gg * cg + gb * cbl + gd * z
-                                bh = behind[py, px]
-                                g_a = T * front - bh / (1.0 - a)
-                                behind[py, px] = bh + w * front
-                                v[6] += w * gr
-                                v[7] += w * gg
-                                v[8] += w * gb
-                                v[9] += w * gd
-                                if raw < 0.99:
-                                    v[5] += g_a * G
-                                    g_p = g_a * a
-                                    v[0] += g_p * (ca * dx + cb * dy)
-                                    v[1] += g_p * (cc * dy + cb * dx)
-                                    v[2] -= 0.5 * g_p * dx * dx
-                                    v[3] -= g_p * dx * dy
-                                    v[4] -= 0.5 * g_p * dy * dy
+            if lo < 0.0 and det_q > 0.0:
+                inv_ca = 1.0 / ca
+                lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
+                rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
+                for py in range(rows[0], rows[1] + 1):
+                    dy = ti.cast(py, ti.f32) - my
+                    span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
+                    for px in range(span[0], span[1] + 1):
+                        if k < last[py, px]:
+                            dx = ti.cast(px, ti.f32) - mx
+                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            if power <= 0.0 and power >= lo:
+                                G = ti.exp(power)
+                                raw = op * G
+                                a = ti.min(0.99, raw)
+                                if a >= ALPHA_MIN:
+                                    inv_1ma = 1.0 / (1.0 - a)
+                                    T = t_run[py, px] * inv_1ma
+                                    t_run[py, px] = T
+                                    w = a * T
+                                    gr = g_color[py, px, 0]
+                                    gg = g_color[py, px, 1]
+                                    gb = g_color[py, px, 2]
+                                    gd = g_dep[py, px]
+                                    front = gr * cr + gg * cg + gb * cbl + gd * z
+                                    bh = behind[py, px]
+                                    g_a = T * front - bh * inv_1ma
+                                    behind[py, px] = bh + w * front
+                                    v[6] += w * gr
+                                    v[7] += w * gg
+                                    v[8] += w * gb
+                                    v[9] += w * gd
+                                    if raw < 0.99:
+                                        v[5] += g_a * G
+                                        g_p = g_a * a
+                                        v[0] += g_p * (ca * dx + cb * dy)
+                                        v[1] += g_p * (cc * dy + cb * dx)
+                                        v[2] -= 0.5 * g_p * dx * dx
+                                        v[3] -= g_p * dx * dy
+                                        v[4] -= 0.5 * g_p * dy * dy
             for j in ti.static(range(10)):
                 g_entry[e, j] = v[j]
 
@@ -211,33 +224,19 @@ def _sync(device: str) -> None:
         ti.sync()
 
 
-def bin_tiles(rect: torch.Tensor, tiles_x: int, tiles_y: int, tile_start: torch.Tensor, entries: torch.Tensor,
-              device: str) -> None:
-    """rect [M, 4] int32 tile ranges of depth-sorted Gaussians -> tile_start [T+1], entries [E] (filled here)."""
-    m = rect.shape[0]
-    rect_arg = rect if m else torch.zeros((1, 4), dtype=torch.int32, device=rect.device)  # Taichi rejects 0-size
-    _bin(rect_arg, m, tiles_x, tiles_x * tiles_y, tile_start, entries)
+def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
+                   hits, device) -> None:
+    tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    _forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth, dnorm,
+             alpha, t_final, last, hits)
     _sync(device)
 
 
-def _nonempty(packed: torch.Tensor) -> torch.Tensor:
-    return packed if packed.shape[0] else torch.zeros((1, 10), dtype=torch.float32, device=packed.device)
-
-
-def _nonempty1(x: torch.Tensor) -> torch.Tensor:
-    return x if x.shape[0] else torch.zeros(1, dtype=torch.float32, device=x.device)
-
-
-def render_forward(packed, pthr, tile_start, entries, bg, width, height, color, depth, t_final, last, hits, device) -> None:
+def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color, g_depth,
+                    g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device) -> None:
+    """Image gradients may be strided (expanded); Taichi takes contiguous arrays."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    _forward(_nonempty(packed), _nonempty1(pthr), tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth,
-             t_final, last, hits)
-    _sync(device)
-
-
-def render_backward(packed, pthr, tile_start, entries, bg, width, height, t_final, last, g_color, g_depth, g_alpha,
-                    t_run, behind, g_entry, device) -> None:
-    tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    _backward(_nonempty(packed), _nonempty1(pthr), tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, last,
-              g_color, g_depth, g_alpha, t_run, behind, g_entry)
+    g_color, g_depth, g_dnorm, g_alpha = (g.contiguous() for g in (g_color, g_depth, g_dnorm, g_alpha))
+    _backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm, last,
+              g_color, g_depth, g_dnorm, g_alpha, t_run, behind, g_dep, g_entry)
     _sync(device)

@@ -1,16 +1,21 @@
 """Warp kernels of the EWA projection (one thread per Gaussian) and its hand-written backward.
 
 Forward writes one row per Gaussian: mean2d x, y, conic a, b, c, opacity, r, g, b, z (kernels.raster.PACKED),
-plus the 3-sigma radius and the tile rectangle; culled Gaussians get zeros. Backward turns the row gradients into
-gradients of means, quats (through the normalisation), scales and a per-Gaussian [12] slice of the viewmat
-gradient (rotation row-major, then translation), summed by the caller. The math is in kernels/_ref_raster.py.
+the 3-sigma radius, the tile rectangle, the number of tiles touched and the exp() skip threshold
+pthr = -ln(255 o) - 1e-5 (power below it cannot give alpha >= 1/255); culled Gaussians get zeros, invalid inputs
+(non-finite, zero-length quaternion, opacity outside [0, 1]) get ntiles = -1 so the caller can name them.
+Backward first sums the Gaussian's per-tile-entry gradients (kernels/_warp/sort.py lists them), then turns the
+row gradient into gradients of means, quats (through the normalisation), scales, opacity, colour and a
+per-Gaussian [12] slice of the viewmat gradient (rotation row-major, then translation), summed by the caller.
+The math is in kernels/_ref_raster.py.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from .raster import launch_chunked, to_warp
+from .arrays import to_warp
+from .launch import launch
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
@@ -35,13 +40,25 @@ def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
                  opac: wp.array(dtype=float), colors: wp.array2d(dtype=float), view: wp.array2d(dtype=float),
                  fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
                  offset: int, proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
-                 rect: wp.array2d(dtype=wp.int32)):
+                 rect: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float)):
     i = wp.tid() + offset
     for k in range(10):
         proj[i, k] = 0.0
     for k in range(4):
         rect[i, k] = 0
     radius[i] = 0
+    ntiles[i] = 0
+    pthr[i] = 0.0
+    ok = wp.isfinite(opac[i]) and opac[i] >= 0.0 and opac[i] <= 1.0
+    qlen2 = float(0.0)
+    for k in range(3):
+        ok = ok and wp.isfinite(means[i, k]) and wp.isfinite(scales[i, k]) and wp.isfinite(colors[i, k])
+    for k in range(4):
+        ok = ok and wp.isfinite(quats[i, k])
+        qlen2 += quats[i, k] * quats[i, k]
+    if not ok or qlen2 < 1e-20:
+        ntiles[i] = -1
+        return
     Rv = _view_rot(view)
     p = wp.mul(Rv, wp.vec3(means[i, 0], means[i, 1], means[i, 2])) + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
     z = p[2]
@@ -95,24 +112,59 @@ def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     rect[i, 1] = int(y0)
     rect[i, 2] = int(x1)
     rect[i, 3] = int(y1)
+    ntiles[i] = (int(x1) - int(x0)) * (int(y1) - int(y0))
+    pthr[i] = -wp.log(255.0 * opac[i]) - 1e-5
 
 
 @wp.kernel
 def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
                  view: wp.array2d(dtype=float), fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-                 offset: int, proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
-                 g_proj: wp.array2d(dtype=float), g_means: wp.array2d(dtype=float), g_quats: wp.array2d(dtype=float),
-                 g_scales: wp.array2d(dtype=float), g_view: wp.array2d(dtype=float)):
+                 offset: int, proj: wp.array2d(dtype=float), ntiles: wp.array(dtype=wp.int32),
+                 emit_start: wp.array(dtype=wp.int32), emit_pos: wp.array(dtype=wp.int32),
+                 g_entry: wp.array2d(dtype=float), g_means: wp.array2d(dtype=float), g_quats: wp.array2d(dtype=float),
+                 g_scales: wp.array2d(dtype=float), g_opac: wp.array(dtype=float), g_colors: wp.array2d(dtype=float),
+                 g_view: wp.array2d(dtype=float)):
     i = wp.tid() + offset
     for k in range(3):
         g_means[i, k] = 0.0
         g_scales[i, k] = 0.0
+        g_colors[i, k] = 0.0
     for k in range(4):
         g_quats[i, k] = 0.0
     for k in range(12):
         g_view[i, k] = 0.0
-    if radius[i] == 0:
+    g_opac[i] = 0.0
+    nt = ntiles[i]
+    if nt <= 0:
         return
+    # this Gaussian's row gradient: the sum of its tile entries' gradients (no atomics)
+    g_mx = float(0.0)
+    g_my = float(0.0)
+    gA = float(0.0)
+    gB = float(0.0)
+    gC = float(0.0)
+    g_o = float(0.0)
+    g_r = float(0.0)
+    g_g = float(0.0)
+    g_b = float(0.0)
+    g_zr = float(0.0)
+    k0 = emit_start[i]
+    for k in range(k0, k0 + nt):
+        e = emit_pos[k]
+        g_mx += g_entry[e, 0]
+        g_my += g_entry[e, 1]
+        gA += g_entry[e, 2]
+        gB += g_entry[e, 3]
+        gC += g_entry[e, 4]
+        g_o += g_entry[e, 5]
+        g_r += g_entry[e, 6]
+        g_g += g_entry[e, 7]
+        g_b += g_entry[e, 8]
+        g_zr += g_entry[e, 9]
+    g_opac[i] = g_o
+    g_colors[i, 0] = g_r
+    g_colors[i, 1] = g_g
+    g_colors[i, 2] = g_b
     # Recompute the forward intermediates (cheaper than storing them).
     Rv = _view_rot(view)
     m = wp.vec3(means[i, 0], means[i, 1], means[i, 2])
@@ -145,9 +197,6 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     A = proj[i, 2]
     B = proj[i, 3]
     C = proj[i, 4]
-    gA = g_proj[i, 2]
-    gB = g_proj[i, 3]
-    gC = g_proj[i, 4]
     ga = -(A * A * gA + A * B * gB + B * B * gC)
     gb = -(2.0 * A * B * gA + (A * C + B * B) * gB + 2.0 * B * C * gC)
     gc = -(B * B * gA + B * C * gB + C * C * gC)
@@ -157,8 +206,6 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     gM1 = f1 * gT1
     gM2 = -(u * f0) * gT0 - (v * f1) * gT1
     g_inv_z = (wp.dot(gT0, T0) + wp.dot(gT1, T1)) * p[2]
-    g_mx = g_proj[i, 0]
-    g_my = g_proj[i, 1]
     gx = g_mx * f0
     gy = g_my * f1
     g_inv_z += g_mx * fx * p[0] + g_my * fy * p[1]
@@ -170,7 +217,7 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
         gv = -f1 * wp.dot(gT1, Mc[2])
         gy += gv * inv_z
         g_inv_z += gv * p[1]
-    gz = g_proj[i, 9] - g_inv_z * inv_z * inv_z
+    gz = g_zr - g_inv_z * inv_z * inv_z
     gp = wp.vec3(gx, gy, gz)
     gMc = wp.mat33(gM0[0], gM0[1], gM0[2], gM1[0], gM1[1], gM1[2], gM2[0], gM2[1], gM2[2])
     gN = wp.mul(gMc, wp.diag(s))
@@ -200,24 +247,48 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
         g_view[i, 9 + r] = gp[r]
 
 
+@wp.kernel
+def _view_grad(parts: wp.array2d(dtype=float), n: int, g_view: wp.array2d(dtype=float)):
+    # g_view [4, 4] = the per-Gaussian parts summed: thread j < 9 -> rotation entry j, 9..11 -> translation, else 0
+    # summed in blocks of 256 (pairwise-like accuracy for large N, float32 only)
+    j = wp.tid()
+    s = float(0.0)
+    if j < 12:
+        for b in range(0, n, 256):
+            sb = float(0.0)
+            for i in range(b, wp.min(b + 256, n)):
+                sb += parts[i, j]
+            s += sb
+    if j < 9:
+        g_view[j // 3, j % 3] = s
+    elif j < 12:
+        g_view[j - 9, 3] = s
+    else:
+        g_view[3, j - 12] = 0.0
+
+
 def project_forward(means, quats, scales, opac, colors, view, intr, width, height, near, far, proj, radius, rect,
-                    device) -> None:
+                    ntiles, pthr, device) -> None:
     n = means.shape[0]
     if n == 0:
         return
     fx, fy, cx, cy = intr
     inputs = [to_warp(means), to_warp(quats), to_warp(scales), to_warp(opac), to_warp(colors), to_warp(view),
-              fx, fy, cx, cy, width, height, near, far, 0, to_warp(proj), to_warp(radius), to_warp(rect)]
-    launch_chunked(_project_fwd, n, inputs, 14, device)
+              fx, fy, cx, cy, width, height, near, far, 0, to_warp(proj), to_warp(radius), to_warp(rect),
+              to_warp(ntiles), to_warp(pthr)]
+    launch(_project_fwd, n, inputs, 14, device)
 
 
-def project_backward(means, quats, scales, view, intr, width, height, proj, radius, g_proj, g_means, g_quats,
-                     g_scales, g_view, device) -> None:
+def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
+                     g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_view_out, device) -> None:
+    """g_view [N, 12] per-Gaussian viewmat parts (scratch), g_view_out [4, 4] their sum."""
     n = means.shape[0]
     if n == 0:
         return
     fx, fy, cx, cy = intr
     inputs = [to_warp(means), to_warp(quats), to_warp(scales), to_warp(view), fx, fy, cx, cy, width, height, 0,
-              to_warp(proj), to_warp(radius), to_warp(g_proj), to_warp(g_means), to_warp(g_quats), to_warp(g_scales),
+              to_warp(proj), to_warp(ntiles), to_warp(emit_start), to_warp(emit_pos), to_warp(g_entry),
+              to_warp(g_means), to_warp(g_quats), to_warp(g_scales), to_warp(g_opac), to_warp(g_colors),
               to_warp(g_view)]
-    launch_chunked(_project_bwd, n, inputs, 10, device)
+    launch(_project_bwd, n, inputs, 10, device)
+    wp.launch(_view_grad, dim=16, inputs=[to_warp(g_view), n, to_warp(g_view_out)], device=device, record_tape=False)

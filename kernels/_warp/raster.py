@@ -1,79 +1,64 @@
-"""Warp kernels of the Gaussian rasteriser: tile binning, forward compositing, reverse compositing.
+"""Warp kernels of the Gaussian rasteriser: forward compositing and reverse compositing over per-tile lists.
 
-Work is split per 16x16 tile: one kernel thread owns a tile, its pixels and its entries in the tile list, so the
-backward writes per-entry gradients without atomics and the caller reduces them. Warp's CPU backend runs one
-launch on one OS thread, but the launch releases the GIL (ctypes), so on the CPU the tiles are cut into chunks
-launched from a small thread pool — race-free because chunks share no tile. On CUDA one launch covers all tiles.
-The pool has os.cpu_count() workers unless the environment variable SWARMSPLAT_WARP_CPU_THREADS says otherwise.
-The layout of `packed` rows is kernels.raster.PACKED: mean2d x, y, conic a, b, c, opacity, r, g, b, z.
+Work is split per 16x16 tile: one kernel thread owns a tile, its pixels and its entries in the tile list (built by
+kernels/_warp/sort.py, front to back, entries hold Gaussian indices into the projected rows), so the backward
+writes per-entry gradients without atomics (kernels/_warp/project.py sums them per Gaussian). A Gaussian visits
+only the pixels of its alpha >= 1/255 ellipse: per pixel row the exact span of the quadratic, widened by a margin
+(the exact per-pixel test of the twin still decides every pair). Warp's CPU backend runs one launch on one OS
+thread, but the launch releases the GIL, so on the CPU the tiles are cut into chunks launched from the pool of
+kernels/_warp/launch.py — race-free because chunks share no tile. On CUDA one launch covers all tiles.
+The layout of the projected rows is kernels.raster.PACKED: mean2d x, y, conic a, b, c, opacity, r, g, b, z.
 """
 
 from __future__ import annotations
 
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
+import itertools
 
-import torch
 import warp as wp
+
+from . import launch as _launch
+from .arrays import to_warp
 
 # backward is hand-written (no Warp adjoints); no unrolling of the 16x16 pixel loops (256 copies compile for minutes)
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 TILE = 16
 ALPHA_MIN = 1.0 / 255.0
-
-
-@wp.kernel
-def _bin(rect: wp.array2d(dtype=wp.int32), tiles_x: int, n_tiles: int, tile_start: wp.array(dtype=wp.int32),
-         entries: wp.array(dtype=wp.int32)):
-    # One thread: a counting sort of (tile, depth-rank) pairs; visiting Gaussians in depth order keeps each
-    # tile's list front to back, which a parallel sort would have to restore with (tile, depth) keys.
-    m = rect.shape[0]
-    for t in range(n_tiles + 1):
-        tile_start[t] = 0
-    for g in range(m):
-        for ty in range(rect[g, 1], rect[g, 3]):
-            for tx in range(rect[g, 0], rect[g, 2]):
-                tile_start[ty * tiles_x + tx + 1] = tile_start[ty * tiles_x + tx + 1] + 1
-    for t in range(n_tiles):
-        tile_start[t + 1] = tile_start[t + 1] + tile_start[t]
-    for g in range(m):
-        for ty in range(rect[g, 1], rect[g, 3]):
-            for tx in range(rect[g, 0], rect[g, 2]):
-                t = ty * tiles_x + tx
-                # tile_start[t] is used as the write cursor and restored by the shift below
-                entries[tile_start[t]] = g
-                tile_start[t] = tile_start[t] + 1
-    for i in range(n_tiles):
-        t = n_tiles - i
-        tile_start[t] = tile_start[t - 1]
-    tile_start[0] = 0
+DEPTH_EPS = 1e-6
 
 
 @wp.func
-def _pixel_box(mx: float, my: float, ca: float, cb: float, cc: float, lg: float, x0: int, y0: int, x1: int, y1: int):
-    # Pixels of the tile [x0, x1) x [y0, y1) where alpha can reach 1/255: the ellipse d^T Q d <= 2 ln(255 o) has
-    # half-extents sqrt(2 ln(255 o) (Q^-1)_xx), ...; one pixel of margin against rounding (the exact per-pixel test
-    # still decides). Returns (bx0, by0, bx1, by1) inclusive; empty when bx1 < bx0.
-    det_q = ca * cc - cb * cb
-    out = wp.vec4i(0, 0, -1, -1)
-    if lg > 0.0 and det_q > 0.0:
-        ex = wp.sqrt(2.0 * lg * cc / det_q) + 1.0
-        ey = wp.sqrt(2.0 * lg * ca / det_q) + 1.0
-        out = wp.vec4i(int(wp.max(float(x0), wp.ceil(mx - ex))), int(wp.max(float(y0), wp.ceil(my - ey))),
-                       int(wp.min(float(x1 - 1), wp.floor(mx + ex))), int(wp.min(float(y1 - 1), wp.floor(my + ey))))
+def _rows(my: float, ca: float, det_q: float, lg: float, y0: int, y1: int):
+    # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (lg already widened); (first, last) inclusive.
+    ey = wp.sqrt(2.0 * lg * ca / det_q)
+    return wp.vec2i(int(wp.clamp(wp.ceil(my - ey), float(y0), float(y1))),
+                    int(wp.clamp(wp.floor(my + ey), float(y0 - 1), float(y1 - 1))))
+
+
+@wp.func
+def _span(mx: float, dy: float, cb: float, inv_ca: float, det_q: float, lgm2ca: float, x0: int, x1: int):
+    # Pixels of one row where alpha can reach 1/255: roots of 0.5 a dx^2 + b dy dx + 0.5 c dy^2 = lgm with the
+    # threshold widened to lgm = 1.01 lg + 0.01 (lgm2ca = 2 a lgm), far above float32 rounding; (first, last).
+    disc = lgm2ca - det_q * dy * dy
+    out = wp.vec2i(x0, x0 - 1)
+    if disc >= 0.0:
+        h = wp.sqrt(disc) * inv_ca
+        xc = mx - cb * dy * inv_ca
+        out = wp.vec2i(int(wp.clamp(wp.ceil(xc - h), float(x0), float(x1))),
+                       int(wp.clamp(wp.floor(xc + h), float(x0 - 1), float(x1 - 1))))
     return out
 
 
 @wp.kernel
-def _forward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+def _forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
              entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
-             tile_offset: int, color: wp.array3d(dtype=float), depth: wp.array2d(dtype=float),
-             t_final: wp.array2d(dtype=float), last: wp.array2d(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+             tile_offset: int, color: wp.array(dtype=float), depth: wp.array(dtype=float),
+             dnorm: wp.array(dtype=float), alpha: wp.array(dtype=float), t_final: wp.array(dtype=float),
+             last: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
     # Entry-outer order: each Gaussian of the tile (front to back) visits only the pixels of its alpha >= 1/255
-    # box; the per-pixel state lives in the output images (L1-resident for one tile). t_final holds the running
-    # transmittance, negated once the pixel is done (the next Gaussian would take it below 1e-4).
+    # ellipse; the per-pixel state lives in the output images (L1-resident for one tile). t_final holds the running
+    # transmittance, negated once done (the next Gaussian would take it below 1e-4); a tile whose pixels are all
+    # done skips the rest of its list.
     t = wp.tid() + tile_offset
     ty = t // tiles_x
     tx = t - ty * tiles_x
@@ -83,66 +68,86 @@ def _forward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_
     y1 = wp.min(y0 + TILE, height)
     for py in range(y0, y1):
         for px in range(x0, x1):
-            t_final[py, px] = 1.0
-            color[py, px, 0] = 0.0
-            color[py, px, 1] = 0.0
-            color[py, px, 2] = 0.0
-            depth[py, px] = 0.0
-            last[py, px] = 0
+            q = py * width + px
+            t_final[q] = 1.0
+            color[3 * q + 0] = 0.0
+            color[3 * q + 1] = 0.0
+            color[3 * q + 2] = 0.0
+            depth[q] = 0.0
+            last[q] = 0
+    npix = (x1 - x0) * (y1 - y0)
+    done = int(0)
     s0 = tile_start[t]
     s1 = tile_start[t + 1]
     for e in range(s0, s1):
-        g = entries[e]
-        mx = packed[g, 0]
-        my = packed[g, 1]
-        ca = packed[g, 2]
-        cb = packed[g, 3]
-        cc = packed[g, 4]
-        op = packed[g, 5]
-        lo = pthr[g]
-        box = _pixel_box(mx, my, ca, cb, cc, -lo, x0, y0, x1, y1)
         count = int(0)
-        for py in range(box[1], box[3] + 1):
-            dy = float(py) - my
-            for px in range(box[0], box[2] + 1):
-                T = t_final[py, px]
-                if T > 0.0:
-                    dx = float(px) - mx
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power <= 0.0 and power >= lo:
-                        a = wp.min(0.99, op * wp.exp(power))
-                        if a >= ALPHA_MIN:
-                            test_T = T * (1.0 - a)
-                            if test_T < 1e-4:
-                                t_final[py, px] = -T
-                            else:
-                                w = a * T
-                                color[py, px, 0] = color[py, px, 0] + w * packed[g, 6]
-                                color[py, px, 1] = color[py, px, 1] + w * packed[g, 7]
-                                color[py, px, 2] = color[py, px, 2] + w * packed[g, 8]
-                                depth[py, px] = depth[py, px] + w * packed[g, 9]
-                                t_final[py, px] = test_T
-                                last[py, px] = e - s0 + 1
-                                count += 1
+        g = entries[e]
+        lo = pthr[g]
+        ca = proj[g, 2]
+        cb = proj[g, 3]
+        cc = proj[g, 4]
+        det_q = ca * cc - cb * cb
+        if done < npix and lo < 0.0 and det_q > 0.0:
+            mx = proj[g, 0]
+            my = proj[g, 1]
+            op = proj[g, 5]
+            inv_ca = 1.0 / ca
+            lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
+            rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
+            for py in range(rows[0], rows[1] + 1):
+                dy = float(py) - my
+                span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
+                for px in range(span[0], span[1] + 1):
+                    q = py * width + px
+                    T = t_final[q]
+                    if T > 0.0:
+                        dx = float(px) - mx
+                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                        if power <= 0.0 and power >= lo:
+                            a = wp.min(0.99, op * wp.exp(power))
+                            if a >= ALPHA_MIN:
+                                test_T = T * (1.0 - a)
+                                if test_T < 1e-4:
+                                    t_final[q] = -T
+                                    done += 1
+                                else:
+                                    w = a * T
+                                    color[3 * q + 0] = color[3 * q + 0] + w * proj[g, 6]
+                                    color[3 * q + 1] = color[3 * q + 1] + w * proj[g, 7]
+                                    color[3 * q + 2] = color[3 * q + 2] + w * proj[g, 8]
+                                    depth[q] = depth[q] + w * proj[g, 9]
+                                    t_final[q] = test_T
+                                    last[q] = e - s0 + 1
+                                    count += 1
         hits[e] = count
     for py in range(y0, y1):
         for px in range(x0, x1):
-            T = wp.abs(t_final[py, px])
-            t_final[py, px] = T
-            color[py, px, 0] = color[py, px, 0] + T * bg[0]
-            color[py, px, 1] = color[py, px, 1] + T * bg[1]
-            color[py, px, 2] = color[py, px, 2] + T * bg[2]
+            q = py * width + px
+            T = wp.abs(t_final[q])
+            t_final[q] = T
+            a = 1.0 - T
+            alpha[q] = a
+            color[3 * q + 0] = color[3 * q + 0] + T * bg[0]
+            color[3 * q + 1] = color[3 * q + 1] + T * bg[1]
+            color[3 * q + 2] = color[3 * q + 2] + T * bg[2]
+            dn = float(0.0)
+            if a > DEPTH_EPS:
+                dn = depth[q] / a
+            dnorm[q] = dn
 
 
 @wp.kernel
-def _backward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+def _backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
               entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
-              tile_offset: int, t_final: wp.array2d(dtype=float), last: wp.array2d(dtype=wp.int32),
-              g_color: wp.array3d(dtype=float), g_depth: wp.array2d(dtype=float), g_alpha: wp.array2d(dtype=float),
-              t_run: wp.array2d(dtype=float), behind: wp.array2d(dtype=float), g_entry: wp.array2d(dtype=float)):
+              tile_offset: int, t_final: wp.array(dtype=float), dnorm: wp.array(dtype=float),
+              last: wp.array(dtype=wp.int32), g_color: wp.array(dtype=float), g_depth: wp.array(dtype=float),
+              g_dnorm: wp.array(dtype=float), g_alpha: wp.array(dtype=float), t_run: wp.array(dtype=float),
+              behind: wp.array(dtype=float), g_dep: wp.array(dtype=float), g_entry: wp.array2d(dtype=float)):
     # Reverse compositing, entry-outer from the back of the tile list: t_run recovers T_k = T_{k+1} / (1 - a_k),
     # behind accumulates (dL/dC . colour + dL/dD depth) of everything behind Gaussian k, background and alpha
-    # terms included. Each entry's gradient is summed in registers over its pixels and written once.
+    # terms included. depth_normalised = depth / alpha folds into the depth and alpha gradients per pixel first.
+    # Each entry's gradient is summed in registers over its pixels and written once; entries behind every
+    # pixel's last composited one get zeros without a visit.
     t = wp.tid() + tile_offset
     ty = t // tiles_x
     tx = t - ty * tiles_x
@@ -150,30 +155,44 @@ def _backward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile
     y0 = ty * TILE
     x1 = wp.min(x0 + TILE, width)
     y1 = wp.min(y0 + TILE, height)
+    n_live = int(0)
     for py in range(y0, y1):
         for px in range(x0, x1):
-            TN = t_final[py, px]
-            t_run[py, px] = TN
-            behind[py, px] = (g_color[py, px, 0] * bg[0] + g_color[py, px, 1] * bg[1] + g_color[py, px, 2] * bg[2]
-                              - g_alpha[py, px]) * TN
+            q = py * width + px
+            TN = t_final[q]
+            a_px = 1.0 - TN
+            gd = g_depth[q]
+            ga = g_alpha[q]
+            if a_px > DEPTH_EPS:
+                gn = g_dnorm[q] / a_px
+                gd = gd + gn
+                ga = ga - gn * dnorm[q]
+            g_dep[q] = gd
+            t_run[q] = TN
+            behind[q] = (g_color[3 * q + 0] * bg[0] + g_color[3 * q + 1] * bg[1] + g_color[3 * q + 2] * bg[2]
+                              - ga) * TN
+            n_live = wp.max(n_live, last[q])
     s0 = tile_start[t]
     s1 = tile_start[t + 1]
-    for i in range(s1 - s0):
-        e = s1 - 1 - i
-        k = e - s0
+    for e in range(s0 + n_live, s1):
+        for j in range(10):
+            g_entry[e, j] = 0.0
+    for i in range(n_live):
+        k = n_live - 1 - i
+        e = s0 + k
         g = entries[e]
-        mx = packed[g, 0]
-        my = packed[g, 1]
-        ca = packed[g, 2]
-        cb = packed[g, 3]
-        cc = packed[g, 4]
-        op = packed[g, 5]
-        cr = packed[g, 6]
-        cg = packed[g, 7]
-        cbl = packed[g, 8]
-        z = packed[g, 9]
+        mx = proj[g, 0]
+        my = proj[g, 1]
+        ca = proj[g, 2]
+        cb = proj[g, 3]
+        cc = proj[g, 4]
+        op = proj[g, 5]
+        cr = proj[g, 6]
+        cg = proj[g, 7]
+        cbl = proj[g, 8]
+        z = proj[g, 9]
         lo = pthr[g]
-        box = _pixel_box(mx, my, ca, cb, cc, -lo, x0, y0, x1, y1)
+        det_q = ca * cc - cb * cb
         v_mx = float(0.0)
         v_my = float(0.0)
         v_a = float(0.0)
@@ -184,40 +203,47 @@ def _backward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile
         v_g = float(0.0)
         v_bl = float(0.0)
         v_z = float(0.0)
-        for py in range(box[1], box[3] + 1):
-            dy = float(py) - my
-            for px in range(box[0], box[2] + 1):
-                if k < last[py, px]:
-                    dx = float(px) - mx
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power <= 0.0 and power >= lo:
-                        G = wp.exp(power)
-                        raw = op * G
-                        a = wp.min(0.99, raw)
-                        if a >= ALPHA_MIN:
-                            T = t_run[py, px] / (1.0 - a)
-                            t_run[py, px] = T
-                            w = a * T
-                            gr = g_color[py, px, 0]
-                            gg = g_color[py, px, 1]
-                            gb = g_color[py, px, 2]
-                            gd = g_depth[py, px]
-                            front = gr * cr + gg * cg + gb * cbl + gd * z
-                            bh = behind[py, px]
-                            g_a = T * front - bh / (1.0 - a)
-                            behind[py, px] = bh + w * front
-                            v_r += w * gr
-                            v_g += w * gg
-                            v_bl += w * gb
-                            v_z += w * gd
-                            if raw < 0.99:
-                                v_o += g_a * G
-                                g_p = g_a * a
-                                v_mx += g_p * (ca * dx + cb * dy)
-                                v_my += g_p * (cc * dy + cb * dx)
-                                v_a -= 0.5 * g_p * dx * dx
-                                v_b -= g_p * dx * dy
-                                v_c -= 0.5 * g_p * dy * dy
+        if lo < 0.0 and det_q > 0.0:
+            inv_ca = 1.0 / ca
+            lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
+            rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
+            for py in range(rows[0], rows[1] + 1):
+                dy = float(py) - my
+                span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
+                for px in range(span[0], span[1] + 1):
+                    q = py * width + px
+                    if k < last[q]:
+                        dx = float(px) - mx
+                        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                        if power <= 0.0 and power >= lo:
+                            G = wp.exp(power)
+                            raw = op * G
+                            a = wp.min(0.99, raw)
+                            if a >= ALPHA_MIN:
+                                inv_1ma = 1.0 / (1.0 - a)
+                                T = t_run[q] * inv_1ma
+                                t_run[q] = T
+                                w = a * T
+                                gr = g_color[3 * q + 0]
+                                gg = g_color[3 * q + 1]
+                                gb = g_color[3 * q + 2]
+                                gd = g_dep[q]
+                                front = gr * cr + gg * cg + gb * cbl + gd * z
+                                bh = behind[q]
+                                g_a = T * front - bh * inv_1ma
+                                behind[q] = bh + w * front
+                                v_r += w * gr
+                                v_g += w * gg
+                                v_bl += w * gb
+                                v_z += w * gd
+                                if raw < 0.99:
+                                    v_o += g_a * G
+                                    g_p = g_a * a
+                                    v_mx += g_p * (ca * dx + cb * dy)
+                                    v_my += g_p * (cc * dy + cb * dx)
+                                    v_a -= 0.5 * g_p * dx * dx
+                                    v_b -= g_p * dx * dy
+                                    v_c -= 0.5 * g_p * dy * dy
         g_entry[e, 0] = v_mx
         g_entry[e, 1] = v_my
         g_entry[e, 2] = v_a
@@ -230,78 +256,79 @@ def _backward(packed: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile
         g_entry[e, 9] = v_z
 
 
-def to_warp(t: torch.Tensor, dtype=None):
-    # detached and without Warp-side grads: the hand-written backward owns the gradients
-    return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)
+CHUNKS_PER_THREAD = 4  # more chunks than threads evens out dense and empty image regions
+MIN_SPLIT_WORK = 16384  # estimated pixel visits below which one launch on this thread is cheaper than a hand-off
 
 
-_pool: ThreadPoolExecutor | None = None
-_pool_lock = threading.Lock()
-_loaded: set = set()
-
-
-def _workers() -> int:
-    return max(1, int(os.environ.get("SWARMSPLAT_WARP_CPU_THREADS", os.cpu_count() or 1)))
-
-
-def launch_chunked(kernel, n: int, inputs: list, offset_pos: int, device: str) -> None:
-    """Launch `kernel` over n items whose first index is inputs[offset_pos]; on the CPU in contiguous chunks from
-    a thread pool (see the module docstring). Chunks must not write to shared memory."""
-    global _pool
-    workers = _workers() if device == "cpu" else 1
-    if workers == 1 or n < 2 or (kernel.key, device) not in _loaded:
-        # the first launch compiles and loads the module: do it on this thread, once
-        wp.launch(kernel, dim=n, inputs=_with_offset(inputs, offset_pos, 0), device=device)
-        _loaded.add((kernel.key, device))
+def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> None:
+    """Launch a tile kernel over n_tiles tiles (inputs[_OFFSET_POS] = first tile); on the CPU cut into contiguous
+    chunks that this thread and kernels/_warp/launch.py's pool threads take in turn (dense chunks do not leave
+    one thread with the rest). The first launch of a kernel compiles its module on this
+    thread; `work` (estimated pixel visits) below MIN_SPLIT_WORK runs as one launch."""
+    threads = _launch._cpu_threads() if device == "cpu" else 1
+    key = (kernel, device)
+    if threads == 1 or n_tiles < 2 or work < MIN_SPLIT_WORK or key not in _launch._LOADED:
+        args = list(inputs)
+        args[_OFFSET_POS] = 0
+        wp.launch(kernel, dim=n_tiles, inputs=args, device=device, record_tape=False)
+        _launch._LOADED.add(key)
         return
-    with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warp-raster")
-    n_chunks = min(n, 4 * workers)  # more chunks than workers evens out dense and empty regions
-    bounds = [n * i // n_chunks for i in range(n_chunks + 1)]
-    futures = [
-        _pool.submit(wp.launch, kernel, dim=bounds[i + 1] - bounds[i],
-                     inputs=_with_offset(inputs, offset_pos, bounds[i]), device=device)
-        for i in range(n_chunks) if bounds[i + 1] > bounds[i]
-    ]
+    n_chunks = min(n_tiles, CHUNKS_PER_THREAD * threads)
+    cuts = [n_tiles * k // n_chunks for k in range(n_chunks + 1)]
+
+    def part(k: int) -> None:
+        args = list(inputs)
+        args[_OFFSET_POS] = cuts[k]
+        wp.launch(kernel, dim=cuts[k + 1] - cuts[k], inputs=args, device=device, record_tape=False)
+
+    chunk = itertools.count()  # chunks are taken in turn by this thread and the pool's (next() holds the GIL)
+
+    def worker() -> None:
+        for k in iter(lambda: next(chunk), None):
+            if k >= n_chunks:
+                return
+            part(k)
+
+    pool = _launch._pool(max(1, threads - 1))
+    futures = [pool.submit(worker) for _ in range(threads - 1)]
+    worker()
     for f in futures:
         f.result()
 
 
-def _with_offset(inputs: list, pos: int, offset: int) -> list:
-    out = list(inputs)
-    out[pos] = offset
-    return out
+def _flat(g):
+    # image gradients may be expanded (stride 0) or otherwise strided; the kernels index them flat
+    if g.is_contiguous():
+        return g.view(-1)
+    if all(st == 0 for st in g.stride()):
+        return g.as_strided((g.numel(),), (0,))
+    return g.contiguous().view(-1)
 
 
 _OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
 
 
-def bin_tiles(rect: torch.Tensor, tiles_x: int, tiles_y: int, tile_start: torch.Tensor, entries: torch.Tensor,
-              device: str) -> None:
-    """rect [M, 4] int32 tile ranges of depth-sorted Gaussians -> tile_start [T+1], entries [E] (filled here)."""
-    rect_w = to_warp(rect.reshape(-1, 4), dtype=wp.int32) if rect.shape[0] else wp.zeros((0, 4), dtype=wp.int32, device=device)
-    wp.launch(_bin, dim=1, inputs=[rect_w, tiles_x, tiles_x * tiles_y, to_warp(tile_start), to_warp(entries)],
-              device=device)
-
-
-def render_forward(packed, pthr, tile_start, entries, bg, width, height, color, depth, t_final, last, hits, device) -> None:
+def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
+                   hits, device) -> None:
+    color, depth, dnorm, alpha, t_final, last = (t.view(-1) for t in (color, depth, dnorm, alpha, t_final, last))
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    packed_w = to_warp(packed) if packed.shape[0] else wp.zeros((0, 10), dtype=float, device=device)
-    inputs = [packed_w, to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height, tiles_x,
-              0, to_warp(color), to_warp(depth), to_warp(t_final), to_warp(last),
-              to_warp(hits)]
-    launch_chunked(_forward, tiles_x * tiles_y, inputs, _OFFSET_POS, device)
+    inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
+              tiles_x, 0, to_warp(color), to_warp(depth), to_warp(dnorm), to_warp(alpha), to_warp(t_final),
+              to_warp(last), to_warp(hits)]
+    launch_tiles(_forward, tiles_x * tiles_y, inputs, 2 * entries.shape[0], device)
     if device == "cuda":
         wp.synchronize_device(device)
 
 
-def render_backward(packed, pthr, tile_start, entries, bg, width, height, t_final, last, g_color, g_depth, g_alpha,
-                    t_run, behind, g_entry, device) -> None:
+def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color, g_depth,
+                    g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device) -> None:
+    t_final, dnorm, last, t_run, behind, g_dep = (t.view(-1) for t in (t_final, dnorm, last, t_run, behind, g_dep))
+    g_color, g_depth, g_dnorm, g_alpha = (_flat(g) for g in (g_color, g_depth, g_dnorm, g_alpha))
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    inputs = [to_warp(packed), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
-              tiles_x, 0, to_warp(t_final), to_warp(last), to_warp(g_color), to_warp(g_depth),
-              to_warp(g_alpha), to_warp(t_run), to_warp(behind), to_warp(g_entry)]
-    launch_chunked(_backward, tiles_x * tiles_y, inputs, _OFFSET_POS, device)
+    inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
+              tiles_x, 0, to_warp(t_final), to_warp(dnorm), to_warp(last), to_warp(g_color), to_warp(g_depth),
+              to_warp(g_dnorm), to_warp(g_alpha), to_warp(t_run), to_warp(behind), to_warp(g_dep),
+              to_warp(g_entry)]
+    launch_tiles(_backward, tiles_x * tiles_y, inputs, 2 * g_entry.shape[0], device)
     if device == "cuda":
         wp.synchronize_device(device)

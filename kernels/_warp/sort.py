@@ -1,0 +1,130 @@
+"""Warp kernels that turn projected Gaussians into depth-ordered per-tile lists, and per-Gaussian hit counts.
+
+`bin_tiles` is one kernel thread (a serial pass, no atomics, deterministic, 32-bit integers only):
+1. an exclusive scan of the per-Gaussian tile counts (`emit_start`: where Gaussian g's tile entries are listed),
+   which also compacts the visible Gaussians and counts invalid ones (ntiles = -1 from the projection);
+2. a stable LSD radix sort of the visible Gaussians by camera depth — the float32 bit pattern of z > 0 read as an
+   int32 orders like z — in three 11-bit passes, so equal depths keep index order (the twin's tie rule);
+3. a counting sort of (tile, Gaussian) pairs by tile, visiting Gaussians front to back, so each tile's list is in
+   depth order; `emit_pos[emit_start[g] + k]` records where the k-th tile (row-major over g's rectangle) of
+   Gaussian g landed, so the backward can sum a Gaussian's entries without atomics.
+status = [entries E, invalid Gaussians, visible Gaussians]; nothing past step 1 is written when invalid > 0 or
+E > capacity (the caller grows its buffers and calls again).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .arrays import to_warp as _w
+from .launch import launch
+
+wp.set_module_options({"enable_backward": False, "max_unroll": 0})
+
+RADIX_BITS = 11
+RADIX = 1 << RADIX_BITS
+
+
+@wp.func
+def _radix_pass(src_k: wp.array(dtype=wp.int32), src_v: wp.array(dtype=wp.int32), dst_k: wp.array(dtype=wp.int32),
+                dst_v: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32), m: int, shift: int):
+    for b in range(RADIX):
+        hist[b] = 0
+    for i in range(m):
+        d = (src_k[i] >> shift) & (RADIX - 1)
+        hist[d] = hist[d] + 1
+    s = int(0)
+    for b in range(RADIX):
+        c = hist[b]
+        hist[b] = s
+        s += c
+    for i in range(m):
+        d = (src_k[i] >> shift) & (RADIX - 1)
+        j = hist[d]
+        hist[d] = j + 1
+        dst_k[j] = src_k[i]
+        dst_v[j] = src_v[i]
+    return 0
+
+
+@wp.kernel
+def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+         n: int, tiles_x: int, n_tiles: int, capacity: int, status: wp.array(dtype=wp.int32),
+         emit_start: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.int32),
+         keys2: wp.array(dtype=wp.int32), vals2: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32),
+         tile_start: wp.array(dtype=wp.int32), cursor: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
+         emit_pos: wp.array(dtype=wp.int32)):
+    total = int(0)
+    bad = int(0)
+    m = int(0)
+    for g in range(n):
+        c = ntiles[g]
+        emit_start[g] = total
+        if c < 0:
+            bad += 1
+        elif c > 0:
+            total += c
+            keys[m] = zbits[g, 9]
+            vals[m] = g
+            m += 1
+    status[0] = total
+    status[1] = bad
+    status[2] = m
+    if bad > 0 or total > capacity:
+        return
+    _radix_pass(keys, vals, keys2, vals2, hist, m, 0)
+    _radix_pass(keys2, vals2, keys, vals, hist, m, RADIX_BITS)
+    _radix_pass(keys, vals, keys2, vals2, hist, m, 2 * RADIX_BITS)  # front to back in vals2
+    for t in range(n_tiles + 1):
+        tile_start[t] = 0
+    for i in range(m):
+        g = vals2[i]
+        for ty in range(rect[g, 1], rect[g, 3]):
+            for tx in range(rect[g, 0], rect[g, 2]):
+                t = ty * tiles_x + tx + 1
+                tile_start[t] = tile_start[t] + 1
+    for t in range(n_tiles):
+        tile_start[t + 1] = tile_start[t + 1] + tile_start[t]
+        cursor[t] = tile_start[t]
+    for i in range(m):
+        g = vals2[i]
+        k = emit_start[g]
+        for ty in range(rect[g, 1], rect[g, 3]):
+            for tx in range(rect[g, 0], rect[g, 2]):
+                t = ty * tiles_x + tx
+                pos = cursor[t]
+                cursor[t] = pos + 1
+                entries[pos] = g
+                emit_pos[k] = pos
+                k += 1
+
+
+@wp.kernel
+def _touched(ntiles: wp.array(dtype=wp.int32), emit_start: wp.array(dtype=wp.int32),
+             emit_pos: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), offset: int,
+             n_touched: wp.array(dtype=wp.int32)):
+    g = wp.tid() + offset
+    s = int(0)
+    nt = ntiles[g]
+    if nt > 0:
+        k0 = emit_start[g]
+        for k in range(k0, k0 + nt):
+            s += hits[emit_pos[k]]
+    n_touched[g] = s
+
+
+def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, status, emit_start, scratch, tile_start, cursor,
+              entries, emit_pos, device: str) -> None:
+    """proj_bits [>=n, 10] int32 view of the projected rows; scratch [5, >= max(n, RADIX)] int32; see the module doc."""
+    keys, vals, keys2, vals2, hist = (scratch[k] for k in range(5))
+    wp.launch(_bin, dim=1, inputs=[_w(proj_bits), _w(ntiles), _w(rect), n, tiles_x, n_tiles, entries.shape[0],
+                                   _w(status), _w(emit_start), _w(keys), _w(vals), _w(keys2), _w(vals2), _w(hist),
+                                   _w(tile_start), _w(cursor), _w(entries), _w(emit_pos)],
+              device=device, record_tape=False)
+
+
+def count_touched(n: int, ntiles, emit_start, emit_pos, hits, n_touched, device: str) -> None:
+    """n_touched[g] = sum of hits over Gaussian g's tile entries, g < n."""
+    if n == 0:
+        return
+    launch(_touched, n, [_w(ntiles), _w(emit_start), _w(emit_pos), _w(hits), 0, _w(n_touched)], 4, device)

@@ -1,0 +1,163 @@
+"""perf subject "mapping": one GRAND-SLAM mapping iteration (render, eq.-3 loss with its masks, backward, Adam) at
+320x240 with 60k Gaussians, per backend, against a peer written the plain way in the same process.
+
+Scene: perf.raster.make_scene's Gaussians (spread through the frustum at 1.5-6 m, 1-3.5 px on screen at 640 px
+scaled to the width) render the target colour and depth of three keyframes (the camera shifted by a few cm);
+the map to optimise is the same Gaussians with noise on means, colours and opacities, in the mapper's
+parametrisation. "ours" is `slam.mapper.Mapper.optimise`, the mapping loop the agent runs (iteration cost =
+the time difference between a long and a short run, divided by the extra iterations, so Adam's and the targets'
+set-up are not counted); the peer is the same step written with torch's default Adam and the eq.-3 loss from
+slam.render.rgbd_loss, as the mapper did before. The split (render / loss / backward / Adam) is timed on ours.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import time
+
+import numpy as np
+import torch
+
+DESCRIPTION = "one mapping iteration (render + eq.-3 loss + backward + Adam) at 320x240 with 60k Gaussians"
+
+WIDTH, HEIGHT, N = 320, 240, 60_000
+
+
+def _setup(n: int, width: int, height: int, seed: int = 0):
+    """(submap, keyframes, cfg) of the scene described in the module docstring."""
+    from kernels import se3
+    from kernels.camera import PinholeCamera
+    from perf.raster import make_scene
+    from slam.config import MappingConfig
+    from slam.frames import RGBD
+    from slam.gaussian_map import GaussianParams, Submap
+    from slam.mapper import MapKeyframe
+    from slam.render import render
+
+    s = make_scene(n, width, height, seed=seed)
+    K = s["K"].numpy().astype(np.float64)
+    cam = PinholeCamera.from_K(K, width, height)
+    g = torch.Generator().manual_seed(seed + 1)
+    truth = GaussianParams(s["means"], torch.log(s["scales"]), s["quats"],
+                           torch.logit(s["opacities"].clamp(1e-4, 1 - 1e-4)), s["colors"])
+    keyframes = []
+    for k in range(3):
+        T = se3.exp(np.array([0.0, 0.01 * k, 0.0, 0.03 * k, -0.02 * k, 0.0]))  # camera-to-local
+        with torch.no_grad():
+            out = render(truth, torch.as_tensor(se3.inverse(T), dtype=torch.float32), cam)
+        color = (out.color.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+        depth = out.depth_normalised.numpy().astype(np.float32)
+        keyframes.append(MapKeyframe(T, RGBD(color, depth, cam)))
+    noisy = GaussianParams(truth.means + 0.005 * torch.randn(n, 3, generator=g), truth.log_scales.clone(),
+                           truth.quats.clone(), truth.logit_opacities + 0.5 * torch.randn(n, generator=g),
+                           (truth.colors + 0.1 * torch.randn(n, 3, generator=g)).clamp(0, 1))
+    submap = Submap(0, np.eye(4), noisy, [0, 1, 2])
+    return submap, keyframes, MappingConfig()
+
+
+def _optimise_s(submap, keyframes, cfg, iterations: int) -> float:
+    from slam.mapper import Mapper
+
+    start = submap.params
+    t0 = time.perf_counter()
+    Mapper(cfg).optimise(submap, keyframes, iterations)
+    dt = time.perf_counter() - t0
+    submap.params = start
+    return dt
+
+
+def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
+    """The plain loop: torch's default Adam, slam.render.rgbd_loss + the isotropic penalty, one keyframe a step."""
+    from slam.render import render, rgbd_loss, viewmat_from_pose
+
+    p = submap.params.detached().requires_grad_(True)
+    opt = torch.optim.Adam([{"params": [p.means], "lr": cfg.lr_means}, {"params": [p.log_scales], "lr": cfg.lr_log_scales},
+                            {"params": [p.quats], "lr": cfg.lr_quats},
+                            {"params": [p.logit_opacities], "lr": cfg.lr_opacities},
+                            {"params": [p.colors], "lr": cfg.lr_colors}], eps=1e-15)
+    targets = [(viewmat_from_pose(k.T_local_cam), k.rgbd.color_tensor(), k.rgbd.depth_tensor(), k.rgbd.camera)
+               for k in keyframes]
+    t0 = time.perf_counter()
+    for i in range(iterations):
+        vm, color, depth, cam = targets[i % len(targets)]
+        opt.zero_grad(set_to_none=True)
+        out = render(p, vm, cam)
+        loss = rgbd_loss(out, color, depth, lambda_color=cfg.lambda_color, alpha_power=cfg.alpha_power,
+                         inlier_k=cfg.inlier_k)
+        s = p.scales
+        loss = loss + cfg.isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+        loss.backward()
+        opt.step()
+        float(loss.detach())
+    return (time.perf_counter() - t0) / iterations
+
+
+def _split_ms(submap, keyframes, cfg, iterations: int) -> dict:
+    """Median per-stage wall times of `iterations` steps of the mapper's own pieces."""
+    from slam.mapper import make_optimizer, mapping_loss
+    from slam.render import render, viewmat_from_pose
+
+    p = submap.params.detached().requires_grad_(True)
+    opt = make_optimizer(p, cfg)
+    targets = [(viewmat_from_pose(k.T_local_cam), k.rgbd.color_tensor(), k.rgbd.depth_tensor(), k.rgbd.camera)
+               for k in keyframes]
+    stages = {"render_ms": [], "loss_ms": [], "backward_ms": [], "adam_ms": []}
+    for i in range(iterations):
+        vm, color, depth, cam = targets[i % len(targets)]
+        t0 = time.perf_counter()
+        opt.zero_grad(set_to_none=True)
+        out = render(p, vm, cam)
+        t1 = time.perf_counter()
+        loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser)
+        t2 = time.perf_counter()
+        loss.backward()
+        t3 = time.perf_counter()
+        opt.step()
+        float(loss.detach())
+        t4 = time.perf_counter()
+        for k, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            stages[k].append(1e3 * dt)
+    return {k: statistics.median(v[1:]) for k, v in stages.items()}
+
+
+def run(*, backends: list[str], device: str, quick: bool) -> dict:
+    import kernels
+
+    if device != "cpu":
+        from kernels.errors import BackendError
+
+        raise BackendError("perf mapping runs on the CPU (the mapper keeps its maps on the CPU)")
+    n = 20_000 if quick else N
+    short, long_, repeat = (3, 8, 2) if quick else (5, 30, 3)
+    rows = []
+    notes = [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
+    submap, keyframes, cfg = _setup(n, WIDTH, HEIGHT)
+    for name in backends:
+        kernels.use(name, device)
+        _optimise_s(submap, keyframes, cfg, 2)  # warm-up: compiles / loads the kernels
+        per_it = []
+        c0 = time.process_time()
+        for _ in range(repeat):
+            t_short = _optimise_s(submap, keyframes, cfg, short)
+            t_long = _optimise_s(submap, keyframes, cfg, long_)
+            per_it.append((t_long - t_short) / (long_ - short))
+        cpu_ms = 1e3 * (time.process_time() - c0) / (repeat * (short + long_))
+        ours = statistics.median(per_it)
+        peer = statistics.median(_peer_step_s(submap, keyframes, cfg, short) for _ in range(repeat))
+        row = {"backend": name, "image": f"{WIDTH}x{HEIGHT}", "N": n, "iteration_ms": 1e3 * ours,
+               "iteration_cpu_ms": cpu_ms, "peer_iteration_ms": 1e3 * peer, "speedup": peer / ours}
+        row.update(_split_ms(submap, keyframes, cfg, short + 1))
+        rows.append(row)
+        print(f"[perf mapping] {name}: {1e3 * ours:.1f} ms per iteration (peer {1e3 * peer:.1f} ms)", flush=True)
+    notes += [
+        f"load average at end: {os.getloadavg()[0]:.1f}; iteration_cpu_ms = process CPU time (all threads) per "
+        "iteration including set-up, less sensitive to other users than wall time",
+        f"iteration_ms: (time of Mapper.optimise with {long_} iterations - with {short}) / {long_ - short}, median "
+        f"of {repeat}; the split columns are medians of single steps of the same pieces (not additive to it exactly)",
+        "peer: the same step with torch.optim.Adam defaults and slam.render.rgbd_loss, keyframes in turn, same "
+        "process and scene",
+    ]
+    columns = ["backend", "image", "N", "iteration_ms", "iteration_cpu_ms", "render_ms", "loss_ms", "backward_ms",
+               "adam_ms", "peer_iteration_ms", "speedup"]
+    return {"rows": rows, "columns": columns, "notes": notes}

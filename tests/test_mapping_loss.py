@@ -1,0 +1,51 @@
+"""The kernel mapping loss (slam.render.rgbd_loss_fused) against its torch twin slam.render.rgbd_loss: value and
+gradients to the rendered colour and depth, with and without the alpha and inlier masks, on each backend."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from kernels.raster import RenderOutput
+from slam.render import rgbd_loss, rgbd_loss_fused
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+H, W = 20, 28
+
+
+def _case(seed: int):
+    g = torch.Generator().manual_seed(seed)
+    color = torch.rand(H, W, 3, generator=g)
+    depth = 1 + 3 * torch.rand(H, W, generator=g)
+    depth[torch.rand(H, W, generator=g) < 0.2] = 0.0  # invalid depth
+    r_c = (color + 0.1 * torch.randn(H, W, 3, generator=g)).requires_grad_(True)
+    r_d = (depth + 0.2 * torch.randn(H, W, generator=g)).requires_grad_(True)
+    with torch.no_grad():
+        r_c[:3] += 5.0  # outliers for the inlier rule
+        r_c[5, 5, 0] = color[5, 5, 0]  # an exact zero error (sign 0)
+    alpha = torch.rand(H, W, generator=g)
+    alpha[0, :4] = 0.0
+    return r_c, r_d, alpha, color, depth
+
+
+@pytest.mark.parametrize("alpha_power, inlier_k", [(0.0, 50.0), (2.0, 3.0), (1.0, None), (0.0, 1.0)])
+def test_fused_loss_equals_twin(backend, alpha_power, inlier_k):
+    if backend.device != "cpu":
+        pytest.skip("CPU tensors here")
+    results = []
+    for fn in (rgbd_loss, rgbd_loss_fused):
+        r_c, r_d, alpha, color, depth = _case(4)
+        out = RenderOutput(r_c, r_d, r_d, alpha, torch.zeros(0), torch.zeros(0))
+        loss = fn(out, color, depth, lambda_color=0.7, alpha_power=alpha_power, inlier_k=inlier_k)
+        (2.5 * loss).backward()
+        results.append((loss.detach(), r_c.grad, r_d.grad))
+    (l0, gc0, gd0), (l1, gc1, gd1) = results
+    assert torch.allclose(l0, l1, rtol=1e-5), (l0, l1)
+    assert torch.allclose(gc0, gc1, rtol=1e-5, atol=1e-9)
+    assert torch.allclose(gd0, gd1, rtol=1e-5, atol=1e-9)
+    if alpha_power == 0:  # binary masks: rounded exactly as autograd rounds the twin (Adam amplifies last bits)
+        assert torch.equal(gc0, gc1) and torch.equal(gd0, gd1)
+    assert gc1.abs().sum() > 0 and gd1.abs().sum() > 0
+    if inlier_k is not None and inlier_k < 10:
+        assert (gc1[:3] == 0).all()  # the outlier rows are masked out
