@@ -19,11 +19,7 @@ VULKAN_CASE = ("taichi", "vulkan")
 VULKAN_MODULES = ("test_backend.py", "test_icp_kernels.py", "test_raster.py")
 # Known GPU failures, reported as xfail only when the test fails with exactly this error (any other failure,
 # e.g. a mismatch with the twin, still fails). Delete an entry once its cause is fixed; see docs/gpu.md.
-VULKAN_KNOWN = {
-    "test_raster.py": ("Dispatch error : RhiResult(not_supported)",
-                       "kernels/_taichi/raster.py: ti.loop_config(block_dim=1) is a CPU setting; on Vulkan it asks for "
-                       "65536 one-thread workgroups, more than the device allows (docs/gpu.md)"),
-}
+VULKAN_KNOWN: dict[str, tuple[str, str]] = {}  # test module -> (exact error text, reason) known on Vulkan
 
 
 def pytest_generate_tests(metafunc):

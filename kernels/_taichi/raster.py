@@ -10,6 +10,8 @@ mean2d x, y, conic a, b, c, opacity, r, g, b, z.
 
 import taichi as ti
 
+from .launch import on_cpu
+
 TILE = 16
 ALPHA_MIN = 1.0 / 255.0
 DEPTH_EPS = 1e-6
@@ -49,7 +51,8 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
              tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, dnorm: _f2, alpha: _f2, t_final: _f2,
              last: _i2, hits: _i1):
     # Entry-outer per tile, as the Warp kernel: t_final holds the running transmittance, negated once done.
-    ti.loop_config(block_dim=1)  # one tile per task: tiles differ wildly in cost
+    if ti.static(on_cpu()):  # CPU only: on a GPU block_dim=1 is one thread per block (Vulkan refuses it)
+        ti.loop_config(block_dim=1)  # one tile per task: tiles differ wildly in cost
     for t in range(n_tiles):
         ty = t // tiles_x
         tx = t - ty * tiles_x
@@ -129,7 +132,8 @@ def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, widt
               tiles_x: ti.i32, n_tiles: ti.i32, t_final: _f2, dnorm: _f2, last: _i2, g_color: _f3, g_depth: _f2,
               g_dnorm: _f2, g_alpha: _f2, t_run: _f2, behind: _f2, g_dep: _f2, g_entry: _f2):
     # Reverse compositing, entry-outer from the back of each tile list (see the Warp kernel for the algebra).
-    ti.loop_config(block_dim=1)
+    if ti.static(on_cpu()):
+        ti.loop_config(block_dim=1)
     for t in range(n_tiles):
         ty = t // tiles_x
         tx = t - ty * tiles_x
