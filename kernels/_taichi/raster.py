@@ -104,10 +104,10 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
                                         done += 1
                                     else:
                                         w = a * T
-                                        color[py, px, 0] += w * proj[g, 6]
-                                        color[py, px, 1] += w * proj[g, 7]
-                                        color[py, px, 2] += w * proj[g, 8]
-                                        depth[py, px] += w * proj[g, 9]
+                                        color[py, px, 0] = color[py, px, 0] + w * proj[g, 6]
+                                        color[py, px, 1] = color[py, px, 1] + w * proj[g, 7]
+                                        color[py, px, 2] = color[py, px, 2] + w * proj[g, 8]
+                                        depth[py, px] = depth[py, px] + w * proj[g, 9]
                                         t_final[py, px] = test_T
                                         last[py, px] = e - s0 + 1
                                         count += 1
@@ -118,9 +118,9 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
                 t_final[py, px] = T
                 a = 1.0 - T
                 alpha[py, px] = a
-                color[py, px, 0] += T * bg[0]
-                color[py, px, 1] += T * bg[1]
-                color[py, px, 2] += T * bg[2]
+                color[py, px, 0] = color[py, px, 0] + T * bg[0]
+                color[py, px, 1] = color[py, px, 1] + T * bg[1]
+                color[py, px, 2] = color[py, px, 2] + T * bg[2]
                 dn = 0.0
                 if a > DEPTH_EPS:
                     dn = depth[py, px] / a

@@ -22,7 +22,7 @@ def _radix_pass(src_k: ti.template(), src_v: ti.template(), dst_k: ti.template()
         hist[b] = 0
     for i in range(m):
         d = (src_k[i] >> shift) & (RADIX - 1)
-        hist[d] += 1
+        hist[d] = hist[d] + 1
     s = 0
     for b in range(RADIX):
         c = hist[b]
@@ -67,9 +67,9 @@ def _bin(zbits: _i2, ntiles: _i1, rect: _i2, n: ti.i32, tiles_x: ti.i32, n_tiles
                 g = vals2[i]
                 for ty in range(rect[g, 1], rect[g, 3]):
                     for tx in range(rect[g, 0], rect[g, 2]):
-                        tile_start[ty * tiles_x + tx + 1] += 1
+                        tile_start[ty * tiles_x + tx + 1] = tile_start[ty * tiles_x + tx + 1] + 1
             for t in range(n_tiles):
-                tile_start[t + 1] += tile_start[t]
+                tile_start[t + 1] = tile_start[t + 1] + tile_start[t]
                 cursor[t] = tile_start[t]
             for i in range(m):
                 g = vals2[i]
