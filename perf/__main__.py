@@ -23,6 +23,8 @@ SUBJECTS = {
     "frontend": "perf.frontend",
     "slam": "perf.slam",
     "fig5": "perf.flocc_fig5",
+    "realpairs": "perf.real_pairs",
+    "placerec": "perf.place_recognition",
 }
 
 
