@@ -101,7 +101,7 @@ def _xfeat(top_k: int, max_side: int):
 
 
 def coarse_guess_from_pair(color_q: np.ndarray, depth_q: np.ndarray, color_m: np.ndarray, depth_m: np.ndarray,
-                           camera: PinholeCamera, *, enc_q=None, enc_m=None, top_k: int = 1024, max_side: int = 640,
+                           camera: PinholeCamera, *, enc_q=None, enc_m=None, top_k: int = 512, max_side: int = 640,
                            depth_max: float = np.inf, min_inliers: int = 15, min_inlier_ratio: float = 0.25,
                            threshold: float = 0.03, seed: int = 0) -> tuple[np.ndarray | None, dict]:
     """Metric T_match_query [4, 4] for an RGB-D pair without an initial guess, or None when it is not found.

