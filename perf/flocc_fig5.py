@@ -1,6 +1,7 @@
 """FLOCC-SLAM's keyframe-distance study (Fig. 5) and the R_thr sweep, on generated monocular multi-robot data.
 
     python -m perf.flocc_fig5 --json perf/results/flocc-fig5.json --md perf/results/flocc-fig5.md [--quick]
+        [--backends classical xfeat] [--agents 6] [--spacings 0.4 0.8]
 
 Data: the monocular generator's world, paths and drifting metric odometry (`slam.synthetic`, as `swarmsplat
 generate --mono` makes them, same seeds), rendered in memory for the frames that become keyframes only. Agents
