@@ -27,6 +27,8 @@ SUBJECTS = {
     "slam": "perf.slam",
     "fig5": "perf.flocc_fig5",
     "loops-real": "perf.loops_real",
+    "realpairs": "perf.real_pairs",
+    "placerec": "perf.place_recognition",
 }
 
 

@@ -1,6 +1,7 @@
 """FLOCC-SLAM's keyframe-distance study (Fig. 5) and the R_thr sweep, on generated monocular multi-robot data.
 
     python -m perf.flocc_fig5 --json perf/results/flocc-fig5.json --md perf/results/flocc-fig5.md [--quick]
+        [--backends classical xfeat] [--agents 6] [--spacings 0.4 0.8]
 
 Data: the monocular generator's world, paths and drifting metric odometry (`slam.synthetic`, as `swarmsplat
 generate --mono` makes them, same seeds), rendered in memory for the frames that become keyframes only. Agents
@@ -36,14 +37,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perf.flocc_fig5_data import CachedRegistrar, FrameCache, Scene, keyframes  # noqa: F401 (re-exported)
+from perf.flocc_fig5_data import (DEFAULT_ROWS, CachedRegistrar, FrameCache, Scene, keyframes,  # noqa: F401
+                                   registrars)  # (re-exported)
 
 DESCRIPTION = "FLOCC Fig. 5: loops and ATE vs keyframe spacing per registration backend; R_thr sweep"
 OUTLIER_M = 2.0  # the paper's criterion (Fig. 3 / §IV-B)
 STRICT_ROT_DEG, STRICT_T_M = 5.0, 0.3  # room-scale criterion
 FORMULATIONS = (("base-LM", "base", "lm"), ("IS-LM", "is", "lm"), ("base-GNC", "base", "gnc"))
-R_THR_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3)
-R_THR_STUDY = {"classical": 0.15}  # R_thr of the Fig. 5 rows per backend (see the sweep); the paper's 0.3 = MASt3R
+R_THR_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4)
+R_THR_STUDY = {"classical": 0.15, "xfeat": 0.15}  # R_thr of the Fig. 5 rows per backend (see the sweep); 0.3 = MASt3R
 
 
 @dataclass(frozen=True)
@@ -230,23 +232,6 @@ def odometry_reference_ate(scene: Scene, robots: str) -> float:
     return dense_ate_rmse(scene, kf, est)
 
 
-def registrars(names=("classical",)) -> list[tuple[str, object | None, str]]:
-    """(row name, registrar or None, why not available) for every backend of the study."""
-    from kernels.errors import SwarmsplatError
-    from registration.pair import make_registrar
-
-    out = [(n, make_registrar("classical", feature=n.split("-")[1] if "-" in n else "sift"), "") for n in names]
-    learned = (("lightglue-disk", "lightglue", dict(features="disk", max_keypoints=1024)),
-               ("mast3r", "mast3r", dict(checkpoint=os.environ.get("SWARMSPLAT_MAST3R_CHECKPOINT"))))
-    for row, name, kw in learned:  # building one without its package / weights raises one clear line
-        try:
-            out.append((row, make_registrar(name, **kw), ""))
-        except SwarmsplatError as e:
-            hint = " (this study reads the path from SWARMSPLAT_MAST3R_CHECKPOINT)" if name == "mast3r" else ""
-            out.append((row, None, str(e).splitlines()[0] + hint))
-    return out
-
-
 def train_recognizer(scene: Scene, cfg: StudyConfig):
     """BoW vocabulary from ~60 of the finest spacing's keyframes spread over all robots (seed 0), as `pairs`."""
     from registration.place_recognition.vlad import BoWRecognizer
@@ -272,8 +257,10 @@ def fig5_row(scene: Scene, run: SpacingRun, backend: str, r_thr: float, cfg: Stu
            "ratio_wrong_max": max(wrong) if wrong else float("nan"),
            "frontend_s": run.frontend_s, "kB_per_robot": run.encoding_bytes / 1e3 / len(scene.robots),
            "descriptor_kB_per_robot": run.descriptor_bytes / 1e3 / len(scene.robots)}
-    pairs = [c.query[0] + c.match[0] for c, _ in acc if not c.correct_strict]
-    row["wrong_by_pair"] = " ".join(f"{k}:{pairs.count(k)}" for k in sorted(set(pairs))) or "-"
+    for key, sel in (("wrong_by_pair", [c for c, _ in acc if not c.correct_strict]),
+                     ("correct_by_pair", [c for c, _ in acc if c.correct_strict])):
+        pairs = ["".join(sorted(c.query[0] + c.match[0])) for c in sel]  # unordered robot pair, e.g. "ad"
+        row[key] = " ".join(f"{k}:{pairs.count(k)}" for k in sorted(set(pairs))) or "-"
     row["outliers_2m"] = row["loops"] - row["correct_2m"]
     row["outliers_strict"] = row["loops"] - row["correct_strict"]
     for label, form, solver in FORMULATIONS:
@@ -315,7 +302,7 @@ def ratio_distribution(runs: list[SpacingRun]) -> dict:
     return out
 
 
-def study(cfg: StudyConfig, backends=("classical",), log=print) -> dict:
+def study(cfg: StudyConfig, backends=DEFAULT_ROWS, log=print) -> dict:
     """The whole study over `cfg.seeds`: {"fig5": rows, "r_thr": rows, "ratios": backend -> seed -> percentiles,
     "scenes": seed -> path lengths, "config", "render_s"}; rows carry their "seed"."""
     out = {"fig5": [], "r_thr": [], "ratios": {}, "scenes": {}, "render_s": 0.0,
@@ -370,9 +357,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--from-json", help="only re-render the Markdown of an earlier --json file")
     p.add_argument("--quick", action="store_true", help="one seed, 2 laps of 200 frames, spacings 0.2-1.6 m")
     p.add_argument("--seeds", type=int, nargs="+")
+    p.add_argument("--agents", type=int, help="robots per team (default 4; slots 3+ of the generator's layout look "
+                                              "the opposite way, 4 and 5 face each other)")
     p.add_argument("--spacings", type=float, nargs="+", help="keyframe spacings in metres of odometry path")
     p.add_argument("--r-thr", type=float, help="gate of the Fig. 5 rows (default per backend: classical 0.15)")
     p.add_argument("--orb", action="store_true", help="also run the classical backend with ORB features")
+    p.add_argument("--backends", nargs="+", metavar="NAME",
+                   help="rows to run: classical, classical-orb, xfeat, lightglue-disk, mast3r (default: classical, "
+                        "with --orb also classical-orb; learned rows need their package or weights)")
     p.add_argument("--no-gnc", action="store_true")
     args = p.parse_args(argv)
 
@@ -388,12 +380,14 @@ def main(argv: list[str] | None = None) -> int:
         if not args.json_out:
             raise InputError("--json OUT is required (or --from-json IN to re-render the Markdown)")
         kw = {k: v for k, v in dict(seeds=tuple(args.seeds) if args.seeds else None, r_thr=args.r_thr,
+                                    agents=args.agents,
                                     spacings=tuple(args.spacings) if args.spacings else None).items() if v is not None}
         cfg = (StudyConfig.quick if args.quick else StudyConfig)(**kw, gnc=not args.no_gnc)
         load0 = os.getloadavg()
         t0, c0 = time.perf_counter(), time.process_time()
-        res = study(cfg, ("classical", "classical-orb") if args.orb else ("classical",),
-                    log=lambda m: print(m, file=sys.stderr))
+        names = tuple(args.backends) if args.backends else (DEFAULT_ROWS[:1] + ("classical-orb",) * args.orb
+                                                             + DEFAULT_ROWS[1:])
+        res = study(cfg, names, log=lambda m: print(m, file=sys.stderr))
         res.update(machine=machine_info(), wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                    command="python -m perf.flocc_fig5 " + " ".join(argv if argv is not None else sys.argv[1:]),
                    load_start=load0[0], load_end=os.getloadavg()[0])

@@ -4,9 +4,12 @@ registration per frame pair (each spacing is charged the measured time of the ca
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
+
+DEFAULT_ROWS = ("classical", "xfeat", "lightglue-disk", "mast3r")  # learned rows say "not available" without package
 
 
 class Scene:
@@ -103,3 +106,26 @@ class CachedRegistrar:
             c.pair_s[k] = time.perf_counter() - t0
         self.used.add(k)
         return c.pairs[k]
+
+
+def registrars(names=DEFAULT_ROWS) -> list[tuple[str, object | None, str]]:
+    """(row name, registrar or None, why not available) for the backends `names` of the study: classical rows
+    ('classical', 'classical-orb') first, then the learned ones asked for."""
+    from kernels.errors import InputError, SwarmsplatError
+    from registration.pair import make_registrar
+
+    learned = (("xfeat", "xfeat", {}), ("lightglue-disk", "lightglue", dict(features="disk", max_keypoints=1024)),
+               ("mast3r", "mast3r", dict(checkpoint=os.environ.get("SWARMSPLAT_MAST3R_CHECKPOINT"))))
+    unknown = [n for n in names if not n.startswith("classical") and n not in [r for r, _, _ in learned]]
+    if unknown:
+        raise InputError(f"fig5: unknown backend rows {unknown}; choose classical, classical-orb or "
+                         f"{', '.join(r for r, _, _ in learned)}")
+    out = [(n, make_registrar("classical", feature=n.split("-")[1] if "-" in n else "sift"), "") for n in names
+           if n.startswith("classical")]
+    for row, name, kw in (x for x in learned if x[0] in names):  # without package / weights: one clear line
+        try:
+            out.append((row, make_registrar(name, **kw), ""))
+        except SwarmsplatError as e:
+            hint = " (this study reads the path from SWARMSPLAT_MAST3R_CHECKPOINT)" if name == "mast3r" else ""
+            out.append((row, None, str(e).splitlines()[0] + hint))
+    return out

@@ -21,7 +21,8 @@ def markdown(res: dict) -> str:
     head = ["backend", "spacing (m)", "keyframes", "candidates", "registered", "odometry-pair corr. (median)",
             "wrong ratio (max)", "R_thr", "loops",
             "wrong (2 m / strict)", *[f"ATE {f} (m)" for f in forms], "ATE odometry*", "front-end (s)",
-            "solve (s) " + " / ".join(forms), "encodings kB/robot", "joined", "wrong loops by robot pair"]
+            "solve (s) " + " / ".join(forms), "encodings kB/robot", "joined", "wrong loops by robot pair",
+            "correct loops by robot pair"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     groups: dict[tuple, list[dict]] = {}
     for r in res["fig5"]:
@@ -42,7 +43,8 @@ def markdown(res: dict) -> str:
                                         " / ".join(f"{s(f'time_{f}'):.2f}" for f in forms),
                                         f"{np.mean([r['kB_per_robot'] for r in rs]):.0f}",
                                         " / ".join(r["joined"] for r in rs),
-                                        " / ".join(r.get("wrong_by_pair", "?") for r in rs)]) + " |")
+                                        " / ".join(r.get("wrong_by_pair", "?") for r in rs),
+                                        " / ".join(r.get("correct_by_pair", "?") for r in rs)]) + " |")
     sw_keys = sorted({k for r in res["r_thr"] for k in r if k.startswith("ate_")},
                      key=lambda k: float(k.split("@")[1][:-1]))
     h2 = ["backend", "R_thr", "loops", "precision (strict)", "recall (strict)", "precision (2 m)", *sw_keys]

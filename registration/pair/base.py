@@ -166,6 +166,18 @@ class PairRegistrar(ABC):
         return camera_match
 
 
+def import_optional(module: str, install_hint: str):
+    """Import an optional package of a learned backend, or raise one BackendError line saying how to install it."""
+    import importlib
+
+    from kernels.errors import BackendError
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise BackendError(f"{install_hint}: {e}") from None
+
+
 def pose_from_essential_inverse(R_m_q: np.ndarray, t_m_q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV's recoverPose gives x_match = R x_query + t (T_match_query); return (R, t) of T_query_match."""
     R = R_m_q.T

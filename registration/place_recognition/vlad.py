@@ -75,6 +75,7 @@ class _VocabularyRecognizer(PlaceRecognizer):
     name = "vocabulary"
     default_clusters = 32
     per_cluster_dim = 128
+    local_dim = 128  # dimension of the local descriptors the vocabulary clusters
 
     def __init__(self, centroids: np.ndarray | None = None, *, n_clusters: int | None = None, n_features: int = 1000,
                  max_side: int = 640, idf: np.ndarray | None = None):
@@ -89,8 +90,8 @@ class _VocabularyRecognizer(PlaceRecognizer):
 
     def _set_centroids(self, centroids: np.ndarray) -> None:
         c = np.asarray(centroids, dtype=np.float32)
-        if c.ndim != 2 or c.shape[1] != 128 or len(c) < 1:
-            raise InputError(f"{self.name} vocabulary must be [K, 128] float, got {list(c.shape)}")
+        if c.ndim != 2 or c.shape[1] != self.local_dim or len(c) < 1:
+            raise InputError(f"{self.name} vocabulary must be [K, {self.local_dim}] float, got {list(c.shape)}")
         self.centroids = c
         self.n_clusters = len(c)
         self.dim = self.n_clusters * self.per_cluster_dim
@@ -101,12 +102,21 @@ class _VocabularyRecognizer(PlaceRecognizer):
     def trained(self) -> bool:
         return self.centroids is not None
 
-    def fit(self, images, *, seed: int = 0, max_descriptors: int = 50_000) -> "VLADRecognizer":
+    def _local(self, rgb: np.ndarray) -> np.ndarray:
+        """Validated RGB -> local descriptors float32 [M, local_dim] (RootSIFT here)."""
+        return rootsift(rgb, self.n_features, self.max_side)
+
+    def fit(self, images, *, seed: int = 0, max_descriptors: int = 50_000) -> "_VocabularyRecognizer":
         """Train the vocabulary from an iterable of RGB images (deterministic for a given seed and input)."""
         from registration.images import as_rgb8
 
-        parts = [rootsift(as_rgb8(im, f"images[{i}]"), self.n_features, self.max_side) for i, im in enumerate(images)]
-        x = np.concatenate(parts) if parts else np.zeros((0, 128), np.float32)
+        parts = [self._local(as_rgb8(im, f"images[{i}]")) for i, im in enumerate(images)]
+        return self.fit_local(parts, seed=seed, max_descriptors=max_descriptors)
+
+    def fit_local(self, parts: list[np.ndarray], *, seed: int = 0,
+                  max_descriptors: int = 50_000) -> "_VocabularyRecognizer":
+        """Train from local descriptors already computed, one [M_i, local_dim] array per training image."""
+        x = np.concatenate(parts) if parts else np.zeros((0, self.local_dim), np.float32)
         if len(x) < self.n_clusters:
             raise InputError(f"{self.name}.fit: the training images gave {len(x)} features, need at least "
                              f"{self.n_clusters} (more or more textured images)")
@@ -140,11 +150,33 @@ class _VocabularyRecognizer(PlaceRecognizer):
         try:
             with np.load(path, allow_pickle=False) as z:
                 kind = str(z["kind"]) if "kind" in z else "vlad"
-                klass = {"bow": BoWRecognizer, "vlad": VLADRecognizer}[kind]
+                klass = _vocabulary_class(kind)
                 return klass(z["centroids"], n_features=int(z["n_features"]), max_side=int(z["max_side"]),
                              idf=z["idf"] if "idf" in z else None)
         except (KeyError, ValueError, OSError) as e:
             raise InputError(f"{path}: not a vocabulary file (.npz with 'centroids'): {e}") from None
+
+
+def _vocabulary_class(kind: str):
+    """Vocabulary kind ('bow', 'vlad', 'xfeat-vlad') -> its recogniser class (KeyError for others)."""
+    if kind == "xfeat-vlad":
+        from .xfeat_vlad import XFeatVLADRecognizer
+
+        return XFeatVLADRecognizer
+    return {"bow": BoWRecognizer, "vlad": VLADRecognizer}[kind]
+
+
+def vlad_aggregate(x: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """Local descriptors [M, D] -> VLAD [K * D]: residual sums per nearest centroid, signed square root, then
+    intra-normalisation (each cluster's block to unit norm; empty clusters stay zero)."""
+    v = np.zeros(centroids.shape, np.float32)
+    if len(x):
+        a = _assign(x, centroids)
+        np.add.at(v, a, x - centroids[a])
+    v = np.sign(v) * np.sqrt(np.abs(v))
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    v = np.where(n > 1e-12, v / np.maximum(n, 1e-12), 0.0)
+    return v.reshape(-1)
 
 
 class VLADRecognizer(_VocabularyRecognizer):
@@ -154,16 +186,8 @@ class VLADRecognizer(_VocabularyRecognizer):
 
     def _describe(self, rgb: np.ndarray) -> np.ndarray:
         if not self.trained:
-            raise InputError("VLAD vocabulary is not trained: call fit(images) or load(path)")
-        x = rootsift(rgb, self.n_features, self.max_side)
-        v = np.zeros((self.n_clusters, 128), np.float32)
-        if len(x):
-            a = _assign(x, self.centroids)
-            np.add.at(v, a, x - self.centroids[a])
-        v = np.sign(v) * np.sqrt(np.abs(v))
-        n = np.linalg.norm(v, axis=1, keepdims=True)
-        v = np.where(n > 1e-12, v / np.maximum(n, 1e-12), 0.0)
-        return v.reshape(-1)
+            raise InputError(f"{self.name} vocabulary is not trained: call fit(images) or load(path)")
+        return vlad_aggregate(self._local(rgb), self.centroids)
 
 
 class BoWRecognizer(_VocabularyRecognizer):
@@ -183,7 +207,7 @@ class BoWRecognizer(_VocabularyRecognizer):
     def _describe(self, rgb: np.ndarray) -> np.ndarray:
         if not self.trained:
             raise InputError("BoW vocabulary is not trained: call fit(images) or load(path)")
-        x = rootsift(rgb, self.n_features, self.max_side)
+        x = self._local(rgb)
         tf = np.bincount(_assign(x, self.centroids), minlength=self.n_clusters) if len(x) else np.zeros(self.n_clusters)
         idf = self.idf if self.idf is not None else np.ones(self.n_clusters, np.float32)
         return np.sqrt(tf.astype(np.float32)) * idf

@@ -17,14 +17,14 @@ def register(sub) -> None:
     p.add_argument("dataset", help="dataset root (dataset.yaml) or a folder of agent sequences")
     p.add_argument("--out", required=True, metavar="CSV", help="where to write the candidates")
     p.add_argument("--backend", default="classical", metavar="NAME",
-                   help="pair registration: classical, mast3r or lightglue (default: classical)")
+                   help="pair registration: classical, xfeat, mast3r or lightglue (default: classical)")
     p.add_argument("--place", default="bow", metavar="NAME",
-                   help="place recognition: bow, vlad, cosplace or netvlad (default: bow, vocabulary trained on "
-                        "the dataset)")
+                   help="place recognition: bow, vlad, xfeat-vlad, cosplace or netvlad (default: bow, vocabulary "
+                        "trained on the dataset)")
     p.add_argument("--checkpoint", default=None, metavar="PATH", help="weights of the pair backend (mast3r)")
     p.add_argument("--place-checkpoint", default=None, metavar="PATH",
                    help="weights of cosplace/netvlad, or a bow/vlad vocabulary .npz")
-    p.add_argument("--save-vocabulary", default=None, metavar="NPZ", help="save the bow/vlad vocabulary trained here")
+    p.add_argument("--save-vocabulary", default=None, metavar="NPZ", help="save the bow/vlad/xfeat-vlad vocabulary trained here")
     p.add_argument("--threshold", type=float, default=0.1,
                    help="cosine similarity threshold (default: 0.1, the paper's permissive value)")
     p.add_argument("--top-k", type=int, default=1, help="neighbours per keyframe (default: 1)")

@@ -45,7 +45,7 @@ def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | 
             k: float | None = None, strict: bool = False) -> SwarmSetup:
     """Load the dataset, build the models (fitting VLAD if needed) and the schedule (default: `Schedule.default`)."""
     from registration.pair import make_registrar
-    from registration.place_recognition import make_recognizer
+    from registration.place_recognition import VOCABULARY_BACKENDS, make_recognizer
     from slam.datasets import load_dataset
 
     if stride < 1:
@@ -65,7 +65,7 @@ def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | 
         schedule = Schedule.load(schedule)
     registrar = make_registrar(backend, checkpoint=checkpoint, device=device)
     recognizer = make_recognizer(place, checkpoint=place_checkpoint, device=device)
-    if place in ("bow", "vlad") and not recognizer.trained:
+    if place in VOCABULARY_BACKENDS and not recognizer.trained:
         every = [(s, f) for s in ds.agents for f in range(0, len(s), stride)]
         pick = every[:: max(1, len(every) // 60)]
         frames = [read_frame(s, f, SkipLog(quiet=True), strict=strict) for s, f in pick]  # the feeder warns

