@@ -84,10 +84,10 @@ def test_device_flag_and_config_accept_vulkan(command):
         kernels.use(cfg.kernels.backend, cfg.kernels.device)
 
 
-@pytest.mark.xfail(strict=True, reason="kernels/_taichi/raster.py on Taichi-SPIR-V + lavapipe: the one-thread `_bin` "
-                   "counting sort comes out wrong (`+=` then a read of the same element in one invocation sees the old "
-                   "value; lavapipe stops an invocation's loops after 65535 iterations), and the block_dim=1 dispatch "
-                   "error; docs/gpu.md")
+@pytest.mark.xfail(strict=True, reason="kernels/_taichi/sort.py on Taichi-SPIR-V + lavapipe: the one-thread binning "
+                   "runs past lavapipe's limit of 65535 loop iterations per invocation at a working size (the "
+                   "block_dim=1 dispatch error and the stale `+=` reads are fixed); a parallel binning is the cure, "
+                   "docs/gpu.md")
 def test_raster_on_vulkan_equals_the_cpu_at_a_working_size():
     """A realistic tile load (320x240, 10k Gaussians: ~26k tile entries, 300 tiles), where the tiny twin scenes
     of test_raster.py do not reach: taichi-vulkan must render what taichi-cpu renders."""
