@@ -94,15 +94,19 @@ def write_loops_csv(path: str | Path, records: list[LoopRecord]) -> Path:
     return Path(path)
 
 
+def count_by_source(items) -> dict:
+    """{source: {"candidates": n, "accepted": k}} over records or LoopCandidates (anything with .source/.accepted)."""
+    src = Counter(r.source for r in items)
+    acc = Counter(r.source for r in items if r.accepted)
+    return {s: {"candidates": src[s], "accepted": acc[s]} for s in SOURCES if src[s]}
+
+
 def summarise(records: list[LoopRecord]) -> dict:
     """Counts per kind and reason code: {"intra": {"candidates": n, "accepted": k, "by_reason": {...}}, ...}."""
     out = {}
     for kind in (INTRA, INTER):
         rs = [r for r in records if r.kind == kind]
         by = Counter(r.reason_code for r in rs)
-        src = Counter(r.source for r in rs)
-        acc = Counter(r.source for r in rs if r.accepted)
         out[kind] = {"candidates": len(rs), "accepted": sum(r.accepted for r in rs),
-                     "by_reason": {c: by[c] for c in REASON_CODES if by[c]},
-                     "by_source": {s: {"candidates": src[s], "accepted": acc[s]} for s in SOURCES if src[s]}}
+                     "by_reason": {c: by[c] for c in REASON_CODES if by[c]}, "by_source": count_by_source(rs)}
     return out

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kernels import se3
+
 from .frames import RGBD
 
 
@@ -25,11 +27,8 @@ class Registration:
     n_correspondences: int = 0
 
 
-def rigid(T: np.ndarray) -> np.ndarray:
-    """The nearest rigid transform (kernels.se3.project_rigid): the registration checks its initial guess strictly."""
-    from kernels.se3 import project_rigid
-
-    return project_rigid(T)
+# The nearest rigid transform: the registration checks its initial guess strictly.
+rigid = se3.project_rigid
 
 
 def _view(r) -> Registration:

@@ -18,6 +18,7 @@ from .agent import Agent
 from .config import SlamConfig
 from .evaluate_views import keyframe_metrics
 from .jsonio import write_json
+from .loop_log import count_by_source
 from .partial_results import write_partial_agent
 from .run_guard import guarded, keep, read_frame
 
@@ -97,7 +98,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
         "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
         "pose_graph_optimisations": agent.loops.optimisations,
         "pose_graph_not_applied": agent.loops.not_applied,
-        "loops_by_source": _by_source(agent.loops.log),
+        "loops_by_source": count_by_source(agent.loops.log),
         "fps": n_frames / wall_s if wall_s > 0 else float("nan"),
         "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
         "kernels": agent.cfg.kernels.model_dump(),
@@ -132,16 +133,6 @@ def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path | 
                       {seq.name: res.T_est_aligned[:, :3, 3]}, errors={seq.name: res.errors},
                       title=f"{seq.name}: ATE RMSE {100 * res.rmse:.2f} cm")
     return {"ate_rmse": res.rmse, "ate": {**res.to_dict(), "align": align}}
-
-
-def _by_source(log) -> dict:
-    """{source: {"candidates": n, "accepted": k}} over the loop closer's candidates."""
-    out: dict[str, dict[str, int]] = {}
-    for c in log:
-        d = out.setdefault(c.source, {"candidates": 0, "accepted": 0})
-        d["candidates"] += 1
-        d["accepted"] += int(c.accepted)
-    return out
 
 
 def _write_loops_csv(path: Path, rows: list[dict]) -> None:

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from kernels import se3
 
 from .agent import Agent
-from .gaussian_map import GaussianMap, GaussianParams, transform_params
+from .gaussian_map import GaussianParams, transform_params
 from . import loop_check
 from .edge_information import fixed_information
 from .loop_log import INTER, LoopRecord, from_intra
@@ -425,42 +425,11 @@ class Server:
         return stamps, T
 
     def refine_maps(self, cfg, mapping, *, reference: bool = False) -> dict:
-        """Global map refinement (slam.map_refine) of every component after the final optimisation: its merged
-        map optimised over all its keyframes at their optimised poses, then every Gaussian handed back to its
-        submap (in the submap's local frame, so later moves still apply) and each submap pruned as mapping does.
-        cfg: MapRefineConfig; mapping: MappingConfig (loss, learning rates, pruning). Returns per-component stats."""
-        from .map_refine import RefineView, refine_map
-        from .render import viewmat_from_pose
+        """Global map refinement of every component after the final optimisation (slam.team_refine)."""
+        from .team_refine import refine_components
 
         t0 = time.perf_counter()
-        out = {}
-        for root, members in self.components().items():
-            parts, views = [], []  # (submap, T component <- local, count)
-            for a in members:
-                s = self.slots[a]
-                for sm in s.agent.gmap.submaps:
-                    if len(sm):
-                        parts.append((sm, s.T_global_world @ sm.T_world_local, len(sm)))
-                for kf in s.agent.keyframes:
-                    f = kf.small
-                    views.append(RefineView(viewmat_from_pose(_rigid(self.global_pose(a, kf))), f.color_tensor(),
-                                            f.depth_tensor(), f.camera))
-            merged = GaussianParams.concat([transform_params(sm.params, T) for sm, T, _ in parts])
-            refined, keep, st = refine_map(merged, views, cfg, mapping, reference=reference)
-            hidden = int((~keep).sum())
-            pruned, start, at = 0, 0, 0  # start: index in merged; at: index in refined (kept Gaussians only)
-            for sm, T, n in parts:
-                k = int(keep[start:start + n].sum())
-                part = refined.select(slice(at, at + k))
-                start, at = start + n, at + k
-                sm.params = transform_params(part, se3.inverse(T))
-                pruned += GaussianMap.prune(sm, min_opacity=mapping.prune_min_opacity,
-                                       max_scale=mapping.prune_max_scale)
-            out[self.slots[root].agent.name] = {"iterations": st.iterations, "keyframes": st.views,
-                                                "gaussians": st.gaussians, "hidden_dropped": hidden,
-                                                "pruned": pruned,
-                                                "loss_first": st.loss_first, "loss_last": st.loss_last,
-                                                "seconds": st.seconds}
+        out = refine_components(self, cfg, mapping, reference=reference)
         self.time["refine"] = self.time.get("refine", 0.0) + time.perf_counter() - t0
         return out
 
