@@ -127,6 +127,10 @@ class MapRefineConfig(_Section):
                                     "submap's surface); 0 keeps all")
     view_margin: float = Field(0.15, ge=0, description="a step optimises the Gaussians whose centre projects into "
                                                        "the keyframe's image grown by this fraction per side")
+    views: Literal["mapping", "small"] = Field("mapping", description="keyframe images the refinement fits: "
+                                               "'mapping' = at the mapping resolution (agents keep them, "
+                                               "w x h x 7 bytes per keyframe), 'small' = the loop-closure copies "
+                                               "(submaps.keep_keyframe_width): faster, blurrier above that width")
     seed: int = 0
 
 

@@ -24,7 +24,7 @@ class Keyframe:
     timestamp: float
     submap_id: int
     T_local_cam: np.ndarray  # [4, 4]
-    map_rgbd: RGBD | None  # mapping resolution; dropped when the submap is retired
+    map_rgbd: RGBD | None  # mapping resolution; dropped when the submap is retired (unless a team keeps it)
     small: RGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
     descriptor: np.ndarray | None = None  # [D] unit vector
 
@@ -37,10 +37,12 @@ def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: in
     return moved > cfg.d_max or turned > cfg.theta_max_deg or n_keyframes >= cfg.max_keyframes
 
 
-def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe]) -> Submap:
-    """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies) and start a
-    new one whose local frame is the camera at T_world_cam."""
-    if gmap.submaps:
+def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe], *,
+                 keep_images: bool = False) -> Submap:
+    """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies, unless
+    `keep_images`: a team's server refines the merged map on them) and start a new one whose local frame is the
+    camera at T_world_cam."""
+    if gmap.submaps and not keep_images:
         old = gmap.active.id
         for kf in keyframes:
             if kf.submap_id == old:

@@ -47,6 +47,9 @@ class Team:
         scfg.inter_loops = scfg.inter_loops and self.cfg.loop_closure.enabled
         agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
         self.agents = [Agent(c, agent_cfg, name=n, reference=reference) for c, n in zip(cameras, names)]
+        rc = self.cfg.map_refine  # the server's map refinement fits the keyframes at the mapping resolution
+        for ag in self.agents:
+            ag.keep_keyframe_images = rc.views == "mapping" and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
         self.server = Server(self.agents, scfg)
         self.reference = reference
         # Per agent, each submap's origin as tracking alone placed it: the trajectory without loop closures.

@@ -24,7 +24,7 @@ def refine_components(server, cfg, mapping, *, reference: bool = False) -> dict:
                 if len(sm):
                     parts.append((sm, s.T_global_world @ sm.T_world_local, len(sm)))
             for kf in s.agent.keyframes:
-                f = kf.small
+                f = kf.map_rgbd if cfg.views == "mapping" and kf.map_rgbd is not None else kf.small
                 views.append(RefineView(viewmat_from_pose(se3.project_rigid(server.global_pose(a, kf))),
                                         f.color_tensor(), f.depth_tensor(), f.camera))
         merged = GaussianParams.concat([transform_params(sm.params, T) for sm, T, _ in parts])
