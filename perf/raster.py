@@ -196,6 +196,12 @@ def _floor(scene, repeat: int) -> tuple[dict, dict]:
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
+    from perf.mapping import run_with_pipeline_threads
+
+    return run_with_pipeline_threads(_run, backends=backends, device=device, quick=quick)
+
+
+def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     import kernels
 
     from perf.roofline import fma_gflops
