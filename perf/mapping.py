@@ -8,10 +8,17 @@ parametrisation. "ours" is `slam.mapper.Mapper.optimise`, the mapping loop the a
 the time difference between a long and a short run, divided by the extra iterations, so Adam's and the targets'
 set-up are not counted); the peer is the same step written with torch's default Adam and the eq.-3 loss from
 slam.render.rgbd_loss, as the mapper did before. The split (render / loss / backward / Adam) is timed on ours.
+
+Torch runs with the pipeline's intra-op thread count (`slam.config.KernelsConfig.torch_threads`, default 1, which
+`slam.run` sets): with torch's default (one thread per core) every 60k-element torch operation of the step (the
+parameter activations, their backward, the medians, Adam) is a thread hand-off, and on this 2-core machine the
+step measured that way was 2-3x slower than with one thread at a load of 4 (both back to back), and it is
+not what the agent runs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import statistics
 import time
@@ -22,6 +29,22 @@ import torch
 DESCRIPTION = "one mapping iteration (render + eq.-3 loss + backward + Adam) at 320x240 with 60k Gaussians"
 
 WIDTH, HEIGHT, N = 320, 240, 60_000
+
+
+@contextlib.contextmanager
+def pipeline_torch_threads():
+    """torch.set_num_threads as `slam.run` sets it (KernelsConfig.torch_threads; 0 = torch's default), restored
+    afterwards. Yields the thread count in effect."""
+    from slam.config import KernelsConfig
+
+    before = torch.get_num_threads()
+    want = KernelsConfig().torch_threads
+    if want:
+        torch.set_num_threads(want)
+    try:
+        yield torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
 
 
 def _setup(n: int, width: int, height: int, seed: int = 0):
@@ -121,7 +144,20 @@ def _split_ms(submap, keyframes, cfg, iterations: int) -> dict:
     return {k: statistics.median(v[1:]) for k, v in stages.items()}
 
 
+def run_with_pipeline_threads(fn, **kwargs) -> dict:
+    """A subject's run(**kwargs) under pipeline_torch_threads, with a note saying the thread count."""
+    with pipeline_torch_threads() as threads:
+        out = fn(**kwargs)
+    out["notes"].append(f"torch intra-op threads: {threads} (slam.config.KernelsConfig.torch_threads, as slam.run "
+                        "sets it; the torch operations around the kernels run on it)")
+    return out
+
+
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
+    return run_with_pipeline_threads(_run, backends=backends, device=device, quick=quick)
+
+
+def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     import kernels
 
     if device != "cpu":

@@ -10,7 +10,10 @@ in the same process on the same scene; ratios are of medians after warm-up.
 Roofline: perf/roofline.py's fused-multiply-add loop compiled by the same backend, run before and after the
 cases (median of both). The fraction is pairs/s x the arithmetic the kernels do per composited pair (counted in
 their source: FLOPS_PER_PAIR_FWD / _BWD, exp() counted as 10) over the loop's flop rate. Pixels that are
-evaluated but not composited are not counted, so the fraction is a lower bound.
+evaluated but not composited are not counted, so the fraction is a lower bound. The loop is scalar code (one
+work item per thread, as the kernels: neither backend's CPU code generator vectorises across work items), so it
+is the scalar FMA roofline; `roofline_bound_fwd_bwd_ms` is the forward+backward time the counted arithmetic needs
+at 100 % of it — a speed-up target below that needs SIMD code.
 """
 
 from __future__ import annotations
@@ -188,14 +191,22 @@ def _floor(scene, repeat: int) -> tuple[dict, dict]:
 
     res = []
     for fn in (fwd, fwd_bwd):
+        for _ in range(3):  # warm-up outside the CPU clock: a first call can load modules (~0.5 s of CPU)
+            fn()
         c0 = time.process_time()
-        r = time_fn(fn, repeat=repeat, warmup=3)
-        r["cpu_s"] = (time.process_time() - c0) / (r["runs"] + 3)  # CPU seconds of all threads per call
+        r = time_fn(fn, repeat=repeat, warmup=0)
+        r["cpu_s"] = (time.process_time() - c0) / r["runs"]  # CPU seconds of all threads per call
         res.append(r)
     return res[0], res[1]
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
+    from perf.mapping import run_with_pipeline_threads
+
+    return run_with_pipeline_threads(_run, backends=backends, device=device, quick=quick)
+
+
+def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     import kernels
 
     from perf.roofline import fma_gflops
@@ -245,6 +256,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
             row["roofline_frac_fwd"] = row["Mpairs_per_s_fwd"] * 1e6 * FLOPS_PER_PAIR_FWD / (gf * 1e9)
             row["roofline_frac_fwd_bwd"] = (row["Mpairs_per_s_fwd_bwd"] * 1e6 * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD)
                                             / (gf * 1e9))
+        # the fastest forward+backward the counted arithmetic allows at 100 % of the measured (scalar) roofline
+        row["roofline_bound_fwd_bwd_ms"] = (1e3 * row["pairs_M"] * 1e6 * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD)
+                                            / (gf * 1e9))
     skipped = []
     start = time.perf_counter()
     for width, height, n in cases if device == "cpu" else []:  # the peer is written for the CPU
@@ -273,7 +287,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         f"roofline_gflops: perf/roofline.py's FMA loop on the same backend in this run (median of before and after "
         f"the cases); roofline_frac_fwd = Mpairs/s x {FLOPS_PER_PAIR_FWD} flops / roofline, roofline_frac_fwd_bwd "
         f"uses {FLOPS_PER_PAIR_FWD} + {FLOPS_PER_PAIR_BWD} flops per pair. Both are measured under the same load, "
-        "so the fraction is less sensitive to other users than the times.",
+        "so the fraction is less sensitive to other users than the times. roofline_bound_fwd_bwd_ms = pairs x "
+        f"{FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD} flops / roofline: forward+backward compositing at 100 % of that "
+        "roofline (projection, binning and launches not counted), the floor under any scalar-code speed-up.",
         f"floor row ({fw}x{fh}, {fn} Gaussians): kernels.rasterize alone, forward without autograd and forward + "
         "backward from fixed upstream gradients (no loss ops), median of repeated calls; fwd_cpu_ms / "
         "fwd_bwd_cpu_ms there: process CPU time per call (on a busy machine the wall time of a ~1 ms call is mostly "
@@ -289,7 +305,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
                      + ", ".join(skipped))
     columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_cpu_ms", "fwd_bwd_cpu_ms",
                "Mpairs_per_s_fwd", "Mpairs_per_s_fwd_bwd", "roofline_gflops", "roofline_frac_fwd",
-               "roofline_frac_fwd_bwd"]
+               "roofline_frac_fwd_bwd", "roofline_bound_fwd_bwd_ms"]
     if device == "cpu":
         columns += ["peer_fwd_ms", "peer_fwd_bwd_ms", "speedup_fwd", "speedup_fwd_bwd"]
     return {"rows": rows, "columns": columns, "notes": notes}
