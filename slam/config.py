@@ -58,6 +58,8 @@ class TrackingConfig(_Section):
                                       "than this fraction of the model view has alpha >= alpha_min")
     max_correction: float = Field(0.05, gt=0, description="keep the coarse pose when the refinement moves it "
                                                           "further than this (m)")
+    max_view_bias: float = Field(0.005, gt=0, description="Gauss-Newton: a model view is not used when its own "
+                                 "keyframe, aligned to it, moves more than this (m): the map disagrees with it")
     adam_iterations: int = Field(20, ge=1, description="Adam: maximum iterations at the finest level")
     lr_rotation: float = Field(2e-3, gt=0, description="Adam step on the rotation (rad)")
     lr_translation: float = Field(2e-3, gt=0, description="Adam step on the translation (m)")

@@ -228,9 +228,23 @@ class Tracker:
         if self._view is None or self._view[0] is not params:
             view = model_view(params.detached(), self._prev_pose, camera, alpha_min=self.cfg.alpha_min,
                               reference=self.reference)
-            self._view = (params, self._prev_pose.copy(), view,
-                          ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth))
+            target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
+            if not self._view_agrees(view, target):
+                view = RGBD(view.color, np.zeros_like(view.depth), view.camera)  # unusable: covers nothing
+            self._view = (params, self._prev_pose.copy(), view, target)
         return self._view[1], self._view[2]
+
+    def _view_agrees(self, view: RGBD, target: ModelTarget) -> bool:
+        """Self-check of a fresh model view: the keyframe it was rendered at, aligned to it from its own pose,
+        must stay within `max_view_bias` (m). A map that disagrees with its own keyframe (e.g. too few mapping
+        iterations) would pull every frame by that much."""
+        f = self._prev.resized(self.cfg.refine_max_width)
+        if f.camera != view.camera or view.valid_fraction() < self.cfg.min_model_coverage:
+            return True  # nothing to check against (refine_against_view skips an uncovered view itself)
+        r = align_to_model(f, target, np.eye(4), iterations=self.cfg.iterations,
+                           photometric_weight=self.cfg.photometric_weight, max_distance=self.cfg.max_distance,
+                           max_depth=self.max_depth)
+        return r.success and float(np.linalg.norm(r.T_view_cam[:3, 3])) <= self.cfg.max_view_bias
 
     def _remember(self, frame: RGBD, T: np.ndarray) -> None:
         self._prev = frame.resized(self.cfg.coarse_max_width)

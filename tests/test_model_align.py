@@ -60,3 +60,19 @@ def test_align_to_model_fails_cleanly(pair):
     with pytest.raises(ValueError, match="camera"):
         align_to_model(frame.resized(48), ModelTarget(view, [1]), start, iterations=1, photometric_weight=0.3,
                        max_distance=0.05)
+
+
+def test_tracker_drops_a_model_view_that_disagrees_with_its_keyframe(pair):
+    """The self-check behind tracking.max_view_bias: a view rendered where its keyframe is passes; a view 1 cm
+    off the keyframe (a map that does not fit its own keyframe) is refused."""
+    from slam.config import SlamConfig
+    from slam.tracker import Tracker
+
+    cam, T_view, T_true, view, frame = pair
+    tc = SlamConfig().tracking.model_copy(update={"refine_max_width": cam.width})
+    tr = Tracker(tc)
+    tr._prev = view  # the keyframe the view was rendered at
+    assert tr._view_agrees(view, ModelTarget(view, [1]))
+    shifted = make_rgbd(*slam_scene.render(T_view @ se3.exp(np.array([0, 0, 0, 0.01, 0, 0.0])), cam), cam,
+                        min_depth=0.1, max_depth=10.0)
+    assert not tr._view_agrees(shifted, ModelTarget(shifted, [1]))
