@@ -37,8 +37,9 @@ class TrackingConfig(_Section):
     refine: bool = Field(True, description="frame-to-model refinement after the coarse stage (§III-C): "
                                           "Gauss-Newton against the active submap rendered at the last keyframe. "
                                           "Measured (40 frames, loop closure off, perf.tracking_refine): generated "
-                                          "data ATE 5.5 vs 8.0 mm at 1.1-1.5x the tracking time; Redwood 2.83 vs "
-                                          "2.79 mm, within its reference's ~2 mm noise (README)")
+                                          "data ATE 4.1 vs 8.0 mm, Redwood 2.83 vs 2.79 mm (within its "
+                                          "reference's ~2 mm noise), at 1.1-1.5x the wall and 1.6-1.9x the CPU "
+                                          "time (README)")
     refine_on_coarse_failure: bool = Field(True, description="run the refinement anyway when the coarse stage "
                                                             "fails (then it starts from constant velocity)")
     method: Literal["gauss_newton", "adam"] = Field(

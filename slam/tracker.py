@@ -9,8 +9,10 @@ input, kept where alpha >= `alpha_min`; slam.model_align prepares its vertices /
 intensity residuals at `refine_max_width`, starting from the coarse pose. The twist is applied on the left in the
 view's camera frame (rotation about the camera, not the submap origin).
 
-Measured with perf.tracking_refine (40 frames, loop closure off; README): on the generated demo data ATE 5.5 mm
-vs 8.0 mm coarse-only at 1.1-1.5x the coarse tracking time. It helps because the map it aligns to was built from
+Measured with perf.tracking_refine (40 frames, loop closure off; README): on the generated demo data ATE 4.1 mm
+vs 8.0 mm coarse-only (1.1-1.5x the coarse tracking wall time, 1.6-1.9x its CPU time, loaded machine); the
+max_view_bias guard drops a view that disagrees with its own keyframe. It helps because the map it aligns to was
+built from
 refined keyframe poses: refining from coarse poses against a map built from coarse poses (shadow run) moved only
 54 % of the frames toward the truth, against 68 % when the refinement runs. On Redwood 211 both stay within
 0.1 mm of each other (2.8 mm), below the ~2 mm accuracy of its reference trajectory.
