@@ -25,6 +25,7 @@ SUBJECTS = {
     "graph-benchmarks": "perf.graph_benchmarks",
     "frontend": "perf.frontend",
     "slam": "perf.slam",
+    "tracking-refine": "perf.tracking_refine",
     "fig5": "perf.flocc_fig5",
     "loops-real": "perf.loops_real",
     "realpairs": "perf.real_pairs",
