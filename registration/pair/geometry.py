@@ -1,6 +1,7 @@
 """Relative pose up to scale from 2D-2D matches: essential matrix with a robust estimator (USAC/MAGSAC++ or
-RANSAC), cheirality check (recoverPose), then a least-squares refinement of the Sampson error over the inliers.
-Shared by the classical and learned-matcher backends.
+RANSAC), cheirality check (recoverPose), then a least-squares refinement of the Sampson error over the inliers;
+or, with estimator 'poselib', PoseLib's LO-RANSAC relative pose (five-point solver with its cheirality test and
+a Cauchy-loss refinement built in; ~10x faster). Shared by the classical and learned-matcher backends.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import numpy as np
 
 from kernels.camera import PinholeCamera
 
-from .base import PairResult, pose_from_essential_inverse
+from .base import PairResult, import_optional, pose_from_essential_inverse
 
 
 def essential_pose(pq: np.ndarray, pm: np.ndarray, camera_query: PinholeCamera, camera_match: PinholeCamera, *,
@@ -18,10 +19,13 @@ def essential_pose(pq: np.ndarray, pm: np.ndarray, camera_query: PinholeCamera, 
     """Matched pixels pq, pm [N, 2] (float64, original images) -> PairResult with T_query_match (unit t).
 
     n_correspondences counts the matches that pass the essential matrix and the cheirality check.
+    estimator: 'usac' (OpenCV MAGSAC++), 'ransac' (OpenCV) or 'poselib' (needs the poselib package).
     """
     import cv2
 
     n = len(pq)
+    if estimator == "poselib":
+        return _poselib_pose(pq, pm, camera_query, camera_match, threshold_px, confidence, min_inliers)
     # Normalised image coordinates let the two robots have different intrinsics.
     nq = (pq - [camera_query.cx, camera_query.cy]) / [camera_query.fx, camera_query.fy]
     nm = (pm - [camera_match.cx, camera_match.cy]) / [camera_match.fx, camera_match.fy]
@@ -47,6 +51,28 @@ def essential_pose(pq: np.ndarray, pm: np.ndarray, camera_query: PinholeCamera, 
     return PairResult(R_qm if ok else np.eye(3), t_qm if ok else np.zeros(3), n_in, n, bool(ok),
                       "" if ok else f"too few inliers ({n_in} < {min_inliers})",
                       inlier_mask=inliers, points_query=pq, points_match=pm)
+
+
+def _poselib_pose(pq, pm, camera_query, camera_match, threshold_px, confidence, min_inliers) -> PairResult:
+    """`essential_pose` through PoseLib: the five-point solver in LO-RANSAC (points behind either camera are
+    rejected inside the solver) and a Cauchy-loss bundle refinement of the epipolar error over the inliers."""
+    poselib = import_optional("poselib", "estimator 'poselib' needs the package poselib (pip install poselib)")
+
+    def cam(c):
+        return {"model": "PINHOLE", "width": int(c.width), "height": int(c.height),
+                "params": [float(c.fx), float(c.fy), float(c.cx), float(c.cy)]}
+
+    pose, info = poselib.estimate_relative_pose(pq, pm, cam(camera_query), cam(camera_match),
+                                                {"max_epipolar_error": float(threshold_px),
+                                                 "success_prob": float(confidence)}, {})
+    inliers = np.asarray(info.get("inliers", []), bool)
+    n_in = int(inliers.sum()) if len(inliers) == len(pq) else 0
+    R_qm, t_qm = pose_from_essential_inverse(np.asarray(pose.R), np.asarray(pose.t))  # pose: x_m = R x_q + t
+    ok = n_in >= min_inliers and np.all(np.isfinite(R_qm)) and np.linalg.norm(t_qm) > 0.5
+    return PairResult(R_qm if ok else np.eye(3), t_qm if ok else np.zeros(3), n_in, len(pq), bool(ok),
+                      "" if ok else f"too few inliers ({n_in} < {min_inliers})",
+                      inlier_mask=inliers if len(inliers) == len(pq) else np.zeros(len(pq), bool),
+                      points_query=pq, points_match=pm)
 
 
 def matched_pose(kq: np.ndarray, km: np.ndarray, pairs: np.ndarray, camera_query: PinholeCamera,

