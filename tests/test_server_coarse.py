@@ -75,3 +75,27 @@ def test_degenerate_depth_gives_a_rejected_candidate_with_its_reason(split_team)
     assert not rec.accepted and rec.reason_code == "registration"
     assert "learned coarse guess not found" in rec.reason and "depth" in rec.reason, rec.reason
     assert not srv.inter and srv.slots[1].component == 1
+
+
+@needs_xfeat
+def test_agent_xfeat_vlad_descriptor_trains_from_its_own_keyframes():
+    from registration.synthetic_views import TexturedRoom, default_camera, look_pose
+    from slam.config import LoopClosureConfig
+    from slam.frames import RGBD
+    from slam.loop_closure import LoopCloser
+    from slam.submaps import Keyframe
+
+    cam = default_camera(160, 120)
+    room = TexturedRoom(seed=0)
+    lc = LoopCloser(LoopClosureConfig(descriptor="xfeat-vlad", vocabulary_keyframes=3))
+    kfs = []
+    for i, (x, yaw) in enumerate(((0.0, 0.0), (0.3, 70.0), (0.6, 140.0), (0.05, 3.0))):
+        c, d = room.render(look_pose((x, 0.0, 0.0), yaw), cam)
+        kf = Keyframe(i, i, float(i), 0, np.eye(4), None, RGBD(c, d.astype(np.float32), cam))
+        lc._describe(kf, kfs)
+        kfs.append(kf)
+        if i < 2:
+            assert kf.descriptor is None  # the vocabulary is not trained yet
+    assert all(k.descriptor is not None and abs(np.linalg.norm(k.descriptor) - 1) < 1e-4 for k in kfs)
+    sims = [float(kfs[3].descriptor @ k.descriptor) for k in kfs[:3]]
+    assert int(np.argmax(sims)) == 0, sims  # the revisit of the first view scores highest
