@@ -145,3 +145,44 @@ def coarse_guess_from_pair(color_q: np.ndarray, depth_q: np.ndarray, color_m: np
         return done(None, f"too few rigid inliers ({n_in} of {len(Pq)})")
     info["inlier_rmse_m"] = float(np.sqrt(np.mean(np.sum((Pq[inl] @ T[:3, :3].T + T[:3, 3] - Pm[inl]) ** 2, 1))))
     return done(T)
+
+
+class KeyframeEncoder:
+    """The server's cache of one XFeat encoding per keyframe (key: (agent, keyframe id)), made the first time the
+    keyframe is needed and reused for every candidate it is in; `bytes` counts the encodings' wire size and
+    `seconds` the time spent encoding and guessing."""
+
+    def __init__(self, *, top_k: int = 512, max_side: int = 640, min_inliers: int = 15):
+        self.top_k, self.max_side, self.min_inliers = int(top_k), int(max_side), int(min_inliers)
+        self.cache: dict = {}
+        self.bytes = 0
+        self.encode_s = 0.0
+        self.guess_s = 0.0
+        self.guesses = 0
+        self.found = 0
+
+    def encode(self, key, color: np.ndarray):
+        enc = self.cache.get(key)
+        if enc is None:
+            t0 = time.perf_counter()
+            enc = self.cache[key] = _xfeat(self.top_k, self.max_side).encode(color)
+            self.bytes += enc.nbytes
+            self.encode_s += time.perf_counter() - t0
+        return enc
+
+    def guess(self, key_q, rgbd_q, key_m, rgbd_m, *, depth_max: float = np.inf) -> tuple[np.ndarray | None, dict]:
+        """coarse_guess_from_pair on two keyframes' small RGB-D copies (`slam.frames.RGBD`), encodings cached."""
+        enc_q, enc_m = self.encode(key_q, rgbd_q.color), self.encode(key_m, rgbd_m.color)
+        T, info = coarse_guess_from_pair(rgbd_q.color, rgbd_q.depth, rgbd_m.color, rgbd_m.depth, rgbd_q.camera,
+                                         enc_q=enc_q, enc_m=enc_m, top_k=self.top_k, max_side=self.max_side,
+                                         depth_max=depth_max, min_inliers=self.min_inliers)
+        self.guesses += 1
+        self.found += int(T is not None)
+        self.guess_s += info["time_s"]
+        return T, info
+
+    def stats(self) -> dict:
+        n = len(self.cache)
+        return {"keyframes_encoded": n, "encoding_bytes": self.bytes, "bytes_per_keyframe": self.bytes / n if n else 0,
+                "encode_s": self.encode_s, "guesses": self.guesses, "guesses_found": self.found,
+                "guess_s": self.guess_s}

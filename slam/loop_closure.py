@@ -28,6 +28,8 @@ def _make_recognizer(cfg: LoopClosureConfig):
     from registration.place_recognition import make_recognizer
 
     name = "thumbnail" if cfg.descriptor == "auto" else cfg.descriptor
+    if name == "xfeat-vlad" and not cfg.vocabulary:
+        return make_recognizer(name)  # untrained: LoopCloser trains it from the agent's own keyframes
     if name in ("bow", "vlad") and not cfg.vocabulary:
         raise InputError(f"loop_closure.descriptor {name!r} needs loop_closure.vocabulary (a .npz vocabulary file)")
     return make_recognizer(name, checkpoint=cfg.vocabulary if name != "thumbnail" else None)
@@ -73,6 +75,7 @@ class LoopCloser:
         self.not_applied = 0  # optimisations whose move was not justified by the loops
         self.model = InformationModel(n_eff=cfg.information_points)
         self._recognizer = _make_recognizer(cfg)
+        self._pending: dict[int, np.ndarray] = {}  # xfeat-vlad: local descriptors of keyframes awaiting the vocabulary
 
     @property
     def active_loops(self) -> list[Edge]:
@@ -80,11 +83,29 @@ class LoopCloser:
 
     # ---- the keyframe chain ---------------------------------------------------------------------------------
 
+    def _describe(self, kf: Keyframe, keyframes: list[Keyframe]) -> None:
+        """kf.descriptor from the configured recogniser. An xfeat-vlad recogniser without a vocabulary file
+        trains it from the first `vocabulary_keyframes` keyframes (k-means over their XFeat descriptors), which
+        are described then; until then they have no descriptor (no descriptor candidates)."""
+        rec = self._recognizer
+        if getattr(rec, "trained", True):
+            kf.descriptor = rec.describe(kf.small.color)
+            return
+        self._pending[kf.id] = rec._local(kf.small.color)
+        if len(self._pending) >= self.cfg.vocabulary_keyframes and \
+                sum(len(x) for x in self._pending.values()) >= rec.n_clusters:
+            rec.fit_local(list(self._pending.values()))
+            by_id = {k.id: k for k in keyframes}
+            by_id[kf.id] = kf
+            for i, x in self._pending.items():
+                by_id[i].descriptor = rec.describe_local(x)
+            self._pending = {}
+
     def add_keyframe(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap,
                      odometry_info: np.ndarray | None = None) -> None:
         """Record the tracking constraint between the previous keyframe and `kf`, as tracked now, with the
         tracker's information (`odometry_info`, slam.edge_information.OdometryChain) or the fixed sigmas."""
-        kf.descriptor = self._recognizer.describe(kf.small.color)
+        self._describe(kf, keyframes)
         if kf.id > 0:
             prev = keyframes[kf.id - 1]
             if prev.submap_id == kf.submap_id:  # exact: no submap frames involved

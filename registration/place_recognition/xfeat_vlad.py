@@ -44,4 +44,10 @@ class XFeatVLADRecognizer(VLADRecognizer):
                              f"{getattr(encoding, 'backend', type(encoding).__name__)!r}")
         if not self.trained:
             raise InputError(f"{self.name} vocabulary is not trained: call fit(images) or load(path)")
-        return l2_normalise(vlad_aggregate(np.asarray(encoding.arrays["desc"], np.float32), self.centroids))
+        return self.describe_local(encoding.arrays["desc"])
+
+    def describe_local(self, desc: np.ndarray) -> np.ndarray:
+        """XFeat descriptors [M, 64] (from `_local`) -> L2-normalised float32 [dim]."""
+        if not self.trained:
+            raise InputError(f"{self.name} vocabulary is not trained: call fit(images) or load(path)")
+        return l2_normalise(vlad_aggregate(np.asarray(desc, np.float32), self.centroids))
