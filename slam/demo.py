@@ -23,10 +23,10 @@ from .server import ServerConfig
 
 # Settings per preset on top of SlamConfig's defaults, chosen so the demo fits its time budget on a 2-core CPU.
 DEMO_SETTINGS: dict[str, dict[str, Any]] = {
-    # Coarse RGB-D odometry only (no frame-to-model refinement) and mapping renders at 160 px: measured below in
-    # the README's trade-off table; the defaults cost ~3x more CPU per frame.
+    # Mapping renders at 160 px (the working resolution, 320 px, costs ~4x the mapping CPU: over the demo's time
+    # budget with this CPU's scalar rasteriser, README "Rendering at the working resolution"); tracking keeps the
+    # default frame-to-model refinement.
     "default": {
-        "tracking": {"refine": False},
         "mapping": {"max_width": 160, "iterations": 20, "first_iterations": 60},
         # Server-side global map refinement, 20 steps per keyframe (62 keyframes in one component): merged-map PSNR
         # 29.11 / 29.75 / 30.05 dB at 8 / 14 / 20 steps, demo wall 6.4 / 6.9 / 7.5 min on the idle machine.
