@@ -34,12 +34,13 @@ class TrackingConfig(_Section):
     coarse_max_width: int = Field(320, ge=16, description="resolution of the coarse frame-to-frame odometry")
     coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
                                                             "distrusted: constant velocity is used instead")
-    refine: bool = Field(True, description="frame-to-model refinement after the coarse stage (§III-C): "
-                                          "Gauss-Newton against the active submap rendered at the last keyframe. "
-                                          "Measured (40 frames, loop closure off, perf.tracking_refine): generated "
-                                          "data ATE 4.1 vs 8.0 mm, Redwood 2.83 vs 2.79 mm (within its "
-                                          "reference's ~2 mm noise), at 1.1-1.5x the wall and 1.6-1.9x the CPU "
-                                          "time (README)")
+    refine: bool = Field(False, description="frame-to-model refinement after the coarse stage (§III-C): "
+                                           "Gauss-Newton against the active submap rendered at the last keyframe. "
+                                           "Off: on 40 frames (perf.tracking_refine) it helped on generated data "
+                                           "(4.1 vs 8.0 mm) and tied on Redwood (2.83 vs 2.79 mm), but over all "
+                                           "211 Redwood frames tracking alone went from 1.0 to 4.5 cm and the "
+                                           "demo's agents 1 / 2 (maps at 160 px) from 0.80 / 0.60 to 1.37 / "
+                                           "1.00 cm (README)")
     refine_on_coarse_failure: bool = Field(True, description="run the refinement anyway when the coarse stage "
                                                             "fails (then it starts from constant velocity)")
     method: Literal["gauss_newton", "adam"] = Field(

@@ -23,10 +23,12 @@ from .server import ServerConfig
 
 # Settings per preset on top of SlamConfig's defaults, chosen so the demo fits its time budget on a 2-core CPU.
 DEMO_SETTINGS: dict[str, dict[str, Any]] = {
-    # Mapping renders at 160 px (the working resolution, 320 px, costs ~4x the mapping CPU: over the demo's time
-    # budget with this CPU's scalar rasteriser, README "Rendering at the working resolution"); tracking keeps the
-    # default frame-to-model refinement.
+    # Mapping renders at 160 px: the working resolution (320 px) costs ~4x the mapping CPU, over the demo's time
+    # budget with this CPU's scalar rasteriser. Coarse tracking only: against maps fitted at 160 px the
+    # frame-to-model refinement (which needs the working resolution) raised the tracking-only ATE of agents 1 / 2
+    # from 0.80 / 0.60 to 1.37 / 1.00 cm (quiet machine, README "Multi-agent team and the demo").
     "default": {
+        "tracking": {"refine": False},
         "mapping": {"max_width": 160, "iterations": 20, "first_iterations": 60},
         # Server-side global map refinement, 20 steps per keyframe (62 keyframes in one component): merged-map PSNR
         # 29.11 / 29.75 / 30.05 dB at 8 / 14 / 20 steps, demo wall 6.4 / 6.9 / 7.5 min on the idle machine.
