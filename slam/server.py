@@ -14,11 +14,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Literal
-
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
-
 from kernels import se3
 
 from .agent import Agent
@@ -26,47 +22,12 @@ from .gaussian_map import GaussianParams, transform_params
 from . import loop_check
 from .edge_information import fixed_information
 from .loop_log import INTER, LoopRecord, from_intra
+from .server_config import ServerConfig  # noqa: F401  (re-exported: slam.server.ServerConfig)
+from .server_descriptors import describe_keyframe, make_recognizer_and_encoder
 from .submaps import Keyframe, world_pose
 
 
 _rigid = se3.project_rigid  # poses composed from many tracked and moved frames drift off SE(3)
-
-
-class ServerConfig(BaseModel):
-    """Settings of the server role. The registration gates (τ_f, τ_ρ, ICP distance, max correction) are the
-    agents' `loop_closure` section, so intra and inter loops pass the same tests."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-    intra_loops: bool = Field(True, description="look for loops inside each agent's own keyframes")
-    inter_loops: bool = Field(True, description="look for loops between agents")
-    descriptor: Literal["agent", "bow", "vlad", "xfeat-vlad"] = Field(
-        "agent", description="inter-agent place descriptor: the agent's own keyframe descriptor, or a bag of "
-                             "words / VLAD over RootSIFT (registration.place_recognition) with `vocabulary`, or "
-                             "VLAD over XFeat (from the cached keyframe encodings; without `vocabulary` it is "
-                             "trained from the first `vocabulary_keyframes` keyframes the server receives)")
-    vocabulary: str | None = Field(None, description="vocabulary .npz for descriptor bow / vlad / xfeat-vlad")
-    vocabulary_keyframes: int = Field(8, ge=2, description="xfeat-vlad without a vocabulary file: train it from "
-                                                            "this many received keyframes (they are described then)")
-    coarse: Literal["learned", "fpfh"] = Field(
-        "learned", description="coarse start for agents not yet in one frame: 'learned' = XFeat + LighterGlue "
-                               "matches lifted with depth and a RANSAC rigid fit (slam.learned_coarse; each "
-                               "keyframe encoded once), 'fpfh' = FPFH + RANSAC (global_fallback). Measured on "
-                               "40 demo cross-agent pairs at keyframe size (160x120): a usable start (< 3 deg / "
-                               "10 cm) for 13 vs 2, at 0.11 vs ~2.6 s CPU per pair")
-    learned_fallback: bool = Field(False, description="coarse learned: try FPFH + RANSAC when the learned guess "
-                                                      "is not found (measured: it solved no pair the learned "
-                                                      "guess missed, at ~25x the time)")
-    same_frame_fallback: bool = Field(False, description="FPFH + RANSAC restart also for agents already in one "
-                                      "frame when the start from their relative pose fails (demo replay: off "
-                                      "saved 172 s of 544 s with the same ATE and joins)")
-    tau_sim: float = Field(0.85, ge=-1, le=1, description="inter-agent cosine similarity gate")
-    top_k: int = Field(2, ge=1, description="inter-agent candidates checked per new keyframe (best first)")
-    global_fallback: bool = Field(True, description="FPFH + RANSAC start when agents are not yet in one frame "
-                                                    "(or the guess fails the gates)")
-    solver: Literal["lm", "gnc"] = Field("lm", description="pose-graph solver; gnc rejects inconsistent loops")
-    loop_sigma_rot: float = Field(0.01, gt=0, description="loop-closure edge std (rad)")
-    loop_sigma_trans: float = Field(0.01, gt=0, description="loop-closure edge std (m)")
 
 
 @dataclass
@@ -106,21 +67,10 @@ class Server:
         self.time = {"intra": 0.0, "inter": 0.0, "optimisation": 0.0}
         self.last_graph = None  # (PoseGraph, optimised poses) of the last optimisation
         self.descriptors: dict[tuple[int, int], np.ndarray] = {}  # (agent, keyframe id) -> unit vector
-        self.recognizer = None
-        self.encoder = None  # slam.learned_coarse.KeyframeEncoder: one XFeat encoding per keyframe
         self.inter_stats: dict = {}  # per source and coarse method: candidates, accepted, seconds
         self._untrained: list[tuple[int, int]] = []  # xfeat-vlad keyframes waiting for the vocabulary
-        if self.cfg.descriptor != "agent":
-            from kernels.errors import InputError
-            from registration.place_recognition import make_recognizer
-
-            if not self.cfg.vocabulary and self.cfg.descriptor != "xfeat-vlad":
-                raise InputError(f"server.descriptor {self.cfg.descriptor!r} needs server.vocabulary (a .npz file)")
-            self.recognizer = make_recognizer(self.cfg.descriptor, checkpoint=self.cfg.vocabulary)
-        if self.cfg.coarse == "learned" or self.cfg.descriptor == "xfeat-vlad":
-            from .learned_coarse import KeyframeEncoder
-
-            self.encoder = KeyframeEncoder()
+        # The server's place recognizer (None: the agents' own descriptors) and its XFeat keyframe encoder.
+        self.recognizer, self.encoder = make_recognizer_and_encoder(self.cfg)
 
     # ---- the server loop: one call per keyframe an agent sends --------------------------------------------------
 
@@ -143,27 +93,8 @@ class Server:
         return new
 
     def _describe(self, a: int, kf: Keyframe) -> None:
-        """The server's descriptor of agent a's keyframe into self.descriptors. xfeat-vlad comes from the cached
-        encoding; without a vocabulary file the first `vocabulary_keyframes` keyframes train it (k-means on
-        their XFeat descriptors) and are described then."""
-        if self.recognizer is None:
-            self.descriptors[a, kf.id] = kf.descriptor
-            return
-        if self.cfg.descriptor != "xfeat-vlad":
-            self.descriptors[a, kf.id] = self.recognizer.describe(kf.small.color)
-            return
-        self.encoder.encode((a, kf.id), kf.small.color)
-        if self.recognizer.trained:
-            self.descriptors[a, kf.id] = self.recognizer.describe_encoding(self.encoder.cache[a, kf.id])
-            return
-        self._untrained.append((a, kf.id))
-        if len(self._untrained) >= self.cfg.vocabulary_keyframes:
-            parts = [np.asarray(self.encoder.cache[k].arrays["desc"], np.float32) for k in self._untrained]
-            if sum(len(p) for p in parts) >= self.recognizer.n_clusters:
-                self.recognizer.fit_local(parts)
-                for k in self._untrained:
-                    self.descriptors[k] = self.recognizer.describe_encoding(self.encoder.cache[k])
-                self._untrained = []
+        """The server's descriptor of agent a's keyframe into self.descriptors (slam.server_descriptors)."""
+        describe_keyframe(self, a, kf)
 
     def _intra(self, a: int, kf: Keyframe, step: int) -> list[LoopRecord]:
         slot = self.slots[a]
