@@ -9,7 +9,8 @@ multiprocessor. tests/test_gpu_codegen.py builds the same modules; docs/gpu.md h
 
 Modules: the module of every wp.Kernel defined in a kernels/_warp/*.py file, plus kernels made by factories,
 which a file lists with a function `aot_kernels()` -> {label: kernel} (kernels/_warp/icp.py: the four reduction
-specialisations).
+specialisations). A file that sets `CPU_ONLY = True` is left out (kernels/_warp/raster_cpu.py: vector code for the
+CPU, never launched on CUDA).
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def warp_modules() -> dict:
     found: dict = {}
     for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
         mod = importlib.import_module(f"{pkg.__name__}.{info.name}")
+        if getattr(mod, "CPU_ONLY", False):
+            continue
         kernels = [v for v in vars(mod).values() if isinstance(v, wp.Kernel)]
         for label, k in getattr(mod, "aot_kernels", dict)().items():
             LABELS[k.module.name] = f"{info.name}.{label}"

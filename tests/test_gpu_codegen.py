@@ -21,7 +21,8 @@ def modules():
 
 def test_every_kernel_file_contributes_a_module(modules):
     """Read from the sources, independently of the discovery: every kernels/_warp file that defines a Warp kernel
-    contributes its module, and one that makes kernels inside a function (a factory) lists them in aot_kernels()."""
+    contributes its module, and one that makes kernels inside a function (a factory) lists them in aot_kernels();
+    a file marked `CPU_ONLY = True` (vector code for the CPU, never launched on CUDA) is left out."""
     import importlib
     import pkgutil
     import re
@@ -31,6 +32,9 @@ def test_every_kernel_file_contributes_a_module(modules):
     with_kernels = 0
     for info in pkgutil.iter_modules(pkg.__path__):
         src = (Path(pkg.__path__[0]) / f"{info.name}.py").read_text()
+        if re.search(r"^CPU_ONLY = True", src, re.M):
+            assert f"{pkg.__name__}.{info.name}" not in modules, info.name
+            continue
         if re.search(r"^@wp\.kernel", src, re.M):
             assert f"{pkg.__name__}.{info.name}" in modules, info.name
             with_kernels += 1

@@ -1,0 +1,328 @@
+"""CPU compositing kernels of the Warp rasteriser, written for the CPU's vector units.
+
+kernels/_warp/raster.py composites one pixel at a time: a Gaussian-pixel pair costs ~26 ns forward and ~36 ns
+backward there, because Warp's CPU code generator emits scalar code with strided array indexing that LLVM cannot
+vectorise. These kernels do the same work per 16x16 tile, with the same rules and the same outputs, but keep the
+tile's per-pixel state in local arrays and composite a Gaussian over the rows of its ellipse, in the whole 8-pixel
+groups its x extent reaches, with branch-free code (masks instead of branches, a polynomial exp), which the CPU
+compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction too) turns into 8-lane AVX2
+(or 4-lane SSE / NEON) instructions. Lanes outside the ellipse fail the per-pixel test like any other pixel.
+
+The tile body is a native C++ snippet (`wp.func_native`) inside an ordinary Warp kernel: Warp still compiles,
+caches and launches it, and kernels/_warp/raster.py cuts the tiles into chunks over the cores as before. It is a
+CPU kernel only: on CUDA one thread per pixel (kernels/_warp/raster.py) is the right shape and stays in use.
+
+Per-pixel rules (identical to kernels/_warp/raster.py and to the twin kernels.reference.rasterize_reference):
+power = -0.5 (a dx^2 + c dy^2) - b dx dy must lie in [lo, 0] (lo = log(1/255 / opacity), pthr), alpha =
+min(0.99, opacity exp(power)) >= 1/255, and a pixel stops before the Gaussian that would take its transmittance
+below 1e-4. exp is a degree-7 polynomial after Cody-Waite range reduction: relative error below 2e-7 on [-87, 0].
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+CPU_ONLY = True  # perf/gpu_codegen.py does not build this module for CUDA
+
+# Warp's default CPU flags plus -ffp-contract=fast: multiply-adds fuse to FMA (the polynomial and the accumulators)
+wp.set_module_options({"enable_backward": False, "max_unroll": 0, "cpu_compiler_flags": (
+    "-march=native -ffp-contract=fast -mllvm=-inline-threshold=9000 -mllvm=-inline-cold-callsite-threshold=3000"
+    " -mllvm=-slp-recursion-max-depth=4")})
+
+_COMMON = r"""
+    const int TS = 16;
+    const float ALPHA_MIN = 1.0f / 255.0f;
+    auto fexp = [](float x) -> float {
+        // exp(x) for x <= 0 (larger x is clamped to 0): x = n ln2 + r, |r| <= ln2 / 2, exp(r) by Horner
+        x = x < 0.0f ? x : 0.0f;
+        x = x > -87.0f ? x : -87.0f;
+        float n = floorf(x * 1.44269504088896341f + 0.5f);
+        float r = x - n * 0.693145751953125f;
+        r = r - n * 1.42860682030941723e-06f;
+        float p = 1.0f / 5040.0f;
+        p = p * r + 1.0f / 720.0f;
+        p = p * r + 1.0f / 120.0f;
+        p = p * r + 1.0f / 24.0f;
+        p = p * r + 1.0f / 6.0f;
+        p = p * r + 0.5f;
+        p = p * r + 1.0f;
+        p = p * r + 1.0f;
+        int bits = ((int)n + 127) << 23;
+        float scale;
+        __builtin_memcpy(&scale, &bits, 4);
+        return p * scale;
+    };
+    const int ty = t / tiles_x;
+    const int tx = t - ty * tiles_x;
+    const int x0 = tx * TS;
+    const int y0 = ty * TS;
+    const int nw = (x0 + TS < width ? x0 + TS : width) - x0;
+    const int nh = (y0 + TS < height ? y0 + TS : height) - y0;
+    const char* pbase = (const char*)proj.data;
+    const size_t ps0 = proj.strides[0], ps1 = proj.strides[1];
+    auto P = [&](int g, int j) -> float { return *(const float*)(pbase + (size_t)g * ps0 + (size_t)j * ps1); };
+    auto F1 = [](const wp::array_t<float>& a, int i) -> float {
+        return *(const float*)((const char*)a.data + (size_t)i * a.strides[0]);
+    };
+    auto I1 = [](const wp::array_t<int>& a, int i) -> int {
+        return *(const int*)((const char*)a.data + (size_t)i * a.strides[0]);
+    };
+    const int s0 = I1(tile_start, t);
+    const int s1 = I1(tile_start, t + 1);
+    // rows [rlo, rhi] and, per row, pixels [xlo, xhi] of the ellipse d^T Q d <= 2 lgm (same as raster.py)
+    auto rows_of = [&](float my, float ca, float det_q, float lgm, int& rlo, int& rhi) {
+        float ey = sqrtf(2.0f * lgm * ca / det_q);
+        float a = ceilf(my - ey), b = floorf(my + ey);
+        a = a < (float)y0 ? (float)y0 : (a > (float)(y0 + nh) ? (float)(y0 + nh) : a);
+        b = b < (float)(y0 - 1) ? (float)(y0 - 1) : (b > (float)(y0 + nh - 1) ? (float)(y0 + nh - 1) : b);
+        rlo = (int)a;
+        rhi = (int)b;
+    };
+    // lanes [jlo, jhi) of the tile row, whole 8-lane groups, that the ellipse's x extent can reach
+    auto lanes_of = [&](float mx, float cc, float det_q, float lgm, int& jlo, int& jhi) {
+        float ex = sqrtf(2.0f * lgm * cc / det_q);
+        float a = ceilf(mx - ex) - (float)x0, b = floorf(mx + ex) - (float)x0;
+        a = a < 0.0f ? 0.0f : (a > (float)nw ? (float)nw : a);
+        b = b < -1.0f ? -1.0f : (b > (float)(nw - 1) ? (float)(nw - 1) : b);
+        jlo = ((int)a) & ~7;
+        jhi = b < a ? jlo : (((int)b) | 7) + 1;
+    };
+"""
+
+_FORWARD = _COMMON + r"""
+    alignas(32) float T[256];
+    alignas(32) float CR[256];
+    alignas(32) float CG[256];
+    alignas(32) float CB[256];
+    alignas(32) float DD[256];
+    alignas(32) int LAST[256];
+    for (int i = 0; i < 256; ++i) {
+        // lanes outside the image start with T = 0: they never composite and are never written
+        T[i] = ((i & 15) < nw && (i >> 4) < nh) ? 1.0f : 0.0f;
+        CR[i] = 0.0f; CG[i] = 0.0f; CB[i] = 0.0f; DD[i] = 0.0f; LAST[i] = 0;
+    }
+    const int npix = nw * nh;
+    int done = 0;
+    int* hits_p = (int*)hits.data;
+    const size_t hs = hits.strides[0] / sizeof(int);
+    for (int e = s0; e < s1; ++e) {
+        int count = 0;
+        const int g = I1(entries, e);
+        const float lo = F1(pthr, g);
+        const float ca = P(g, 2), cb = P(g, 3), cc = P(g, 4);
+        const float det_q = ca * cc - cb * cb;
+        if (done < npix && lo < 0.0f && det_q > 0.0f) {
+            const float mx = P(g, 0), my = P(g, 1), op = P(g, 5);
+            const float cr = P(g, 6), cg = P(g, 7), cbl = P(g, 8), z = P(g, 9);
+            const float inv_ca = 1.0f / ca;
+            const float lgm = -1.01f * lo + 0.01f;
+            const float lgm2ca = 2.0f * ca * lgm;
+            const int k1 = e - s0 + 1;
+            int rlo, rhi, jlo, jhi;
+            rows_of(my, ca, det_q, lgm, rlo, rhi);
+            lanes_of(mx, cc, det_q, lgm, jlo, jhi);
+            for (int py = rlo; py <= rhi; ++py) {
+                const float dy = (float)py - my;
+                const float cdy = -0.5f * cc * dy * dy;
+                const float bdy = cb * dy;
+                const float fx0 = (float)x0 - mx;
+                float* Tr = T + (py - y0) * TS;
+                float* CRr = CR + (py - y0) * TS;
+                float* CGr = CG + (py - y0) * TS;
+                float* CBr = CB + (py - y0) * TS;
+                float* DDr = DD + (py - y0) * TS;
+                int* Lr = LAST + (py - y0) * TS;
+                int cnt = 0, fin = 0;
+                for (int j = jlo; j < jhi; ++j) {
+                    const float Tj = Tr[j];
+                    const float dx = fx0 + (float)j;
+                    const float power = -0.5f * ca * dx * dx + cdy - bdy * dx;
+                    float a = op * fexp(power);
+                    a = a < 0.99f ? a : 0.99f;
+                    const bool valid = (Tj > 0.0f) & (power <= 0.0f) & (power >= lo) & (a >= ALPHA_MIN);
+                    const float tT = Tj * (1.0f - a);
+                    const bool stop = valid & (tT < 1e-4f);
+                    const bool comp = valid & !stop;
+                    const float w = comp ? a * Tj : 0.0f;
+                    CRr[j] += w * cr;
+                    CGr[j] += w * cg;
+                    CBr[j] += w * cbl;
+                    DDr[j] += w * z;
+                    Tr[j] = stop ? -Tj : (comp ? tT : Tj);
+                    Lr[j] = comp ? k1 : Lr[j];
+                    cnt += comp ? 1 : 0;
+                    fin += stop ? 1 : 0;
+                }
+                count += cnt;
+                done += fin;
+            }
+        }
+        hits_p[(size_t)e * hs] = count;
+    }
+    float* col = (float*)color.data;
+    float* dep = (float*)depth.data;
+    float* dno = (float*)dnorm.data;
+    float* alp = (float*)alpha.data;
+    float* tfi = (float*)t_final.data;
+    int* lst = (int*)last.data;
+    const float bg0 = F1(bg, 0), bg1 = F1(bg, 1), bg2 = F1(bg, 2);
+    for (int r = 0; r < nh; ++r) {
+        for (int j = 0; j < nw; ++j) {
+            const int i = r * TS + j;
+            const int q = (y0 + r) * width + x0 + j;
+            const float Tv = fabsf(T[i]);
+            const float a = 1.0f - Tv;
+            tfi[q] = Tv;
+            alp[q] = a;
+            col[3 * q + 0] = CR[i] + Tv * bg0;
+            col[3 * q + 1] = CG[i] + Tv * bg1;
+            col[3 * q + 2] = CB[i] + Tv * bg2;
+            dep[q] = DD[i];
+            dno[q] = a > 1e-6f ? DD[i] / a : 0.0f;
+            lst[q] = LAST[i];
+        }
+    }
+"""
+
+_BACKWARD = _COMMON + r"""
+    alignas(32) float TR[256];
+    alignas(32) float BH[256];
+    alignas(32) float GR[256];
+    alignas(32) float GG[256];
+    alignas(32) float GB[256];
+    alignas(32) float GD[256];
+    alignas(32) int LAST[256];
+    const float bg0 = F1(bg, 0), bg1 = F1(bg, 1), bg2 = F1(bg, 2);
+    int n_live = 0;
+    for (int i = 0; i < 256; ++i) {
+        TR[i] = 1.0f; BH[i] = 0.0f; GR[i] = 0.0f; GG[i] = 0.0f; GB[i] = 0.0f; GD[i] = 0.0f; LAST[i] = 0;
+    }
+    for (int r = 0; r < nh; ++r) {
+        for (int j = 0; j < nw; ++j) {
+            const int i = r * TS + j;
+            const int q = (y0 + r) * width + x0 + j;
+            const float TN = F1(t_final, q);
+            const float a_px = 1.0f - TN;
+            float gd = F1(g_depth, q);
+            float ga = F1(g_alpha, q);
+            if (a_px > 1e-6f) {
+                const float gn = F1(g_dnorm, q) / a_px;
+                gd = gd + gn;
+                ga = ga - gn * F1(dnorm, q);
+            }
+            const float gr = F1(g_color, 3 * q + 0), gg = F1(g_color, 3 * q + 1), gb = F1(g_color, 3 * q + 2);
+            GR[i] = gr; GG[i] = gg; GB[i] = gb; GD[i] = gd;
+            TR[i] = TN;
+            BH[i] = (gr * bg0 + gg * bg1 + gb * bg2 - ga) * TN;
+            const int l = I1(last, q);
+            LAST[i] = l;
+            n_live = l > n_live ? l : n_live;
+        }
+    }
+    char* gbase = (char*)g_entry.data;
+    const size_t gs0 = g_entry.strides[0], gs1 = g_entry.strides[1];
+    auto GE = [&](int e, int j) -> float& { return *(float*)(gbase + (size_t)e * gs0 + (size_t)j * gs1); };
+    for (int e = s0 + n_live; e < s1; ++e)
+        for (int j = 0; j < 10; ++j) GE(e, j) = 0.0f;
+    for (int k = n_live - 1; k >= 0; --k) {
+        const int e = s0 + k;
+        const int g = I1(entries, e);
+        const float mx = P(g, 0), my = P(g, 1), ca = P(g, 2), cb = P(g, 3), cc = P(g, 4), op = P(g, 5);
+        const float cr = P(g, 6), cg = P(g, 7), cbl = P(g, 8), z = P(g, 9);
+        const float lo = F1(pthr, g);
+        const float det_q = ca * cc - cb * cb;
+        alignas(32) float v[10][8];
+        for (int m = 0; m < 10; ++m)
+            for (int j = 0; j < 8; ++j) v[m][j] = 0.0f;
+        if (lo < 0.0f && det_q > 0.0f) {
+            const float inv_ca = 1.0f / ca;
+            const float lgm = -1.01f * lo + 0.01f;
+            const float lgm2ca = 2.0f * ca * lgm;
+            int rlo, rhi, jlo, jhi;
+            rows_of(my, ca, det_q, lgm, rlo, rhi);
+            lanes_of(mx, cc, det_q, lgm, jlo, jhi);
+            const float fx0 = (float)x0 - mx;
+            for (int py = rlo; py <= rhi; ++py) {
+                const float dy = (float)py - my;
+                const float cdy = -0.5f * cc * dy * dy;
+                const float bdy = cb * dy;
+                const float ccdy = cc * dy;
+                const float dy2 = dy * dy;
+                const int row = (py - y0) * TS;
+                for (int h = jlo; h < jhi; h += 8)
+                for (int l = 0; l < 8; ++l) {
+                    const int i = row + h + l;
+                    const float dx = fx0 + (float)(h + l);
+                    const float power = -0.5f * ca * dx * dx + cdy - bdy * dx;
+                    const float G = fexp(power);
+                    const float raw = op * G;
+                    const float a = raw < 0.99f ? raw : 0.99f;
+                    const bool m = (k < LAST[i]) & (power <= 0.0f) & (power >= lo) & (a >= ALPHA_MIN);
+                    const float inv_1ma = 1.0f / (1.0f - a);
+                    const float Tn = TR[i] * inv_1ma;
+                    TR[i] = m ? Tn : TR[i];
+                    const float w = m ? a * Tn : 0.0f;
+                    const float gr = GR[i], gg = GG[i], gb = GB[i], gd = GD[i];
+                    const float front = gr * cr + gg * cg + gb * cbl + gd * z;
+                    const float bh = BH[i];
+                    BH[i] = bh + w * front;
+                    const float g_a = (m & (raw < 0.99f)) ? Tn * front - bh * inv_1ma : 0.0f;
+                    v[6][l] += w * gr;
+                    v[7][l] += w * gg;
+                    v[8][l] += w * gb;
+                    v[9][l] += w * gd;
+                    v[5][l] += g_a * G;
+                    const float g_p = g_a * a;
+                    v[0][l] += g_p * (ca * dx + bdy);
+                    v[1][l] += g_p * (ccdy + cb * dx);
+                    v[2][l] -= 0.5f * g_p * dx * dx;
+                    v[3][l] -= g_p * dx * dy;
+                    v[4][l] -= 0.5f * g_p * dy2;
+                }
+            }
+        }
+        for (int m = 0; m < 10; ++m) {
+            float s = 0.0f;
+            for (int j = 0; j < 8; ++j) s += v[m][j];
+            GE(e, m) = s;
+        }
+    }
+"""
+
+
+@wp.func_native(_FORWARD)
+def _tile_forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+                  entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int,
+                  tiles_x: int, t: int, color: wp.array(dtype=float), depth: wp.array(dtype=float),
+                  dnorm: wp.array(dtype=float), alpha: wp.array(dtype=float), t_final: wp.array(dtype=float),
+                  last: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+    ...
+
+
+@wp.func_native(_BACKWARD)
+def _tile_backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+                   entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int,
+                   tiles_x: int, t: int, t_final: wp.array(dtype=float), dnorm: wp.array(dtype=float),
+                   last: wp.array(dtype=wp.int32), g_color: wp.array(dtype=float), g_depth: wp.array(dtype=float),
+                   g_dnorm: wp.array(dtype=float), g_alpha: wp.array(dtype=float), g_entry: wp.array2d(dtype=float)):
+    ...
+
+
+@wp.kernel
+def forward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+            entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
+            tile_offset: int, color: wp.array(dtype=float), depth: wp.array(dtype=float),
+            dnorm: wp.array(dtype=float), alpha: wp.array(dtype=float), t_final: wp.array(dtype=float),
+            last: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+    _tile_forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, wp.tid() + tile_offset, color, depth,
+                  dnorm, alpha, t_final, last, hits)
+
+
+@wp.kernel
+def backward(proj: wp.array2d(dtype=float), pthr: wp.array(dtype=float), tile_start: wp.array(dtype=wp.int32),
+             entries: wp.array(dtype=wp.int32), bg: wp.array(dtype=float), width: int, height: int, tiles_x: int,
+             tile_offset: int, t_final: wp.array(dtype=float), dnorm: wp.array(dtype=float),
+             last: wp.array(dtype=wp.int32), g_color: wp.array(dtype=float), g_depth: wp.array(dtype=float),
+             g_dnorm: wp.array(dtype=float), g_alpha: wp.array(dtype=float), g_entry: wp.array2d(dtype=float)):
+    _tile_backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, wp.tid() + tile_offset, t_final,
+                   dnorm, last, g_color, g_depth, g_dnorm, g_alpha, g_entry)
