@@ -21,6 +21,31 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 TILE = 16
 
+# CPU only (a no-op on CUDA): fetch into cache the tile-entry gradient rows of Gaussian i + 2, which the backward
+# gathers next on this thread; they are scattered over the entry array (depth order), and the misses were a third
+# of the backward's time at 320x240 / 60k Gaussians.
+_PREFETCH_ENTRIES = r"""
+#if !defined(__CUDA_ARCH__)
+    const int j = i + 2;
+    if (j < ntiles.shape[0]) {
+        const int nt = *(const int*)((const char*)ntiles.data + (size_t)j * ntiles.strides[0]);
+        const int k0 = *(const int*)((const char*)emit_start.data + (size_t)j * emit_start.strides[0]);
+        for (int k = k0; k < k0 + (nt < 8 ? nt : 8); ++k) {
+            const int e = *(const int*)((const char*)emit_pos.data + (size_t)k * emit_pos.strides[0]);
+            const char* row = (const char*)g_entry.data + (size_t)e * g_entry.strides[0];
+            __builtin_prefetch(row);
+            __builtin_prefetch(row + 9 * g_entry.strides[1]);
+        }
+    }
+#endif
+"""
+
+
+@wp.func_native(_PREFETCH_ENTRIES)
+def _prefetch_entries(ntiles: wp.array(dtype=wp.int32), emit_start: wp.array(dtype=wp.int32),
+                      emit_pos: wp.array(dtype=wp.int32), g_entry: wp.array2d(dtype=float), i: int):
+    ...
+
 
 @wp.func
 def _rotmat(w: float, x: float, y: float, z: float) -> wp.mat33:
@@ -125,6 +150,7 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
                  g_scales: wp.array2d(dtype=float), g_opac: wp.array(dtype=float), g_colors: wp.array2d(dtype=float),
                  g_view: wp.array2d(dtype=float)):
     i = wp.tid() + offset
+    _prefetch_entries(ntiles, emit_start, emit_pos, g_entry, i)
     for k in range(3):
         g_means[i, k] = 0.0
         g_scales[i, k] = 0.0
