@@ -15,9 +15,9 @@ CPU kernel only: on CUDA one thread per pixel (kernels/_warp/raster.py) is the r
 Per-pixel rules (identical to kernels/_warp/raster.py and to the twin kernels.reference.rasterize_reference):
 power = -0.5 (a dx^2 + c dy^2) - b dx dy must lie in [lo, 0] (lo = log(1/255 / opacity), pthr), alpha =
 min(0.99, opacity exp(power)) >= 1/255, and a pixel stops before the Gaussian that would take its transmittance
-below 1e-4. exp is a degree-7 polynomial after Cody-Waite range reduction: relative error below 2e-7 on [-20, 0],
-and clamped to exp(-20) below: a pixel is only composited for power >= lo >= log(1/255) = -5.5 (opacity <= 1), and
-the clamp keeps the far lanes of a group off denormal numbers, which cost ~100 cycles each on x86.
+below 1e-4. exp is a degree-7 polynomial after Cody-Waite range reduction, relative error 1.2e-7 on [-20, 0] (expf's
+float32 result: 2e-7), clamped to exp(-20) below: a pixel is only composited for power >= lo >= log(1/255) = -5.5
+(opacity <= 1), and the clamp keeps the far lanes of a group off denormal numbers, which cost ~100 cycles on x86.
 """
 
 from __future__ import annotations
@@ -36,20 +36,19 @@ _COMMON = r"""
     const int PREFETCH = 8;  // entries ahead whose projected row is fetched into cache (random-access misses)
     const float ALPHA_MIN = 1.0f / 255.0f;
     auto fexp = [](float x) -> float {
-        // exp(x) for -20 <= x <= 0 (x is clamped to that range): x = n ln2 + r, |r| <= ln2 / 2, exp(r) by Horner
+        // exp(x) for -20 <= x <= 0 (x is clamped to that range): x = n ln2 + r, |r| <= ln2 / 2
         x = x < 0.0f ? x : 0.0f;
         x = x > -20.0f ? x : -20.0f;
         float n = floorf(x * 1.44269504088896341f + 0.5f);
         float r = x - n * 0.693145751953125f;
         r = r - n * 1.42860682030941723e-06f;
-        float p = 1.0f / 5040.0f;
-        p = p * r + 1.0f / 720.0f;
-        p = p * r + 1.0f / 120.0f;
-        p = p * r + 1.0f / 24.0f;
-        p = p * r + 1.0f / 6.0f;
-        p = p * r + 0.5f;
-        p = p * r + 1.0f;
-        p = p * r + 1.0f;
+        // exp(r) = 1 + r + r^2 P(r), P of degree 5 (Cephes' expf coefficients), in Estrin's form: a short
+        // dependency chain (the loop is latency-bound)
+        const float r2 = r * r;
+        const float pa = 5.0000001201e-1f + 1.6666665459e-1f * r;
+        const float pb = 4.1665795894e-2f + 8.3334519073e-3f * r;
+        const float pc = 1.3981999507e-3f + 1.9875691500e-4f * r;
+        const float p = (1.0f + r) + r2 * (pa + r2 * (pb + r2 * pc));
         int bits = ((int)n + 127) << 23;
         float scale;
         __builtin_memcpy(&scale, &bits, 4);
