@@ -76,3 +76,27 @@ def markdown_table(rows: list[dict], columns: list[str]) -> str:
     for r in rows:
         lines.append("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |")
     return "\n".join(lines)
+
+
+SCALAR_PEER = "warp-scalar"  # Warp with its scalar compositing kernels on the CPU (the CUDA ones): the same-run peer
+
+
+def with_scalar_peer(backends: list[str], device: str) -> list[str]:
+    """The backends to time: on the CPU, Warp is followed by SCALAR_PEER, so the vector kernels' gain is a ratio
+    measured in the same run."""
+    if device == "cpu" and "warp" in backends and SCALAR_PEER not in backends:
+        i = backends.index("warp")
+        return backends[:i + 1] + [SCALAR_PEER] + backends[i + 1:]
+    return list(backends)
+
+
+def use_backend(name: str, device: str) -> str:
+    """kernels.use for a perf backend name; SCALAR_PEER is Warp with kernels._warp.raster.CPU_COMPOSITE = "scalar".
+    Returns the kernels backend name."""
+    import kernels
+    from kernels._warp import raster as warp_raster
+
+    base = "warp" if name == SCALAR_PEER else name
+    kernels.use(base, device)
+    warp_raster.CPU_COMPOSITE = "scalar" if name == SCALAR_PEER else "vector"
+    return base

@@ -158,7 +158,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
 
 
 def _run(*, backends: list[str], device: str, quick: bool) -> dict:
-    import kernels
+    from perf.common import SCALAR_PEER, use_backend, with_scalar_peer
 
     if device != "cpu":
         from kernels.errors import BackendError
@@ -169,8 +169,9 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     rows = []
     notes = [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
     submap, keyframes, cfg = _setup(n, WIDTH, HEIGHT)
+    backends = with_scalar_peer(backends, device)
     for name in backends:
-        kernels.use(name, device)
+        use_backend(name, device)
         _optimise_s(submap, keyframes, cfg, 2)  # warm-up: compiles / loads the kernels
         per_it = []
         c0 = time.process_time()
@@ -185,6 +186,7 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
                "iteration_cpu_ms": cpu_ms, "peer_iteration_ms": 1e3 * peer, "speedup": peer / ours}
         row.update(_split_ms(submap, keyframes, cfg, short + 1))
         rows.append(row)
+        use_backend(backends[0], device)
         print(f"[perf mapping] {name}: {1e3 * ours:.1f} ms per iteration (peer {1e3 * peer:.1f} ms)", flush=True)
     notes += [
         f"load average at end: {os.getloadavg()[0]:.1f}; iteration_cpu_ms = process CPU time (all threads) per "
@@ -194,6 +196,13 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         "peer: the same step with torch.optim.Adam defaults and slam.render.rgbd_loss, keyframes in turn, same "
         "process and scene",
     ]
+    scalar = {r["N"]: r for r in rows if r["backend"] == SCALAR_PEER}
+    for row in rows:
+        if row["backend"] == "warp" and row["N"] in scalar:
+            row["vs_scalar"] = scalar[row["N"]]["iteration_ms"] / row["iteration_ms"]
+    if scalar:
+        notes.append(f"{SCALAR_PEER}: Warp compositing with its scalar kernels (the CUDA ones); vs_scalar = its "
+                     "iteration_ms / warp's, same run and scene")
     columns = ["backend", "image", "N", "iteration_ms", "iteration_cpu_ms", "render_ms", "loss_ms", "backward_ms",
-               "adam_ms", "peer_iteration_ms", "speedup"]
+               "adam_ms", "peer_iteration_ms", "speedup", "vs_scalar"]
     return {"rows": rows, "columns": columns, "notes": notes}

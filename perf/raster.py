@@ -207,9 +207,10 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
 
 
 def _run(*, backends: list[str], device: str, quick: bool) -> dict:
-    import kernels
-
+    from perf.common import SCALAR_PEER, use_backend, with_scalar_peer
     from perf.roofline import fma_gflops
+
+    backends = with_scalar_peer(backends, device)
 
     cases = [(320, 240, 10_000)] if quick else [(640, 480, 50_000), (640, 480, 10_000), (320, 240, 60_000),
                                                 (320, 240, 10_000)]
@@ -217,15 +218,14 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     rows, notes = [], [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
     roof = {}
     for name in backends:
-        kernels.use(name, device)
-        roof[name] = [fma_gflops(name, device)]
+        roof[name] = [fma_gflops(use_backend(name, device), device)]
     # Ours first on every size, then the peer (seconds per call) within PEER_BUDGET_S of wall time.
     for width, height, n in cases:
         scene = make_scene(n, width, height)
         if device == "cuda":
             scene = {k: v.cuda() if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
         for name in backends:
-            kernels.use(name, device)
+            use_backend(name, device)
             f = time_fn(lambda: _ours(scene, False), repeat=repeat, warmup=1, device=device)
             c0 = time.process_time()
             fb = time_fn(lambda: _ours(scene, True), repeat=repeat, warmup=1, device=device)
@@ -240,7 +240,7 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     fw, fh, fn = FLOOR_CASE
     floor_scene = make_scene(fn, fw, fh)
     for name in backends:
-        kernels.use(name, device)
+        use_backend(name, device)
         f, fb = _floor(floor_scene, 10 if quick else 50)
         o = _ours(floor_scene, False)
         rows.append({"backend": name, "image": f"{fw}x{fh} (floor)", "N": fn, "visible": int((o.radii > 0).sum()),
@@ -248,7 +248,7 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
                      "fwd_bwd_ms": 1e3 * fb["median_s"], "fwd_cpu_ms": 1e3 * f["cpu_s"],
                      "fwd_bwd_cpu_ms": 1e3 * fb["cpu_s"]})
         _log(f"{name} floor {fw}x{fh} N={fn}: fwd {1e3 * f['median_s']:.2f} ms, fwd+bwd {1e3 * fb['median_s']:.2f} ms")
-        roof[name].append(fma_gflops(name, device))
+        roof[name].append(fma_gflops(use_backend(name, device), device))
     for row in rows:
         gf = sorted(roof[row["backend"]])[len(roof[row["backend"]]) // 2]
         row["roofline_gflops"] = gf
@@ -259,6 +259,13 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         # the fastest forward+backward the counted arithmetic allows at 100 % of the measured (scalar) roofline
         row["roofline_bound_fwd_bwd_ms"] = (1e3 * row["pairs_M"] * 1e6 * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD)
                                             / (gf * 1e9))
+    use_backend(backends[0], device)
+    by_case = {(r["backend"], r["image"], r["N"]): r for r in rows}
+    for row in rows:  # the vector kernels against the scalar ones, same run, same scene
+        peer = by_case.get((SCALAR_PEER, row["image"], row["N"]))
+        if row["backend"] == "warp" and peer is not None:
+            row["vs_scalar_fwd"] = peer["fwd_ms"] / row["fwd_ms"]
+            row["vs_scalar_fwd_bwd"] = peer["fwd_bwd_ms"] / row["fwd_bwd_ms"]
     skipped = []
     start = time.perf_counter()
     for width, height, n in cases if device == "cpu" else []:  # the peer is written for the CPU
@@ -299,13 +306,16 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         "after one warm-up; loss = sum(colour) + 0.1 sum(depth) + sum(alpha).",
         "Warp on the CPU: tile chunks launched from kernels/_warp/launch.py's thread pool (each launch runs on one "
         "OS thread and releases the GIL); Taichi parallelises the tile loop itself.",
+        f"{SCALAR_PEER}: Warp with its scalar compositing kernels (kernels/_warp/raster.py, the CUDA kernels, "
+        "kernels._warp.raster.CPU_COMPOSITE = 'scalar'); warp composites with kernels/_warp/raster_cpu.py's vector "
+        "code. vs_scalar_* = warp-scalar time / warp time, same run and scene.",
     ]
     if skipped:
         notes.append(f"peer not run (N > {PEER_MAX_N} or past the {PEER_BUDGET_S:.0f} s peer budget): "
                      + ", ".join(skipped))
     columns = ["backend", "image", "N", "visible", "pairs_M", "fwd_ms", "fwd_bwd_ms", "fwd_cpu_ms", "fwd_bwd_cpu_ms",
                "Mpairs_per_s_fwd", "Mpairs_per_s_fwd_bwd", "roofline_gflops", "roofline_frac_fwd",
-               "roofline_frac_fwd_bwd", "roofline_bound_fwd_bwd_ms"]
+               "roofline_frac_fwd_bwd", "roofline_bound_fwd_bwd_ms", "vs_scalar_fwd", "vs_scalar_fwd_bwd"]
     if device == "cpu":
         columns += ["peer_fwd_ms", "peer_fwd_bwd_ms", "speedup_fwd", "speedup_fwd_bwd"]
     return {"rows": rows, "columns": columns, "notes": notes}
