@@ -31,6 +31,7 @@ from .gaussian_map import GaussianParams
 from .mapper import mapping_loss
 from .progress import bar
 from .render import NEAR, render
+from .selective_adam import SelectiveAdam
 
 
 @dataclass
@@ -94,7 +95,8 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
                ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
     """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
     mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
-    rates x `cfg.lr_scale`.
+    rates x `cfg.lr_scale`. `cfg.optimizer`: "selective" updates only the Gaussians of the step's view
+    (slam.selective_adam), "adam" is torch's Adam over the whole map every step.
 
     First, Gaussians that contribute less than `cfg.min_contribution` pixels to every view are dropped: where
     submaps overlap, the surface of one hides the same surface of another, and those hidden copies only cost
@@ -111,15 +113,15 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     if cfg.min_contribution > 0:
         keep = contributions(params, views, reference=reference) >= cfg.min_contribution
     gen = torch.Generator().manual_seed(cfg.seed)
-    p = params.select(keep).requires_grad_(True)
+    p = params.select(keep).requires_grad_(cfg.optimizer == "adam")
     lr = cfg.lr_scale
-    opt = torch.optim.Adam([
-        {"params": [p.means], "lr": mapping.lr_means * lr},
-        {"params": [p.log_scales], "lr": mapping.lr_log_scales * lr},
-        {"params": [p.quats], "lr": mapping.lr_quats * lr},
-        {"params": [p.logit_opacities], "lr": mapping.lr_opacities * lr},
-        {"params": [p.colors], "lr": mapping.lr_colors * lr},
-    ], eps=1e-15)
+    lrs = [mapping.lr_means * lr, mapping.lr_log_scales * lr, mapping.lr_quats * lr, mapping.lr_opacities * lr,
+           mapping.lr_colors * lr]
+    tensors = [p.means, p.log_scales, p.quats, p.logit_opacities, p.colors]
+    if cfg.optimizer == "selective":
+        sel = SelectiveAdam(tensors, lrs)
+    else:
+        opt = torch.optim.Adam([{"params": [t], "lr": r} for t, r in zip(tensors, lrs)], eps=1e-15)
     # Visibility from the starting means: refinement moves a Gaussian by millimetres, far less than the margin.
     subsets = [visible_indices(p.means.detach(), v, cfg.view_margin) for v in views]
     order: list[int] = []
@@ -134,12 +136,20 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         if len(idx) == 0:
             continue
         v = views[j]
-        sub = GaussianParams(p.means[idx], p.log_scales[idx], p.quats[idx], p.logit_opacities[idx], p.colors[idx])
-        opt.zero_grad(set_to_none=True)
+        if cfg.optimizer == "selective":  # the view's rows as leaves; only they are updated
+            sub = GaussianParams(*(t.index_select(0, idx).requires_grad_(True) for t in tensors))
+        else:
+            sub = GaussianParams(p.means[idx], p.log_scales[idx], p.quats[idx], p.logit_opacities[idx],
+                                 p.colors[idx])
+            opt.zero_grad(set_to_none=True)
         out = render(sub, v.viewmat, v.camera, reference=reference)
         loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser)
         loss.backward()
-        opt.step()
+        if cfg.optimizer == "selective":
+            sel.step(idx, [sub.means.grad, sub.log_scales.grad, sub.quats.grad, sub.logit_opacities.grad,
+                           sub.colors.grad])
+        else:
+            opt.step()
         losses.append(float(loss.detach()))
     b.close()
     k = max(1, min(len(views), len(losses)))

@@ -182,9 +182,10 @@ def test_contributions_see_hidden_gaussians(warp_cpu):
     assert w[0] > 10.0 and w[1] < 0.05 * w[0] and w[2] == 0.0
 
 
-def test_refine_map_lowers_the_loss_and_keeps_order(mapped):
+@pytest.mark.parametrize("optimizer", ["selective", "adam"])
+def test_refine_map_lowers_the_loss_and_keeps_order(mapped, optimizer):
     """Refining a submap over a second view it was never fitted to lowers the loss on that view; 0 steps is a
-    no-op; the kept Gaussians come back in their input order."""
+    no-op; the kept Gaussians come back in their input order. Both optimisers (selective Adam, torch's Adam)."""
     from slam.map_refine import RefineView, iteration_budget, refine_map
 
     cam, cfg, gm, sm, _ = mapped
@@ -198,7 +199,7 @@ def test_refine_map_lowers_the_loss_and_keeps_order(mapped):
             out = render(p, views[1].viewmat, cam)
         return float((out.color - views[1].color).abs().mean())
 
-    rc = cfg.map_refine.model_copy(update={"iterations_per_keyframe": 15})
+    rc = cfg.map_refine.model_copy(update={"iterations_per_keyframe": 15, "optimizer": optimizer})
     assert iteration_budget(rc, 2) == 30
     assert iteration_budget(rc.model_copy(update={"max_iterations": 7}), 2) == 7
     same, keep0, st0 = refine_map(sm.params, views, rc, cfg.mapping, iterations=0)

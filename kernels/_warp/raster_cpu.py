@@ -71,7 +71,7 @@ _COMMON = r"""
     };
     const int s0 = I1(tile_start, t);
     const int s1 = I1(tile_start, t + 1);
-    // rows [rlo, rhi] and, per row, pixels [xlo, xhi] of the ellipse d^T Q d <= 2 lgm (same as raster.py)
+    // rows [rlo, rhi] of the tile the ellipse d^T Q d <= 2 lgm reaches (lgm: the widened 1/255 threshold)
     auto rows_of = [&](float my, float ca, float det_q, float lgm, int& rlo, int& rhi) {
         float ey = sqrtf(2.0f * lgm * ca / det_q);
         float a = ceilf(my - ey), b = floorf(my + ey);
@@ -122,9 +122,7 @@ _FORWARD = _COMMON + r"""
         if (done < npix && lo < 0.0f && det_q > 0.0f) {
             const float mx = P(g, 0), my = P(g, 1), op = P(g, 5);
             const float cr = P(g, 6), cg = P(g, 7), cbl = P(g, 8), z = P(g, 9);
-            const float inv_ca = 1.0f / ca;
             const float lgm = -1.01f * lo + 0.01f;
-            const float lgm2ca = 2.0f * ca * lgm;
             const int k1 = e - s0 + 1;
             int rlo, rhi, jlo, jhi;
             rows_of(my, ca, det_q, lgm, rlo, rhi);
@@ -249,9 +247,7 @@ _BACKWARD = _COMMON + r"""
         for (int m = 0; m < 10; ++m)
             for (int j = 0; j < 8; ++j) v[m][j] = 0.0f;
         if (lo < 0.0f && det_q > 0.0f) {
-            const float inv_ca = 1.0f / ca;
             const float lgm = -1.01f * lo + 0.01f;
-            const float lgm2ca = 2.0f * ca * lgm;
             int rlo, rhi, jlo, jhi;
             rows_of(my, ca, det_q, lgm, rlo, rhi);
             lanes_of(mx, cc, det_q, lgm, jlo, jhi);
