@@ -138,7 +138,7 @@ class MapRefineConfig(_Section):
                                                "'mapping' = at the mapping resolution (agents keep them, "
                                                "w x h x 7 bytes per keyframe), 'small' = the loop-closure copies "
                                                "(submaps.keep_keyframe_width): faster, blurrier above that width")
-    optimizer: Literal["selective", "adam"] = Field("selective", description="'selective': Adam on the "
+    optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "
                                                     "Gaussians of each step's view only, with per-Gaussian bias "
                                                     "correction (slam.selective_adam); 'adam': torch's Adam over "
                                                     "the whole merged map every step")
