@@ -138,6 +138,8 @@ class MapRefineConfig(_Section):
                                                "'mapping' = at the mapping resolution (agents keep them, "
                                                "w x h x 7 bytes per keyframe), 'small' = the loop-closure copies "
                                                "(submaps.keep_keyframe_width): faster, blurrier above that width")
+    single_agent: bool = Field(False, description="`swarmsplat run` refines its one agent's merged map the same "
+                               "way after the last frame (its submaps overlap as a team's do)")
     optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "
                                                     "Gaussians of each step's view only, with per-Gaussian bias "
                                                     "correction (slam.selective_adam); 'adam': torch's Adam over "

@@ -54,6 +54,9 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
     agent = Agent(seq.camera, cfg, name=seq.name, reference=reference)
+    rc = cfg.map_refine
+    refine = rc.single_agent and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
+    agent.keep_keyframe_images = refine and rc.views == "mapping"  # the refinement's views, after submaps retire
     t0 = time.perf_counter()
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason, n_frames=n,
                                                     wall_s=time.perf_counter() - t0))
@@ -65,11 +68,19 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
             b.update(1, f"{len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps")
             if observer is not None:
                 observer(agent)
+    refined = None
+    if refine:  # the merged map over all keyframes at their final poses (slam.team_refine)
+        from .progress import reporting
+        from .team_refine import refine_agent
+
+        with reporting(progress):
+            refined = refine_agent(agent, rc, cfg.mapping, reference=reference)
     wall = time.perf_counter() - t0
-    return write_results(agent, seq, out, wall_s=wall, n_frames=n)
+    return write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined)
 
 
-def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int) -> dict:
+def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
+                  map_refine: dict | None = None) -> dict:
     from slam.trajectory import write_tum
 
     from .ply import save_ply
@@ -100,7 +111,9 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int)
         "pose_graph_not_applied": agent.loops.not_applied,
         "loops_by_source": count_by_source(agent.loops.log),
         "fps": n_frames / wall_s if wall_s > 0 else float("nan"),
-        "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
+        "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure,
+                   "map_refine": map_refine["seconds"] if map_refine else 0.0},
+        "map_refine": map_refine,
         "kernels": agent.cfg.kernels.model_dump(),
     }
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
