@@ -7,6 +7,8 @@ as it was read, no downsampling). Shared by `swarmsplat run` (slam.run) and the 
   psnr_input_resolution, ssim_input_resolution, ...           at `input_resolution` [w, h]
 
 When the two resolutions are equal the map is rendered once and the *_input_resolution figures are copies.
+A single agent's run reports its keyframes rendered from their own submaps (psnr, ...) and from its merged map
+(psnr_merged, ...: overlapping submaps blend there, as in a team's merged map).
 Colour is clamped to [0, 1]; depth L1 compares the rendered expected surface depth (depth / alpha) with the
 valid input depth (metres); psnr_valid_depth leaves out pixels without valid depth (they get no Gaussians).
 """
@@ -84,15 +86,24 @@ def mean_scores(scores: list[dict]) -> dict:
     return out
 
 
+MERGED = "_merged"
+
+
 def keyframe_metrics(agent, seq) -> dict:
-    """Training-view quality of one agent: every keyframe rendered from its own submap at its pose, at the working
-    and the input resolution (keys in the module docstring, plus render_views and both resolutions)."""
-    scores = []
-    for kf in agent.keyframes:
+    """Training-view quality of one agent at the working and the input resolution: every keyframe rendered from
+    its own submap at its pose (the keys in the module docstring), and from the merged map, every submap at its
+    final place, at the keyframe's final pose (the same keys with MERGED before any resolution suffix, e.g.
+    psnr_merged, psnr_merged_input_resolution: what a team reports as psnr). Plus render_views and both
+    resolutions."""
+    scores, merged_scores = [], []
+    merged = agent.gmap.merged()
+    for kf, T_world in zip(agent.keyframes, agent.keyframe_world_poses()):
         f = seq[kf.frame_index]
         s, _, _ = score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local_cam, f.color, f.depth, seq.camera,
                              agent.cfg)
         scores.append(s)
-    means = mean_scores(scores)
+        merged_scores.append(score_view(merged, T_world, f.color, f.depth, seq.camera, agent.cfg)[0])
+    means, mm = mean_scores(scores), mean_scores(merged_scores)
     return {**{k: means.get(k) for k in METRICS}, **{k + INPUT: means.get(k + INPUT) for k in METRICS},
+            **{k + MERGED: mm.get(k) for k in METRICS}, **{k + MERGED + INPUT: mm.get(k + INPUT) for k in METRICS},
             "render_views": len(scores), **resolutions(seq.camera, agent.cfg)}
