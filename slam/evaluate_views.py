@@ -7,8 +7,9 @@ as it was read, no downsampling). Shared by `swarmsplat run` (slam.run) and the 
   psnr_input_resolution, ssim_input_resolution, ...           at `input_resolution` [w, h]
 
 When the two resolutions are equal the map is rendered once and the *_input_resolution figures are copies.
-A single agent's run reports its keyframes rendered from their own submaps (psnr, ...) and from its merged map
-(psnr_merged, ...: overlapping submaps blend there, as in a team's merged map).
+A single agent's run reports its keyframes rendered from their own submaps (psnr, ...: the mapping stage's result,
+scored before the final map refinement) and from its final merged map (psnr_merged, ...: overlapping submaps blend
+there, as in a team's merged map).
 Colour is clamped to [0, 1]; depth L1 compares the rendered expected surface depth (depth / alpha) with the
 valid input depth (metres); psnr_valid_depth leaves out pixels without valid depth (they get no Gaussians).
 """
@@ -89,21 +90,26 @@ def mean_scores(scores: list[dict]) -> dict:
 MERGED = "_merged"
 
 
-def keyframe_metrics(agent, seq) -> dict:
-    """Training-view quality of one agent at the working and the input resolution: every keyframe rendered from
-    its own submap at its pose (the keys in the module docstring), and from the merged map, every submap at its
-    final place, at the keyframe's final pose (the same keys with MERGED before any resolution suffix, e.g.
-    psnr_merged, psnr_merged_input_resolution: what a team reports as psnr). Plus render_views and both
-    resolutions."""
+def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True) -> dict:
+    """Training-view quality of one agent at the working and the input resolution. own: every keyframe rendered
+    from its own submap at its pose (the keys in the module docstring). merged: every keyframe rendered from the
+    merged map, every submap at its final place, at the keyframe's final pose (the same keys with MERGED before
+    any resolution suffix, e.g. psnr_merged, psnr_merged_input_resolution: what a team reports as psnr). Plus
+    render_views and both resolutions."""
     scores, merged_scores = [], []
-    merged = agent.gmap.merged()
+    merged_map = agent.gmap.merged() if merged else None
     for kf, T_world in zip(agent.keyframes, agent.keyframe_world_poses()):
         f = seq[kf.frame_index]
-        s, _, _ = score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local_cam, f.color, f.depth, seq.camera,
-                             agent.cfg)
-        scores.append(s)
-        merged_scores.append(score_view(merged, T_world, f.color, f.depth, seq.camera, agent.cfg)[0])
-    means, mm = mean_scores(scores), mean_scores(merged_scores)
-    return {**{k: means.get(k) for k in METRICS}, **{k + INPUT: means.get(k + INPUT) for k in METRICS},
-            **{k + MERGED: mm.get(k) for k in METRICS}, **{k + MERGED + INPUT: mm.get(k + INPUT) for k in METRICS},
-            "render_views": len(scores), **resolutions(seq.camera, agent.cfg)}
+        if own:
+            scores.append(score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local_cam, f.color, f.depth,
+                                     seq.camera, agent.cfg)[0])
+        if merged:
+            merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg)[0])
+    out = {"render_views": len(agent.keyframes), **resolutions(seq.camera, agent.cfg)}
+    if own:
+        means = mean_scores(scores)
+        out.update({k: means.get(k) for k in METRICS} | {k + INPUT: means.get(k + INPUT) for k in METRICS})
+    if merged:
+        mm = mean_scores(merged_scores)
+        out.update({k + MERGED: mm.get(k) for k in METRICS} | {k + MERGED + INPUT: mm.get(k + INPUT) for k in METRICS})
+    return out
