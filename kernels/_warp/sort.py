@@ -23,6 +23,25 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 RADIX_BITS = 11
 RADIX = 1 << RADIX_BITS
+# CPU only (a no-op on CUDA): the counting sort visits Gaussians in depth order, so their rectangles and entry
+# starts are random reads; fetch those of the Gaussian 8 places ahead into cache (measured: binning 256k Gaussians of a
+# real map took ~0.3 s, mostly those misses).
+_PREFETCH_RECT = r"""
+#if !defined(__CUDA_ARCH__)
+    const int ahead = 8;
+    if (i + ahead < m) {
+        const int g = *(const int*)((const char*)order.data + (size_t)(i + ahead) * order.strides[0]);
+        __builtin_prefetch((const char*)rect.data + (size_t)g * rect.strides[0]);
+        __builtin_prefetch((const char*)emit_start.data + (size_t)g * emit_start.strides[0]);
+    }
+#endif
+"""
+
+
+@wp.func_native(_PREFETCH_RECT)
+def _prefetch_rect(order: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+                   emit_start: wp.array(dtype=wp.int32), i: int, m: int):
+    ...
 
 
 @wp.func
@@ -78,6 +97,7 @@ def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), re
     for t in range(n_tiles + 1):
         tile_start[t] = 0
     for i in range(m):
+        _prefetch_rect(vals2, rect, emit_start, i, m)
         g = vals2[i]
         for ty in range(rect[g, 1], rect[g, 3]):
             for tx in range(rect[g, 0], rect[g, 2]):
@@ -87,6 +107,7 @@ def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), re
         tile_start[t + 1] = tile_start[t + 1] + tile_start[t]
         cursor[t] = tile_start[t]
     for i in range(m):
+        _prefetch_rect(vals2, rect, emit_start, i, m)
         g = vals2[i]
         k = emit_start[g]
         for ty in range(rect[g, 1], rect[g, 3]):
