@@ -60,6 +60,12 @@ class TrackingConfig(_Section):
                                       "than this fraction of the model view has alpha >= alpha_min")
     max_correction: float = Field(0.05, gt=0, description="keep the coarse pose when the refinement moves it "
                                                           "further than this (m)")
+    acceptance_test: bool = Field(True, description="Gauss-Newton: per-frame acceptance test, keep the coarse pose "
+                                  "unless the refinement lowers the robust hybrid residual against the model view")
+    min_residual_gain: float = Field(0.0, ge=0, lt=1, description="Gauss-Newton: ... by at least this fraction of "
+                                     "its value at the coarse pose")
+    max_inlier_loss: float = Field(0.1, ge=0, le=1, description="Gauss-Newton: ... and keeps at least 1 - this of "
+                                   "the coarse pose's correspondences")
     max_view_bias: float = Field(0.005, gt=0, description="Gauss-Newton: a model view is not used when its own "
                                  "keyframe, aligned to it, moves more than this (m): the map disagrees with it")
     adam_iterations: int = Field(20, ge=1, description="Adam: maximum iterations at the finest level")
