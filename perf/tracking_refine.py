@@ -179,6 +179,7 @@ def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, s
             "tracking_ms_median": 1e3 * statistics.median(times[1:] or times),
             "mapping_s": agent.time.mapping, "wall_s": wall, "keyframes": len(agent.keyframes),
             "gaussians": len(agent.gmap), "summary": summarise(rows), "per_frame": rows,
+            "view_bias_mm": [None if b is None else 1e3 * b for b in tr.view_biases],
             **({"T_est_no_lc": np.asarray(T_est).tolist()} if poses else {})}
 
 
@@ -223,6 +224,9 @@ def compare(seq, variants: dict[str, dict], frames: int, **kw) -> list[dict]:
         r["ratio_tracking_cpu"] = r["tracking_cpu_s"] / base["tracking_cpu_s"]
         r["load"] = os.getloadavg()
         s = r["summary"]
+        vb = [b for b in r["view_bias_mm"] if b is not None]
+        s["view_bias_mm_median"] = float(statistics.median(vb)) if vb else None
+        print(f"[{seq.name}] {name}: view bias median {s['view_bias_mm_median']} mm", file=sys.stderr)
         print(f"[{seq.name}] {name}: ATE {r['ate_mm']:.2f} mm  tracking {r['tracking_s']:.1f} s "
               f"({r['ratio_tracking']:.2f}x, cpu {r['ratio_tracking_cpu']:.2f}x)  rel coarse/final/shadow "
               f"{s['rel_coarse_0']}/{s['rel_final_0']}/{s['rel_shadow_0']} mm  toward {s.get('toward_final')}"

@@ -130,7 +130,9 @@ def align_to_model(frame: RGBD, target: ModelTarget, T_view_cam: np.ndarray, *, 
     """Gauss-Newton of `frame` (the same camera as the view) onto `target` from T_view_cam [4, 4]; `iterations`
     steps per level, correspondence gate max_distance x stride (m). Fails (returning the start pose) when a
     level has fewer than `min_correspondences` correspondences. `start` / `final` (with evaluate_final: one more
-    evaluation) are the objective at the finest level at the start and returned poses, for an acceptance test."""
+    evaluation, unless the last step moved less than `tolerance` in m and rad, when the objective it was taken
+    from stands for the returned pose) are the objective at the finest level at the start and returned poses, for
+    an acceptance test."""
     if frame.camera != target.camera:
         raise ValueError("align_to_model: the frame must have the model view's camera")
     T = np.asarray(T_view_cam, dtype=np.float64).copy()
@@ -143,6 +145,7 @@ def align_to_model(frame: RGBD, target: ModelTarget, T_view_cam: np.ndarray, *, 
         gate = max_distance * lv.stride
         if li == last and total > 0:  # the start pose's objective at the finest level
             start = _residual(src, _equations(src, lv, T0, gate))
+        converged = False
         for k in range(iterations):
             ne = _equations(src, lv, T, gate)
             if li == last and total == 0 and k == 0:
@@ -153,12 +156,16 @@ def align_to_model(frame: RGBD, target: ModelTarget, T_view_cam: np.ndarray, *, 
             T = se3.exp(xi) @ T
             total += 1
             if np.linalg.norm(xi[:3]) < tolerance and np.linalg.norm(xi[3:]) < tolerance:
+                converged = True
                 break
     rmse = float(np.sqrt(ne.cost / max(ne.count, 1))) if ne is not None else float("nan")
     final = None
     if evaluate_final and ne is not None:
-        lv = target.levels[-1]
-        final = _residual(src, _equations(src, lv, T, max_distance * lv.stride))
+        if converged:  # the last step moved less than `tolerance`: its objective stands for the returned pose
+            final = _residual(src, ne)
+        else:
+            lv = target.levels[-1]
+            final = _residual(src, _equations(src, lv, T, max_distance * lv.stride))
     return AlignResult(T, True, total, ne.count if ne is not None else 0, rmse, start, final)
 
 

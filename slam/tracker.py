@@ -124,7 +124,7 @@ def refine_detail(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_local_cam
     target = target or ModelTarget(view, refine_strides(cfg), max_depth=max_depth)
     r = align_to_model(f, target, se3.inverse(T_local_view) @ T_local_cam, iterations=cfg.iterations,
                        photometric_weight=cfg.photometric_weight, max_distance=cfg.max_distance, max_depth=max_depth,
-                       evaluate_final=cfg.acceptance_test)
+                       tolerance=cfg.step_tolerance, evaluate_final=cfg.acceptance_test)
     info = RefineInfo(False, "failed", cov, r.iterations, start=r.start, final=r.final, rmse=r.rmse)
     if not r.success:
         return T_local_cam, info
@@ -238,6 +238,7 @@ class Tracker:
         self._velocity = np.eye(4)  # T_prev_cur of the last step
         # (params it shows, T_local_view, view, its ModelTarget)
         self._view: tuple[GaussianParams, np.ndarray, RGBD, ModelTarget] | None = None
+        self.view_biases: list[float | None] = []  # per rendered view: |translation| of its keyframe's self-check
 
     def reset_frame(self, T_new_old: np.ndarray) -> None:
         """Re-express the stored previous pose after the active submap's frame changes (new submap)."""
@@ -280,27 +281,40 @@ class Tracker:
 
     def view_of(self, params: GaussianParams, camera) -> tuple[np.ndarray, RGBD]:
         """(T_local_view [4, 4], model view) the refinement aligns to: rendered again only after the map changed
-        (mapping replaces `params`), at the pose of the frame tracked last: the keyframe that was just mapped."""
+        (mapping replaces `params`), at the pose of the frame tracked last: the keyframe that was just mapped.
+        With `debias_view` the returned pose is where that keyframe aligns to the view (its self-check below),
+        so a view offset from its keyframe by B gives T_local_view = T_keyframe @ inv(B)."""
         if self._view is None or self._view[0] is not params:
             view = model_view(params.detached(), self._prev_pose, camera, alpha_min=self.cfg.alpha_min,
                               reference=self.reference)
             target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
-            if not self._view_agrees(view, target):
+            B = self._view_bias(view, target)
+            T_view = self._prev_pose.copy()
+            self.view_biases.append(None if B is None else float(np.linalg.norm(B[:3, 3])))
+            if B is None or float(np.linalg.norm(B[:3, 3])) > self.cfg.max_view_bias:
                 view = RGBD(view.color, np.zeros_like(view.depth), view.camera)  # unusable: covers nothing
-            self._view = (params, self._prev_pose.copy(), view, target)
+            elif self.cfg.debias_view:
+                T_view = se3.project_rigid(T_view @ se3.inverse(B))
+            self._view = (params, T_view, view, target)
         return self._view[1], self._view[2]
 
     def _view_agrees(self, view: RGBD, target: ModelTarget) -> bool:
         """Self-check of a fresh model view: the keyframe it was rendered at, aligned to it from its own pose,
         must stay within `max_view_bias` (m). A map that disagrees with its own keyframe (e.g. too few mapping
         iterations) would pull every frame by that much."""
+        B = self._view_bias(view, target)
+        return B is not None and float(np.linalg.norm(B[:3, 3])) <= self.cfg.max_view_bias
+
+    def _view_bias(self, view: RGBD, target: ModelTarget) -> np.ndarray | None:
+        """T_view_keyframe [4, 4]: the keyframe the view was rendered at, aligned to it from its own pose (the
+        identity for a map that agrees with its keyframe); None when the alignment fails."""
         f = self._prev.resized(self.cfg.refine_max_width)
         if f.camera != view.camera or view.valid_fraction() < self.cfg.min_model_coverage:
-            return True  # nothing to check against (refine_against_view skips an uncovered view itself)
+            return np.eye(4)  # nothing to check against (refine_against_view skips an uncovered view itself)
         r = align_to_model(f, target, np.eye(4), iterations=self.cfg.iterations,
                            photometric_weight=self.cfg.photometric_weight, max_distance=self.cfg.max_distance,
                            max_depth=self.max_depth)
-        return r.success and float(np.linalg.norm(r.T_view_cam[:3, 3])) <= self.cfg.max_view_bias
+        return r.T_view_cam if r.success else None
 
     def _remember(self, frame: RGBD, T: np.ndarray) -> None:
         self._prev = frame.resized(self.cfg.coarse_max_width)
