@@ -161,3 +161,23 @@ def test_refinement_keeps_poses_rigid(pair):
         R = T[:3, :3]
         assert np.abs(R.T @ R - np.eye(3)).max() < 1e-9
         T_v = T @ se3.inverse(T_true) @ T_view  # the next view sits where this frame says the view is
+
+
+def test_view_bias_is_the_views_offset_from_its_keyframe(pair):
+    """Tracker._view_bias (the max_view_bias self-check, and debias_view): a view rendered 1 cm off its keyframe
+    reports that offset; placing the view at keyframe @ inv(bias) lets a frame refine to its true pose, where
+    the keyframe's own pose would pull it by the centimetre."""
+    from slam.tracker import Tracker, refine_detail
+
+    cam, T_view, T_true, view, frame = pair
+    tr = Tracker(_tc(cam))
+    tr._prev = view  # the keyframe, at T_view
+    assert np.linalg.norm(tr._view_bias(view, ModelTarget(view, [1]))[:3, 3]) < 5e-4
+    shift = se3.exp(np.array([0, 0, 0, 0.01, 0, 0.0]))
+    shifted = make_rgbd(*slam_scene.render(T_view @ shift, cam), cam, min_depth=0.1, max_depth=10.0)
+    B = tr._view_bias(shifted, ModelTarget(shifted, [1]))
+    assert abs(np.linalg.norm(B[:3, 3]) - 0.01) < 1.5e-3
+    tc = _tc(cam, max_correction=0.05)
+    T_biased, _ = refine_detail(frame, shifted, T_view, T_true, tc)
+    T_debiased, _ = refine_detail(frame, shifted, T_view @ se3.inverse(B), T_true, tc)
+    assert _err(T_true, T_biased)[0] > 0.008 and _err(T_true, T_debiased)[0] < 0.25 * _err(T_true, T_biased)[0]
