@@ -70,7 +70,10 @@ class TrackingConfig(_Section):
     max_inlier_loss: float = Field(0.1, ge=0, le=1, description="Gauss-Newton: ... and keeps at least 1 - this of "
                                    "the coarse pose's correspondences")
     debias_view: bool = Field(False, description="Gauss-Newton: place each model view where its own keyframe "
-                              "aligns to it (removes the view's offset from its keyframe, up to max_view_bias)")
+                              "aligns to it (removes the view's offset from its keyframe, up to max_view_bias). "
+                              "Measured with refine on: generated agent, 60 frames, 3.24 mm ATE vs 8.83 without "
+                              "and 6.90 coarse-only; demo agent 1 (160 px maps, views 8 mm off their keyframes) "
+                              "21.3 vs 22.8 without and 20.5 coarse-only")
     max_view_bias: float = Field(0.005, gt=0, description="Gauss-Newton: a model view is not used when its own "
                                  "keyframe, aligned to it, moves more than this (m): the map disagrees with it")
     adam_iterations: int = Field(20, ge=1, description="Adam: maximum iterations at the finest level")
