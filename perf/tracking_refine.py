@@ -84,7 +84,7 @@ def _view_psnr(view, keyframe, alpha_min: float) -> float:
 
 
 def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, shadow: bool = True,
-            diagnostics: bool = True) -> dict:
+            diagnostics: bool = True, poses: bool = False) -> dict:
     """Run one agent over the first `frames` frames of `seq` with tracking `overrides`; see the module doc."""
     import torch
 
@@ -131,6 +131,14 @@ def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, s
             tr.view_of(params, _refine_camera(agent, f, tc.refine_max_width))
         agent.step(f.index, f.timestamp, f.color, f.depth)
         row = {"frame": int(f.index), "keyframe": len(agent.keyframes) > n_kf}
+        if poses and "result" in seen and seen["result"] is not None:
+            res = seen["result"]
+            row["coarse_ok"] = bool(res.coarse_ok)
+            row["T_coarse"], row["T_final"] = res.T_local_cam_coarse.tolist(), res.T_local_cam.tolist()
+            if tr._view is not None:
+                row["T_view"] = tr._view[1].tolist()
+            if gt is not None:
+                row["G"] = gt[i].tolist()
         if has_map and tr._view is not None and tr._view[0] is params and gt is not None:
             T_view, v = tr._view[1], tr._view[2]
             res, frame = seen["result"], seen["frame"]
@@ -142,6 +150,15 @@ def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, s
             row["rel_coarse"] = _rel_error(T_view, res.T_local_cam_coarse, gt[kf_index], gt[i])
             row["rel_final"] = _rel_error(T_view, res.T_local_cam, gt[kf_index], gt[i])
             row["iterations"] = res.iterations
+            ri = res.refine
+            if ri is not None:
+                row["refine"] = {"accepted": ri.accepted, "reason": ri.reason, "coverage": ri.coverage,
+                                 "correction_mm": 1e3 * ri.correction_m, "correction_deg": ri.correction_deg,
+                                 "score_ratio": ri.score_ratio,
+                                 "inliers": [None if x is None else x.inlier_fraction for x in (ri.start, ri.final)],
+                                 "photo": [None if x is None else x.photo_cost / max(x.photo_count, 1)
+                                           for x in (ri.start, ri.final)],
+                                 "geo": [None if x is None else x.cost / max(x.count, 1) for x in (ri.start, ri.final)]}
             row["loss_coarse"] = _loss(params, fr, res.T_local_cam_coarse, tc.alpha_min)
             if res.iterations:
                 row["loss_final"] = _loss(params, fr, res.T_local_cam, tc.alpha_min)
@@ -161,7 +178,9 @@ def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, s
             "tracking_s": float(sum(times)), "tracking_cpu_s": float(sum(cpus)),
             "tracking_ms_median": 1e3 * statistics.median(times[1:] or times),
             "mapping_s": agent.time.mapping, "wall_s": wall, "keyframes": len(agent.keyframes),
-            "gaussians": len(agent.gmap), "summary": summarise(rows), "per_frame": rows}
+            "gaussians": len(agent.gmap), "summary": summarise(rows), "per_frame": rows,
+            "view_bias_mm": [None if b is None else 1e3 * b for b in tr.view_biases],
+            **({"T_est_no_lc": np.asarray(T_est).tolist()} if poses else {})}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -205,6 +224,9 @@ def compare(seq, variants: dict[str, dict], frames: int, **kw) -> list[dict]:
         r["ratio_tracking_cpu"] = r["tracking_cpu_s"] / base["tracking_cpu_s"]
         r["load"] = os.getloadavg()
         s = r["summary"]
+        vb = [b for b in r["view_bias_mm"] if b is not None]
+        s["view_bias_mm_median"] = float(statistics.median(vb)) if vb else None
+        print(f"[{seq.name}] {name}: view bias median {s['view_bias_mm_median']} mm", file=sys.stderr)
         print(f"[{seq.name}] {name}: ATE {r['ate_mm']:.2f} mm  tracking {r['tracking_s']:.1f} s "
               f"({r['ratio_tracking']:.2f}x, cpu {r['ratio_tracking_cpu']:.2f}x)  rel coarse/final/shadow "
               f"{s['rel_coarse_0']}/{s['rel_final_0']}/{s['rel_shadow_0']} mm  toward {s.get('toward_final')}"
@@ -243,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="extra variant: tracking overrides as JSON, e.g. 'fine={\"iterations\": 3}'")
     p.add_argument("--mapping", default=None, help="mapping overrides as JSON (e.g. fewer iterations)")
     p.add_argument("--no-shadow", action="store_true")
+    p.add_argument("--poses", action="store_true", help="store each frame's coarse / final / view pose and its "
+                   "ground truth in the per-frame rows")
     p.add_argument("--json", dest="json_out")
     a = p.parse_args(argv)
     from slam.datasets import load_sequence
@@ -254,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="perf_refine_") as tmp:
         seq = load_sequence(a.data) if a.data else load_sequence(generated(Path(tmp), a.frames))
         rows = compare(seq, variants, a.frames, mapping=json.loads(a.mapping) if a.mapping else None,
-                       shadow=not a.no_shadow)
+                       shadow=not a.no_shadow, poses=a.poses)
     if a.json_out:
         from kernels.fileio import atomic_write_text
 

@@ -36,11 +36,12 @@ class TrackingConfig(_Section):
                                                             "distrusted: constant velocity is used instead")
     refine: bool = Field(False, description="frame-to-model refinement after the coarse stage (§III-C): "
                                            "Gauss-Newton against the active submap rendered at the last keyframe. "
-                                           "Off: on 40 frames (perf.tracking_refine) it helped on generated data "
-                                           "(4.1 vs 8.0 mm) and tied on Redwood (2.83 vs 2.79 mm), but over all "
-                                           "211 Redwood frames tracking alone went from 1.0 to 4.5 cm and the "
-                                           "demo's agents 1 / 2 (maps at 160 px) from 0.80 / 0.60 to 1.37 / "
-                                           "1.00 cm (README)")
+                                           "Off: with refined poses kept on SE(3) (the earlier 211-frame blow-up, "
+                                           "4.5 cm, was a pose drifting off SE(3)) it ties on Redwood 211 "
+                                           "(tracking-only 10.0 vs 10.3 mm), and is worse on the generated "
+                                           "agent (60 frames 7.3-8.8 vs 6.9 mm) and the demo's agent 1 at 160 px "
+                                           "maps (22.8 vs 20.5 mm), at 1.6-2x the coarse tracking time "
+                                           "(notes/refine5-readme.md)")
     refine_on_coarse_failure: bool = Field(True, description="run the refinement anyway when the coarse stage "
                                                             "fails (then it starts from constant velocity)")
     method: Literal["gauss_newton", "adam"] = Field(
@@ -53,6 +54,8 @@ class TrackingConfig(_Section):
     pyramid_levels: int = Field(1, ge=1, le=4, description="refinement pyramid (each level halves the width)")
     iterations: int = Field(3, ge=0, description="Gauss-Newton steps per pyramid level (0 = no refinement); 3 "
                                                "measured as good as 5 (5.48 vs 5.59 mm on generated data)")
+    step_tolerance: float = Field(1e-5, gt=0, description="Gauss-Newton: stop a level when a step moves less "
+                                  "than this (m and rad)")
     photometric_weight: float = Field(0.3, ge=0, description="Gauss-Newton: intensity term weight (intensity in "
                                                              "[0, 1] against metres)")
     max_distance: float = Field(0.05, gt=0, description="Gauss-Newton: correspondence gate (m)")
@@ -60,6 +63,17 @@ class TrackingConfig(_Section):
                                       "than this fraction of the model view has alpha >= alpha_min")
     max_correction: float = Field(0.05, gt=0, description="keep the coarse pose when the refinement moves it "
                                                           "further than this (m)")
+    acceptance_test: bool = Field(True, description="Gauss-Newton: per-frame acceptance test, keep the coarse pose "
+                                  "unless the refinement lowers the robust hybrid residual against the model view")
+    min_residual_gain: float = Field(0.0, ge=0, lt=1, description="Gauss-Newton: ... by at least this fraction of "
+                                     "its value at the coarse pose")
+    max_inlier_loss: float = Field(0.1, ge=0, le=1, description="Gauss-Newton: ... and keeps at least 1 - this of "
+                                   "the coarse pose's correspondences")
+    debias_view: bool = Field(False, description="Gauss-Newton: place each model view where its own keyframe "
+                              "aligns to it (removes the view's offset from its keyframe, up to max_view_bias). "
+                              "Measured with refine on: generated agent, 60 frames, 3.24 mm ATE vs 8.83 without "
+                              "and 6.90 coarse-only; demo agent 1 (160 px maps, views 8 mm off their keyframes) "
+                              "21.3 vs 22.8 without and 20.5 coarse-only")
     max_view_bias: float = Field(0.005, gt=0, description="Gauss-Newton: a model view is not used when its own "
                                  "keyframe, aligned to it, moves more than this (m): the map disagrees with it")
     adam_iterations: int = Field(20, ge=1, description="Adam: maximum iterations at the finest level")

@@ -43,7 +43,7 @@ from kernels import se3
 from .config import TrackingConfig
 from .frames import RGBD
 from .gaussian_map import GaussianParams
-from .model_align import ModelTarget, align_to_model
+from .model_align import ModelTarget, Residual, align_to_model
 from .odometry_adapter import Registration, coarse_odometry
 from .render import render, rgbd_loss
 
@@ -56,6 +56,29 @@ class TrackResult:
     iterations: int
     loss: float
     coarse: Registration | None = None  # the coarse stage's registration (its information feeds the pose graph)
+    refine: "RefineInfo | None" = None  # what the Gauss-Newton refinement did (None when it did not run)
+
+
+@dataclass
+class RefineInfo:
+    """One frame's Gauss-Newton refinement: whether its pose was kept, why not, and the evidence."""
+
+    accepted: bool
+    reason: str  # "ok" | "coverage" | "failed" | "max_correction" | "residual" | "inliers"
+    coverage: float  # fraction of the model view with alpha >= alpha_min
+    iterations: int = 0
+    correction_m: float = float("nan")  # refined vs coarse pose
+    correction_deg: float = float("nan")
+    start: Residual | None = None  # objective at the coarse pose (finest level)
+    final: Residual | None = None  # ... at the refined pose
+    rmse: float = float("nan")
+
+    @property
+    def score_ratio(self) -> float:
+        """Refined over coarse robust cost per source point (< 1: the refinement lowered the objective)."""
+        if self.start is None or self.final is None:
+            return float("nan")
+        return self.final.score / max(self.start.score, 1e-300)
 
 
 def model_view(params: GaussianParams, T_local_cam: np.ndarray, camera, *, alpha_min: float,
@@ -80,21 +103,51 @@ def refine_against_view(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_loc
                         target: ModelTarget | None = None) -> tuple[np.ndarray, int, float]:
     """Gauss-Newton alignment of `frame` to a model view rendered at T_local_view, from the pose T_local_cam
     (slam.model_align; `target` is the view prepared by ModelTarget, built here when None).
-    Returns (pose, iterations, point-to-plane RMS residual in metres); the input pose with 0 iterations when the
-    view covers less than `min_model_coverage` of the image, the alignment fails, or it moves the pose by more
-    than `max_correction`."""
+    Returns (pose, iterations, point-to-plane RMS residual in metres); the input pose with 0 iterations when
+    `refine_detail` does not accept the refinement."""
+    T, info = refine_detail(frame, view, T_local_view, T_local_cam, cfg, max_depth=max_depth, target=target)
+    return (T, info.iterations, info.rmse) if info.accepted else (T_local_cam, 0, float("nan"))
+
+
+def refine_detail(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_local_cam: np.ndarray,
+                  cfg: TrackingConfig, *, max_depth: float = 10.0,
+                  target: ModelTarget | None = None) -> tuple[np.ndarray, RefineInfo]:
+    """`refine_against_view` with its evidence. The refined pose is accepted only when the view covers at least
+    `min_model_coverage` of the image, the alignment succeeds, it moves the pose by at most `max_correction`, and
+    (the per-frame acceptance test) it lowers the robust hybrid objective against the view by at least
+    `min_residual_gain` of its value at the coarse pose without losing more than `max_inlier_loss` of the
+    correspondences. Returns (pose, info): the coarse pose when not accepted."""
     f = frame.resized(cfg.refine_max_width)
-    if view.valid_fraction() < cfg.min_model_coverage:
-        return T_local_cam, 0, float("nan")
+    cov = view.valid_fraction()
+    if cov < cfg.min_model_coverage:
+        return T_local_cam, RefineInfo(False, "coverage", cov)
     target = target or ModelTarget(view, refine_strides(cfg), max_depth=max_depth)
     r = align_to_model(f, target, se3.inverse(T_local_view) @ T_local_cam, iterations=cfg.iterations,
-                       photometric_weight=cfg.photometric_weight, max_distance=cfg.max_distance, max_depth=max_depth)
+                       photometric_weight=cfg.photometric_weight, max_distance=cfg.max_distance, max_depth=max_depth,
+                       tolerance=cfg.step_tolerance, evaluate_final=cfg.acceptance_test)
+    info = RefineInfo(False, "failed", cov, r.iterations, start=r.start, final=r.final, rmse=r.rmse)
     if not r.success:
-        return T_local_cam, 0, float("nan")
-    T = T_local_view @ r.T_view_cam
-    if np.linalg.norm((se3.inverse(T_local_cam) @ T)[:3, 3]) > cfg.max_correction:
-        return T_local_cam, 0, float("nan")
-    return T, r.iterations, r.rmse
+        return T_local_cam, info
+    # Projected onto SE(3): `se3.inverse` is a transpose, so any drift of a stored pose off SE(3) comes back as
+    # a scale error, and refining against a view whose pose is itself a refined one multiplied that error by ~3
+    # per keyframe (measured on Redwood 211: |R^T R - I| 1e-14 at frame 9, 7e-2 by frame 87, where frames stepped
+    # twice the true motion).
+    T = se3.project_rigid(T_local_view @ r.T_view_cam)
+    D = se3.inverse(T_local_cam) @ T
+    info.correction_m = float(np.linalg.norm(D[:3, 3]))
+    info.correction_deg = float(np.degrees(se3.rotation_angle(D[:3, :3])))
+    if info.correction_m > cfg.max_correction:
+        info.reason = "max_correction"
+        return T_local_cam, info
+    if cfg.acceptance_test and r.start is not None and r.final is not None:
+        if not info.score_ratio <= 1.0 - cfg.min_residual_gain:
+            info.reason = "residual"
+            return T_local_cam, info
+        if r.final.count < (1.0 - cfg.max_inlier_loss) * r.start.count:
+            info.reason = "inliers"
+            return T_local_cam, info
+    info.accepted, info.reason = True, "ok"
+    return T, info
 
 
 def refine_pose(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig,
@@ -185,6 +238,7 @@ class Tracker:
         self._velocity = np.eye(4)  # T_prev_cur of the last step
         # (params it shows, T_local_view, view, its ModelTarget)
         self._view: tuple[GaussianParams, np.ndarray, RGBD, ModelTarget] | None = None
+        self.view_biases: list[float | None] = []  # per rendered view: |translation| of its keyframe's self-check
 
     def reset_frame(self, T_new_old: np.ndarray) -> None:
         """Re-express the stored previous pose after the active submap's frame changes (new submap)."""
@@ -208,46 +262,60 @@ class Tracker:
             if coarse_ok:
                 T_prev_cur = r.T_target_source
         T_coarse = self._prev_pose @ T_prev_cur
-        T, it, loss = T_coarse, 0, float("nan")
+        T, it, loss, info = T_coarse, 0, float("nan"), None
         refine = self.cfg.refine or (self.cfg.refine_on_coarse_failure and not coarse_ok)
         if refine and self.cfg.iterations > 0 and len(params) > 0:
             if self.cfg.method == "gauss_newton":
                 T_view, view = self._model_view(params, frame)
-                T, it, loss = refine_against_view(frame, view, T_view, T_coarse, self.cfg, max_depth=self.max_depth,
-                                                  target=self._view[3])
+                T, info = refine_detail(frame, view, T_view, T_coarse, self.cfg, max_depth=self.max_depth,
+                                        target=self._view[3])
+                it, loss = (info.iterations, info.rmse) if info.accepted else (0, float("nan"))
             else:
                 T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg, reference=self.reference)
         self._velocity = se3.inverse(self._prev_pose) @ T
         self._remember(frame, T)
-        return TrackResult(T, T_coarse, coarse_ok, it, loss, r)
+        return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info)
 
     def _model_view(self, params: GaussianParams, frame: RGBD) -> tuple[np.ndarray, RGBD]:
         return self.view_of(params, frame.resized(self.cfg.refine_max_width).camera)
 
     def view_of(self, params: GaussianParams, camera) -> tuple[np.ndarray, RGBD]:
         """(T_local_view [4, 4], model view) the refinement aligns to: rendered again only after the map changed
-        (mapping replaces `params`), at the pose of the frame tracked last: the keyframe that was just mapped."""
+        (mapping replaces `params`), at the pose of the frame tracked last: the keyframe that was just mapped.
+        With `debias_view` the returned pose is where that keyframe aligns to the view (its self-check below),
+        so a view offset from its keyframe by B gives T_local_view = T_keyframe @ inv(B)."""
         if self._view is None or self._view[0] is not params:
             view = model_view(params.detached(), self._prev_pose, camera, alpha_min=self.cfg.alpha_min,
                               reference=self.reference)
             target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
-            if not self._view_agrees(view, target):
+            B = self._view_bias(view, target)
+            T_view = self._prev_pose.copy()
+            self.view_biases.append(None if B is None else float(np.linalg.norm(B[:3, 3])))
+            if B is None or float(np.linalg.norm(B[:3, 3])) > self.cfg.max_view_bias:
                 view = RGBD(view.color, np.zeros_like(view.depth), view.camera)  # unusable: covers nothing
-            self._view = (params, self._prev_pose.copy(), view, target)
+            elif self.cfg.debias_view:
+                T_view = se3.project_rigid(T_view @ se3.inverse(B))
+            self._view = (params, T_view, view, target)
         return self._view[1], self._view[2]
 
     def _view_agrees(self, view: RGBD, target: ModelTarget) -> bool:
         """Self-check of a fresh model view: the keyframe it was rendered at, aligned to it from its own pose,
         must stay within `max_view_bias` (m). A map that disagrees with its own keyframe (e.g. too few mapping
         iterations) would pull every frame by that much."""
+        B = self._view_bias(view, target)
+        return B is not None and float(np.linalg.norm(B[:3, 3])) <= self.cfg.max_view_bias
+
+    def _view_bias(self, view: RGBD, target: ModelTarget) -> np.ndarray | None:
+        """T_view_keyframe [4, 4]: the keyframe the view was rendered at, aligned to it from its own pose (the
+        identity for a map that agrees with its keyframe); None when the alignment fails."""
         f = self._prev.resized(self.cfg.refine_max_width)
         if f.camera != view.camera or view.valid_fraction() < self.cfg.min_model_coverage:
-            return True  # nothing to check against (refine_against_view skips an uncovered view itself)
+            return np.eye(4)  # nothing to check against (refine_against_view skips an uncovered view itself)
         r = align_to_model(f, target, np.eye(4), iterations=self.cfg.iterations,
                            photometric_weight=self.cfg.photometric_weight, max_distance=self.cfg.max_distance,
                            max_depth=self.max_depth)
-        return r.success and float(np.linalg.norm(r.T_view_cam[:3, 3])) <= self.cfg.max_view_bias
+        return r.T_view_cam if r.success else None
 
     def _remember(self, frame: RGBD, T: np.ndarray) -> None:
         self._prev = frame.resized(self.cfg.coarse_max_width)
-        self._prev_pose = T
+        self._prev_pose = se3.project_rigid(T)  # the base of every later pose and model view: kept rigid
