@@ -153,11 +153,14 @@ class MapRefineConfig(_Section):
                                                "w x h x 7 bytes per keyframe), 'small' = the loop-closure copies "
                                                "(submaps.keep_keyframe_width): faster, blurrier above that width")
     single_agent: bool = Field(False, description="`swarmsplat run` refines its one agent's merged map the same "
-                               "way after the last frame (its submaps overlap as a team's do)")
+                               "way after the last frame (its submaps overlap as a team's do). Off: on Redwood 211 "
+                               "it took the merged map from 23.3 to 27.1 dB (psnr_merged, 320x240) for 111 s, "
+                               "+60 % run time; measured on that sequence only")
     optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "
                                                     "Gaussians of each step's view only, with per-Gaussian bias "
                                                     "correction (slam.selective_adam); 'adam': torch's Adam over "
-                                                    "the whole merged map every step")
+                                                    "the whole merged map every step. Measured equal (demo 26.89 "
+                                                    "vs 26.91 dB, Redwood 27.04 vs 27.05 dB, same time within 8 %)")
     seed: int = 0
 
 
