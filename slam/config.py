@@ -146,6 +146,14 @@ class MapRefineConfig(_Section):
     min_contribution: float = Field(0.2, ge=0, description="first drop Gaussians whose total blending weight is "
                                     "below this many pixels in every keyframe (copies hidden behind another "
                                     "submap's surface); 0 keeps all")
+    overlap_cull: bool = Field(True, description="before refining, keep each surface point in one submap only: "
+                               "the one whose keyframe observed it on its depth surface from closest "
+                               "(slam.overlap_cull). Measured on Redwood 211: 256k -> 108k Gaussians, 27.26 dB "
+                               "after refinement against 27.09, in 57 s against 100 s")
+    overlap_depth_tolerance: float = Field(0.03, ge=0, description="a keyframe observes a Gaussian's centre when "
+                                           "it lies within max(this (m), overlap_depth_tolerance_rel x depth) of "
+                                           "the keyframe's depth at its pixel")
+    overlap_depth_tolerance_rel: float = Field(0.02, ge=0, description="see overlap_depth_tolerance")
     view_margin: float = Field(0.15, ge=0, description="a step optimises the Gaussians whose centre projects into "
                                                        "the keyframe's image grown by this fraction per side")
     views: Literal["mapping", "small"] = Field("mapping", description="keyframe images the refinement fits: "

@@ -9,10 +9,13 @@ again), and loop closure has moved them since mapping fitted them.
 
 from __future__ import annotations
 
+import torch
+
 from kernels import se3
 
 from .gaussian_map import GaussianMap, GaussianParams, transform_params
 from .map_refine import RefineView, refine_map
+from .overlap_cull import OwnerView, owner_keep
 from .render import viewmat_from_pose
 
 
@@ -22,13 +25,31 @@ def _view(kf, T_frame_cam, cfg) -> RefineView:
                       f.camera)
 
 
-def _refine_parts(parts, views, cfg, mapping, reference: bool) -> dict:
-    """parts: [(submap, T frame <- submap local)]; refine their merged map over `views` (in that frame) and hand
-    each submap its surviving Gaussians back. Returns the statistics."""
+def _overlap_keep(parts, views, view_submaps, cfg, merged):
+    """keep [N] of slam.overlap_cull over `merged` (the parts' Gaussians in order); view_submaps[i]: the submap
+    of views[i]."""
+    index = {id(sm): i for i, (sm, _, _) in enumerate(parts)}
+    part = torch.cat([torch.full((n,), i, dtype=torch.long) for i, (_, _, n) in enumerate(parts)])
+    owners = [OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera) for v, sm in zip(views, view_submaps)
+              if id(sm) in index]
+    return owner_keep(merged.means, part, owners, tol_abs=cfg.overlap_depth_tolerance,
+                      tol_rel=cfg.overlap_depth_tolerance_rel)
+
+
+def _refine_parts(parts, views, view_submaps, cfg, mapping, reference: bool) -> dict:
+    """parts: [(submap, T frame <- submap local)]; refine their merged map over `views` (in that frame;
+    view_submaps[i] is the submap of views[i]'s keyframe) and hand each submap its surviving Gaussians back.
+    Returns the statistics."""
     parts = [(sm, T, len(sm)) for sm, T in parts if len(sm)]
     merged = GaussianParams.concat([transform_params(sm.params, T) for sm, T, _ in parts])
-    refined, keep, st = refine_map(merged, views, cfg, mapping, reference=reference)
-    hidden = int((~keep).sum())
+    runs = cfg.iterations_per_keyframe > 0 and cfg.max_iterations > 0 and views and len(merged)
+    owned = torch.ones(len(merged), dtype=torch.bool)
+    if runs and cfg.overlap_cull:
+        owned = _overlap_keep(parts, views, view_submaps, cfg, merged)
+    refined, kept, st = refine_map(merged.select(owned), views, cfg, mapping, reference=reference)
+    keep = owned.clone()
+    keep[owned] = kept
+    overlap, hidden = int((~owned).sum()), int((~kept).sum())
     pruned, start, at = 0, 0, 0  # start: index in merged; at: index in refined (kept Gaussians only)
     for sm, T, n in parts:
         k = int(keep[start:start + n].sum())
@@ -36,7 +57,8 @@ def _refine_parts(parts, views, cfg, mapping, reference: bool) -> dict:
         start, at = start + n, at + k
         sm.params = transform_params(part, se3.inverse(T))
         pruned += GaussianMap.prune(sm, min_opacity=mapping.prune_min_opacity, max_scale=mapping.prune_max_scale)
-    return {"iterations": st.iterations, "keyframes": st.views, "gaussians": st.gaussians, "hidden_dropped": hidden,
+    return {"iterations": st.iterations, "keyframes": st.views, "gaussians": len(merged), "overlap_dropped": overlap,
+            "hidden_dropped": hidden,
             "pruned": pruned, "loss_first": st.loss_first, "loss_last": st.loss_last, "seconds": st.seconds}
 
 
@@ -45,12 +67,13 @@ def refine_components(server, cfg, mapping, *, reference: bool = False) -> dict:
     MappingConfig (loss, learning rates, pruning). Returns per-component statistics keyed by the root agent."""
     out = {}
     for root, members in server.components().items():
-        parts, views = [], []
+        parts, views, view_submaps = [], [], []
         for a in members:
             s = server.slots[a]
             parts += [(sm, s.T_global_world @ sm.T_world_local) for sm in s.agent.gmap.submaps]
             views += [_view(kf, server.global_pose(a, kf), cfg) for kf in s.agent.keyframes]
-        out[server.slots[root].agent.name] = _refine_parts(parts, views, cfg, mapping, reference)
+            view_submaps += [s.agent.gmap.submaps[kf.submap_id] for kf in s.agent.keyframes]
+        out[server.slots[root].agent.name] = _refine_parts(parts, views, view_submaps, cfg, mapping, reference)
     return out
 
 
@@ -61,4 +84,6 @@ def refine_agent(agent, cfg, mapping, *, reference: bool = False) -> dict | None
         return None
     poses = agent.keyframe_world_poses()
     views = [_view(kf, T, cfg) for kf, T in zip(agent.keyframes, poses)]
-    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, cfg, mapping, reference)
+    view_submaps = [agent.gmap.submaps[kf.submap_id] for kf in agent.keyframes]
+    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_submaps, cfg, mapping,
+                         reference)

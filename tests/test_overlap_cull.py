@@ -1,0 +1,114 @@
+"""slam.overlap_cull: one copy of each observed surface where submaps overlap, and its use before the merged-map
+refinement (slam.team_refine)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import kernels
+from kernels.camera import PinholeCamera
+from kernels.errors import InputError
+from slam.overlap_cull import OwnerView, owner_keep
+
+CAM = PinholeCamera(60.0, 60.0, 31.5, 23.5, 64, 48)
+
+
+def _view(part: int, z_cam: float, plane_z: float = 3.0, valid=None) -> OwnerView:
+    """A camera on the optical axis at z = plane_z - z_cam looking +z at the plane z = plane_z (depth z_cam
+    everywhere, or 0 outside `valid` [H, W] bool)."""
+    vm = torch.eye(4)
+    vm[2, 3] = -(plane_z - z_cam)
+    depth = torch.full((CAM.height, CAM.width), z_cam)
+    if valid is not None:
+        depth = torch.where(valid, depth, torch.zeros(()))
+    return OwnerView(part, vm, depth, CAM)
+
+
+def _plane(n: int, plane_z: float = 3.0, half: float = 0.4, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(n, 2, generator=g) * 2 - 1) * half
+    return torch.cat([xy, torch.full((n, 1), plane_z)], dim=1)
+
+
+def test_each_surface_point_stays_in_the_submap_that_saw_it_closest():
+    a, b = _plane(200, seed=1), _plane(200, seed=2)
+    floater = torch.tensor([[0.0, 0.0, 1.8]])  # in free space for both cameras: observed by none, kept
+    means = torch.cat([a, b, floater])
+    part = torch.cat([torch.zeros(200), torch.ones(200), torch.ones(1)]).long()
+    # part 1's camera is closer: it owns the whole plane; part 0's copies go
+    keep = owner_keep(means, part, [_view(0, 2.0), _view(1, 1.5)])
+    assert not keep[:200].any() and keep[200:].all()
+    # the same with the views listed the other way round, and with part 0 closer
+    assert torch.equal(owner_keep(means, part, [_view(1, 1.5), _view(0, 2.0)]), keep)
+    keep0 = owner_keep(means, part, [_view(0, 1.2), _view(1, 1.5)])
+    assert keep0[:200].all() and not keep0[200:400].any() and keep0[400]
+
+
+def test_points_only_one_submap_observes_stay_and_ties_go_to_the_first_view():
+    means = torch.cat([_plane(300, seed=3), _plane(300, seed=4)])
+    part = torch.cat([torch.zeros(300), torch.ones(300)]).long()
+    # part 0 (closer) has no valid depth on the right half: there, part 1 observes alone and keeps its copies
+    valid = torch.zeros(CAM.height, CAM.width, dtype=torch.bool)
+    valid[:, : CAM.width // 2] = True
+    keep = owner_keep(means, part, [_view(0, 1.0, valid=valid), _view(1, 1.5)])
+    # the 1.0 m camera sees x = (u - cx) z / fx: the left half of its image is x < 0 on the plane
+    left = means[:, 0] < -0.02
+    right = means[:, 0] > 0.02
+    assert keep[:300][left[:300]].all() and not keep[300:][left[300:]].any()
+    assert not keep[:300][right[:300]].any() and keep[300:][right[300:]].all()
+    tie = owner_keep(means, part, [_view(1, 1.5), _view(0, 1.5)])
+    assert tie[300:].all() and not tie[:300].any()
+
+
+def test_depth_tolerance_decides_what_is_on_the_surface():
+    means = torch.cat([_plane(100, plane_z=3.0), _plane(100, plane_z=3.05, seed=5)])
+    part = torch.cat([torch.zeros(100), torch.ones(100)]).long()
+    views = [_view(0, 1.0, plane_z=3.0)]  # part 0's keyframe; part 1's copies lie 5 cm behind its surface
+    assert owner_keep(means, part, views, tol_abs=0.03, tol_rel=0.0)[100:].all()  # off the surface: unobserved
+    assert not owner_keep(means, part, views, tol_abs=0.06, tol_rel=0.0)[100:].any()
+    assert not owner_keep(means, part, views, tol_abs=0.0, tol_rel=0.06)[100:].any()
+
+
+def test_bad_input_names_what_was_expected():
+    with pytest.raises(InputError, match=r"means \[N, 3\]"):
+        owner_keep(torch.zeros(4, 2), torch.zeros(4).long(), [])
+    with pytest.raises(InputError, match="part"):
+        owner_keep(torch.zeros(4, 3), torch.zeros(3).long(), [])
+    with pytest.raises(InputError, match="tolerances"):
+        owner_keep(torch.zeros(4, 3), torch.zeros(4).long(), [], tol_abs=-1.0)
+    bad = OwnerView(0, torch.eye(4), torch.ones(10, 10), CAM)
+    with pytest.raises(InputError, match="64x48"):
+        owner_keep(torch.zeros(4, 3), torch.zeros(4).long(), [bad])
+
+
+def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
+    """Two submaps holding the same plane, each seen by its own keyframe: with overlap_cull the farther
+    keyframe's copy is dropped before refining (statistics say how many), the nearer submap keeps all its
+    Gaussians; without it both copies are refined."""
+    from slam.config import MappingConfig, MapRefineConfig
+    from slam.gaussian_map import GaussianParams, Submap
+    from slam.map_refine import RefineView
+    from slam.team_refine import _refine_parts
+
+    kernels.use("warp", "cpu")
+
+    def plane_submap(i, seed):
+        means = _plane(400, seed=seed)
+        n = len(means)
+        p = GaussianParams(means, torch.full((n, 3), np.log(0.01)), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                           torch.full((n,), 2.0), torch.full((n, 3), 0.5))
+        return Submap(i, np.eye(4), p, [i])
+
+    def refine_view(z_cam):
+        v = _view(0, z_cam)
+        return RefineView(v.viewmat, torch.full((CAM.height, CAM.width, 3), 0.5), v.depth, CAM)
+
+    for cull, dropped in ((True, 400), (False, 0)):
+        s0, s1 = plane_submap(0, 6), plane_submap(1, 7)
+        cfg = MapRefineConfig(iterations_per_keyframe=2, min_contribution=0.0, overlap_cull=cull)
+        st = _refine_parts([(s0, np.eye(4)), (s1, np.eye(4))], [refine_view(1.0), refine_view(1.6)], [s0, s1], cfg,
+                           MappingConfig(), False)
+        assert st["overlap_dropped"] == dropped and st["gaussians"] == 800 and st["iterations"] == 4
+        assert len(s0) == 400 and len(s1) == 400 - dropped
