@@ -1,15 +1,18 @@
 """Mapping (GRAND-SLAM §III-B): seed Gaussians where the active submap is sparse, then optimise every Gaussian of
 the active submap over its keyframes with the eq.-3 loss, then prune.
 
-Seeding: render the submap at the new keyframe; where rendered alpha < α_min and depth is valid, back-project
-pixels on a regular grid (one per stride x stride block: uniform sampling of the sparse region) to new Gaussians
-whose radius matches the pixel footprint at their depth.
+Seeding: render the submap at the new keyframe; where rendered alpha < α_min, back-project pixels on a regular
+grid (one per stride x stride block: uniform sampling of the sparse region) to new Gaussians whose radius matches
+the pixel footprint at their depth. Large regions without valid depth get a fallback depth (`fallback_depth`,
+`mapping.seed_without_depth`): with none, a window or the sky beyond the sensor's range stays empty and renders
+black (on Redwood 211, 77-96 % of the squared colour error of the worst keyframes was on those pixels).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 
@@ -66,14 +69,17 @@ def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, gener
     oy, ox = (int(x) for x in torch.randint(0, s, (2,), generator=generator))
     grid = np.zeros_like(depth, dtype=bool)
     grid[oy::s, ox::s] = True
-    cand = grid & (depth > 0) & (alpha < cfg.alpha_seed)
+    z_map = depth
+    if cfg.seed_without_depth:
+        z_map = np.where(depth > 0, depth, fallback_depth(depth, cfg.no_depth_min_region))
+    cand = grid & (z_map > 0) & (alpha < cfg.alpha_seed)
     vs, us = np.nonzero(cand)
     if len(vs) > cfg.max_new_gaussians:
         pick = torch.randperm(len(vs), generator=generator)[: cfg.max_new_gaussians].numpy()
         vs, us = vs[pick], us[pick]
     if len(vs) == 0:
         return GaussianParams.empty()
-    z = depth[vs, us].astype(np.float64)
+    z = z_map[vs, us].astype(np.float64)
     pts_cam = np.stack([(us - cam.cx) / cam.fx * z, (vs - cam.cy) / cam.fy * z, z], axis=1)
     T = kf.T_local_cam
     pts = pts_cam @ T[:3, :3].T + T[:3, 3]
@@ -81,6 +87,30 @@ def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, gener
     rgb = f.color[vs, us].astype(np.float32) / 255.0
     return GaussianParams.from_points(torch.as_tensor(pts, dtype=torch.float32), torch.as_tensor(rgb),
                                       torch.as_tensor(radius, dtype=torch.float32), cfg.init_opacity)
+
+
+def fallback_depth(depth: np.ndarray, min_region: float = 0.01) -> np.ndarray:
+    """[H, W] seeding depth for the large regions without valid depth (0 elsewhere): connected regions at least
+    3 px across everywhere (thin lines along depth edges are left out) covering at least `min_region` of the image
+    (a window, the sky, what lies beyond the sensor's range). Small holes in a measured surface are left to the
+    Gaussians around them (on generated data, seeding them too cost 0.5 dB). A region's pixels get the farthest
+    valid depth within max(3, W / 20) px, or, far inside it, the farthest valid depth of the frame: behind
+    everything measured around it, where the colour the camera saw lies."""
+    valid = depth > 0
+    if valid.all() or not valid.any():
+        return np.zeros_like(depth)
+    k3 = np.ones((3, 3), np.uint8)
+    opened = cv2.dilate(cv2.erode((~valid).astype(np.uint8), k3, borderType=cv2.BORDER_REPLICATE), k3)
+    opened &= (~valid).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+    big = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= min_region * depth.size)[0] + 1
+    if len(big) == 0:
+        return np.zeros_like(depth)
+    region = np.isin(labels, big)
+    k = max(3, depth.shape[1] // 20) | 1
+    near = cv2.dilate(np.where(valid, depth, 0).astype(np.float32), np.ones((k, k), np.uint8))
+    z = np.where(near > 0, near, float(depth[valid].max()))
+    return np.where(region, z, 0).astype(depth.dtype)
 
 
 def make_optimizer(p: GaussianParams, cfg: MappingConfig, lr_scale: float = 1.0) -> torch.optim.Adam:

@@ -132,8 +132,9 @@ def test_tracker_renders_the_model_once_per_map_update(mapped, monkeypatch):
 
 
 def test_mapping_fills_a_hole(warp_cpu):
+    """A depth hole left empty (seed_without_depth off) is seeded once a keyframe measures depth there."""
     cam = slam_scene.camera(64, 48)
-    cfg = SlamConfig().override({"mapping": {"seed_stride": 1}})
+    cfg = SlamConfig().override({"mapping": {"seed_stride": 1, "seed_without_depth": False}})
     full = _frame(np.eye(4), cam)
     holed = RGBD(full.color, full.depth.copy(), cam)
     holed.depth[16:32, 24:44] = 0.0  # no depth -> no seeds there
@@ -150,6 +151,41 @@ def test_mapping_fills_a_hole(warp_cpu):
         after = render(sm.params, vm, cam).alpha[20:28, 30:38].mean()
     assert stats.added >= 0.8 * 16 * 20 and len(sm) > n0
     assert before < 0.3 and after > 0.9, (float(before), float(after))
+
+
+def test_pixels_without_depth_are_seeded_behind_what_was_measured(warp_cpu):
+    """seed_without_depth (default): a large region without valid depth (a window, the sky) is seeded at the
+    farthest valid depth around it and renders its colour; thin invalid lines and small holes are not seeded; off,
+    the region stays empty."""
+    from slam.mapper import fallback_depth
+
+    cam = slam_scene.camera(64, 48)
+    full = _frame(np.eye(4), cam)
+    holed = RGBD(full.color, full.depth.copy(), cam)
+    holed.depth[16:32, 24:44] = 0.0
+    holed.depth[40, :] = 0.0  # a 1-px line (as along depth edges)
+    holed.depth[4:8, 4:8] = 0.0  # a small hole (0.5 % of the image) in a measured surface
+    z = fallback_depth(holed.depth, 0.01)
+    assert (z[16:32, 24:44] > 0).all() and not z[40].any() and not z[holed.depth > 0].any()
+    assert not z[4:8, 4:8].any() and fallback_depth(holed.depth, 0.004)[4:8, 4:8].all()
+    ring = holed.depth[15:33, 23:45].copy()
+    ring[1:-1, 1:-1] = 0
+    assert z[16:32, 24:44].min() >= ring[ring > 0].min() - 1e-6  # never in front of what surrounds the hole
+    assert np.allclose(z[18:30, 26:42], full.depth.max())  # inside it: the frame's farthest measured depth
+    vm = viewmat_from_pose(np.eye(4))
+    cover = {}
+    for on in (True, False):
+        cfg = SlamConfig().override({"mapping": {"seed_stride": 1, "seed_without_depth": on}})
+        gm = GaussianMap()
+        sm = gm.new_submap(np.eye(4))
+        Mapper(cfg.mapping).map(gm, sm, [MapKeyframe(np.eye(4), holed)], 15)
+        with torch.no_grad():
+            out = render(sm.params, vm, cam)
+        cover[on] = float(out.alpha[18:30, 26:42].mean())
+        if on:
+            err = (out.color[18:30, 26:42] - torch.as_tensor(full.color[18:30, 26:42] / 255.0)).abs().mean()
+            assert err < 0.05, float(err)
+    assert cover[True] > 0.9 and cover[False] < 0.3, cover
 
 
 def test_submap_transform_moves_its_renders_exactly(mapped):
