@@ -15,7 +15,7 @@ from __future__ import annotations
 import warp as wp
 
 from .arrays import to_warp
-from .launch import launch
+from .launch import launch, run
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
@@ -317,4 +317,4 @@ def project_backward(means, quats, scales, view, intr, width, height, proj, ntil
               to_warp(g_means), to_warp(g_quats), to_warp(g_scales), to_warp(g_opac), to_warp(g_colors),
               to_warp(g_view)]
     launch(_project_bwd, n, inputs, 10, device)
-    wp.launch(_view_grad, dim=16, inputs=[to_warp(g_view), n, to_warp(g_view_out)], device=device, record_tape=False)
+    run(_view_grad, 16, [to_warp(g_view), n, to_warp(g_view_out)], device)

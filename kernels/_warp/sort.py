@@ -17,7 +17,7 @@ from __future__ import annotations
 import warp as wp
 
 from .arrays import to_warp as _w
-from .launch import launch
+from .launch import launch, run
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
@@ -138,10 +138,9 @@ def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, statu
               entries, emit_pos, device: str) -> None:
     """proj_bits [>=n, 10] int32 view of the projected rows; scratch [5, >= max(n, RADIX)] int32; see the module doc."""
     keys, vals, keys2, vals2, hist = (scratch[k] for k in range(5))
-    wp.launch(_bin, dim=1, inputs=[_w(proj_bits), _w(ntiles), _w(rect), n, tiles_x, n_tiles, entries.shape[0],
-                                   _w(status), _w(emit_start), _w(keys), _w(vals), _w(keys2), _w(vals2), _w(hist),
-                                   _w(tile_start), _w(cursor), _w(entries), _w(emit_pos)],
-              device=device, record_tape=False)
+    run(_bin, 1, [_w(proj_bits), _w(ntiles), _w(rect), n, tiles_x, n_tiles, entries.shape[0], _w(status),
+                  _w(emit_start), _w(keys), _w(vals), _w(keys2), _w(vals2), _w(hist), _w(tile_start), _w(cursor),
+                  _w(entries), _w(emit_pos)], device)
 
 
 def count_touched(n: int, ntiles, emit_start, emit_pos, hits, n_touched, device: str) -> None:

@@ -1,0 +1,50 @@
+"""The Warp rasteriser's CPU launch plumbing (kernels/_warp/launch.py) changes no bit of the results: direct calls
+of the compiled kernels against wp.launch, and launches split over threads against single launches, forward and
+backward, on the perf scene (big enough that projection and compositing split over the cores)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import kernels
+from perf.raster import _loss, _params, make_scene
+
+
+def _run(scene):
+    p = _params(scene, True)
+    o = kernels.rasterize(**p)
+    _loss(o.color, o.depth, o.alpha).backward()
+    outs = [o.color, o.depth, o.depth_normalised, o.alpha, o.radii, o.n_touched]
+    return outs + [p[k].grad for k in ("means", "quats", "scales", "opacities", "colors")]
+
+
+@pytest.fixture
+def warp_cpu():
+    kernels.use("warp", "cpu")
+    from kernels._warp import launch
+
+    return launch
+
+
+@pytest.mark.parametrize("size", [(160, 120, 1_000), (320, 240, 20_000)])
+def test_direct_calls_equal_wp_launch(warp_cpu, monkeypatch, size):
+    w, h, n = size
+    scene = make_scene(n, w, h, seed=3)
+    _run(scene)  # first launches: compile / load
+    direct = _run(scene)
+    assert any(v is not None for v in warp_cpu._DIRECT.values())
+    monkeypatch.setattr(warp_cpu, "DIRECT", False)
+    ref = _run(scene)
+    for a, b in zip(direct, ref):
+        assert torch.equal(a, b)
+
+
+def test_split_equal_single_launch(warp_cpu, monkeypatch):
+    scene = make_scene(20_000, 320, 240, seed=4)
+    _run(scene)
+    split = _run(scene)
+    monkeypatch.setattr(warp_cpu, "_cpu_threads", lambda: 1)
+    one = _run(scene)
+    for a, b in zip(split, one):
+        assert torch.equal(a, b)
