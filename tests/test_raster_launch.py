@@ -40,8 +40,10 @@ def test_direct_calls_equal_wp_launch(warp_cpu, monkeypatch, size):
         assert torch.equal(a, b)
 
 
-def test_split_equal_single_launch(warp_cpu, monkeypatch):
+@pytest.mark.parametrize("threads", [2, 3])
+def test_split_equal_single_launch(warp_cpu, monkeypatch, threads):
     scene = make_scene(20_000, 320, 240, seed=4)
+    monkeypatch.setattr(warp_cpu, "_cpu_threads", lambda: threads)  # binning in `threads` parts, launches split
     _run(scene)
     split = _run(scene)
     monkeypatch.setattr(warp_cpu, "_cpu_threads", lambda: 1)
