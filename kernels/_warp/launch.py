@@ -44,6 +44,7 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 # Anything unusual (CUDA, a kernel this cannot describe) goes through wp.launch.
 _DIRECT: dict = {}  # kernel -> (forward hook, argument struct type, ...) or None (use wp.launch)
 _DIRECT_LOCK = threading.Lock()
+_ARRAY = wp.array
 DIRECT = True  # False: every launch through wp.launch (A/B measurements, tests)
 
 
@@ -79,7 +80,8 @@ def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
         d = _DIRECT.get(kernel, False)
         if d:
             hook, struct, kdim, bounds_of, _cmd = d
-            args = struct(*[a.__ctype__() if isinstance(a, wp.array) else a for a in inputs])
+            args = struct(*[(a.ctype or a.__ctype__()) if type(a) is _ARRAY else
+                            (a.__ctype__() if isinstance(a, _ARRAY) else a) for a in inputs])
             hook(ctypes.byref(bounds_of(dim if isinstance(dim, tuple) else (dim,), kdim)), ctypes.byref(args))
             return
         if d is False and (kernel, device) in _LOADED:

@@ -26,6 +26,7 @@ from .launch import launch, run
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 RADIX_BITS = 11
+BLOCK = 256  # CPU: Gaussians per kernel thread of _touched (a Warp CPU launch pays per thread)
 RADIX = 1 << RADIX_BITS
 # CPU only (a no-op on CUDA): the counting sort visits Gaussians in depth order, so their rectangles and entry
 # starts are random reads; fetch those of the Gaussian 8 places ahead into cache (measured: binning 256k Gaussians of a
@@ -167,16 +168,18 @@ def _tile_lists(order: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32
 
 @wp.kernel
 def _touched(ntiles: wp.array(dtype=wp.int32), emit_start: wp.array(dtype=wp.int32),
-             emit_pos: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), offset: int,
+             emit_pos: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), offset: int, count: int, n: int,
              n_touched: wp.array(dtype=wp.int32)):
-    g = wp.tid() + offset
-    s = int(0)
-    nt = ntiles[g]
-    if nt > 0:
-        k0 = emit_start[g]
-        for k in range(k0, k0 + nt):
-            s += hits[emit_pos[k]]
-    n_touched[g] = s
+    # thread = Gaussians [count (tid + offset), + count) (CUDA: count 1; CPU: blocks, as the projection)
+    g0 = (wp.tid() + offset) * count
+    for g in range(g0, wp.min(g0 + count, n)):
+        s = int(0)
+        nt = ntiles[g]
+        if nt > 0:
+            k0 = emit_start[g]
+            for k in range(k0, k0 + nt):
+                s += hits[emit_pos[k]]
+        n_touched[g] = s
 
 
 def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, status, emit_start, scratch, tile_start, cursor,
@@ -198,4 +201,6 @@ def count_touched(n: int, ntiles, emit_start, emit_pos, hits, n_touched, device:
     """n_touched[g] = sum of hits over Gaussian g's tile entries, g < n."""
     if n == 0:
         return
-    launch(_touched, n, [_w(ntiles), _w(emit_start), _w(emit_pos), _w(hits), 0, _w(n_touched)], 4, device)
+    count = BLOCK if device == "cpu" else 1
+    launch(_touched, (n + count - 1) // count, [_w(ntiles), _w(emit_start), _w(emit_pos), _w(hits), 0, count, n,
+                                                _w(n_touched)], 4, device, work=n)
