@@ -39,12 +39,11 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 # packing, module lookup), more than the kernels' own work at small sizes (a 160x120 / 1k-Gaussian rasteriser call
 # is 7 launches). After one ordinary launch of a kernel (which compiles and loads its module), `run` calls the
 # kernel's CPU entry point itself: the ctypes argument struct laid out as Warp lays it out (the same field types,
-# taken from a recorded wp.launch), filled from the cached array descriptors (kernels/_warp/arrays.py) and the
+# taken from a recorded wp.launch), filled from the array descriptors (kernels/_warp/arrays.py) and the
 # scalars, then the forward hook with the launch bounds. Same compiled code, same arguments: the same results.
 # Anything unusual (CUDA, a kernel this cannot describe) goes through wp.launch.
 _DIRECT: dict = {}  # kernel -> (forward hook, argument struct type, ...) or None (use wp.launch)
 _DIRECT_LOCK = threading.Lock()
-_ARRAY = wp.array
 DIRECT = True  # False: every launch through wp.launch (A/B measurements, tests)
 
 
@@ -80,8 +79,10 @@ def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
         d = _DIRECT.get(kernel, False)
         if d:
             hook, struct, kdim, bounds_of, _cmd = d
-            args = struct(*[(a.ctype or a.__ctype__()) if type(a) is _ARRAY else
-                            (a.__ctype__() if isinstance(a, _ARRAY) else a) for a in inputs])
+            try:  # array descriptors (kernels/_warp/arrays.py) and scalars: ctypes checks and copies them
+                args = struct(*inputs)
+            except TypeError:  # wp.array arguments: their descriptors
+                args = struct(*[a.__ctype__() if isinstance(a, wp.array) else a for a in inputs])
             hook(ctypes.byref(bounds_of(dim if isinstance(dim, tuple) else (dim,), kdim)), ctypes.byref(args))
             return
         if d is False and (kernel, device) in _LOADED:
