@@ -13,10 +13,11 @@ from perf.raster import _loss, _params, make_scene
 
 def _run(scene):
     p = _params(scene, True)
+    p["viewmat"] = scene["viewmat"].clone().requires_grad_(True)
     o = kernels.rasterize(**p)
     _loss(o.color, o.depth, o.alpha).backward()
     outs = [o.color, o.depth, o.depth_normalised, o.alpha, o.radii, o.n_touched]
-    return outs + [p[k].grad for k in ("means", "quats", "scales", "opacities", "colors")]
+    return outs + [p[k].grad for k in ("means", "quats", "scales", "opacities", "colors", "viewmat")]
 
 
 @pytest.fixture
@@ -49,4 +50,20 @@ def test_split_equal_single_launch(warp_cpu, monkeypatch, threads):
     monkeypatch.setattr(warp_cpu, "_cpu_threads", lambda: 1)
     one = _run(scene)
     for a, b in zip(split, one):
+        assert torch.equal(a, b)
+
+
+def test_cuda_shapes_on_the_cpu_equal(warp_cpu, monkeypatch):
+    """The projection and hit counts one Gaussian per kernel thread (their CUDA shape, count 1: the per-Gaussian
+    kernel, viewmat parts per Gaussian summed in blocks of 256 by _view_grad) against the CPU's blocks."""
+    from kernels._warp import project, sort
+
+    scene = make_scene(20_000, 320, 240, seed=5)
+    _run(scene)
+    blocks = _run(scene)
+    monkeypatch.setattr(project, "BLOCK", 1)
+    monkeypatch.setattr(sort, "BLOCK", 1)
+    _run(scene)
+    single = _run(scene)
+    for a, b in zip(blocks, single):
         assert torch.equal(a, b)

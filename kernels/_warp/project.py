@@ -155,7 +155,22 @@ def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
                  fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
                  offset: int, count: int, n: int, proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
                  rect: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float)):
-    # thread = Gaussians [count (tid + offset), + count) (CUDA: count 1; CPU: blocks, see BLOCK)
+    # CUDA: one thread per Gaussian (count 1): 80 registers per thread (sm_86, perf/gpu_codegen.py; main's kernel
+    # 86), where the CPU's loop over blocks below takes 94
+    i = wp.tid() + offset
+    _project_one(means, quats, scales, opac, colors, _view_rot(view), wp.vec3(view[0, 3], view[1, 3], view[2, 3]),
+                 fx, fy, cx, cy, width, height, near, far, proj, radius, rect, ntiles, pthr, i)
+
+
+@wp.kernel
+def _project_fwd_blocks(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
+                        scales: wp.array2d(dtype=float), opac: wp.array(dtype=float), colors: wp.array2d(dtype=float),
+                        view: wp.array2d(dtype=float), fx: float, fy: float, cx: float, cy: float, width: int,
+                        height: int, near: float, far: float, offset: int, count: int, n: int,
+                        proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
+                        rect: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32),
+                        pthr: wp.array(dtype=float)):
+    # CPU: thread = Gaussians [count (tid + offset), + count) (see BLOCK)
     i0 = (wp.tid() + offset) * count
     Rv = _view_rot(view)
     tv = wp.vec3(view[0, 3], view[1, 3], view[2, 3])
@@ -349,7 +364,7 @@ def project_forward(means, quats, scales, opac, colors, view, intr, width, heigh
     inputs = [to_warp(means), to_warp(quats), to_warp(scales), to_warp(opac), to_warp(colors), to_warp(view),
               fx, fy, cx, cy, width, height, near, far, 0, count, n, to_warp(proj), to_warp(radius),
               to_warp(rect), to_warp(ntiles), to_warp(pthr)]
-    launch(_project_fwd, (n + count - 1) // count, inputs, 14, device, work=n)
+    launch(_project_fwd_blocks if count > 1 else _project_fwd, (n + count - 1) // count, inputs, 14, device, work=n)
 
 
 def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
