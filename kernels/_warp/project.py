@@ -71,18 +71,25 @@ def _finite(x: float) -> bool:
 
 
 @wp.func
-def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
-                 opac: wp.array(dtype=float), colors: wp.array2d(dtype=float), Rv: wp.mat33, tv: wp.vec3,
-                 fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
-                 proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
-                 ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float), i: int):
+def _cull(proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+          ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float), i: int, nt: int):
+    # a culled Gaussian's outputs: zeros, ntiles = nt (0, or -1 for invalid input)
     for k in range(10):
         proj[i, k] = 0.0
     for k in range(4):
         rect[i, k] = 0
     radius[i] = 0
-    ntiles[i] = 0
+    ntiles[i] = nt
     pthr[i] = 0.0
+
+
+@wp.func
+def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
+                 opac: wp.array(dtype=float), colors: wp.array2d(dtype=float), Rv: wp.mat33, tv: wp.vec3,
+                 fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
+                 proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+                 ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float), i: int):
+    # every return path writes all of Gaussian i's outputs
     ok = _finite(opac[i]) and opac[i] >= 0.0 and opac[i] <= 1.0
     qlen2 = float(0.0)
     for k in range(3):
@@ -91,11 +98,12 @@ def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
         ok = ok and _finite(quats[i, k])
         qlen2 += quats[i, k] * quats[i, k]
     if not ok or qlen2 < 1e-20:
-        ntiles[i] = -1
+        _cull(proj, radius, rect, ntiles, pthr, i, -1)
         return
     p = wp.mul(Rv, wp.vec3(means[i, 0], means[i, 1], means[i, 2])) + tv
     z = p[2]
     if z < near or z > far:
+        _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     inv_z = 1.0 / z
     lim_x = 0.15 * float(width) / fx
@@ -116,6 +124,7 @@ def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     c = wp.dot(T1, T1) + 0.3
     det = a * c - b * b
     if det <= 0.0:
+        _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     mx = fx * p[0] * inv_z + cx
     my = fy * p[1] * inv_z + cy
@@ -128,6 +137,7 @@ def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     y0 = wp.clamp(wp.floor((my - r) / float(TILE)), 0.0, nty)
     y1 = wp.clamp(wp.floor((my + r) / float(TILE)) + 1.0, 0.0, nty)
     if x1 <= x0 or y1 <= y0:
+        _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     inv_det = 1.0 / det
     proj[i, 0] = mx
