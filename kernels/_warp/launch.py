@@ -48,7 +48,8 @@ DIRECT = True  # False: every launch through wp.launch (A/B measurements, tests)
 
 
 def _describe(kernel, dim, inputs: list):
-    """(hook, ArgsStruct, kernel_dim, bounds maker, recorded launch) for direct calls of `kernel` on the CPU, or None; launches nothing."""
+    """(hook, ArgsStruct, kernel_dim, bounds maker, recorded launch) for direct calls of `kernel` on the CPU, or
+    None; launches nothing."""
     try:
         from warp._src import context as _ctx  # Warp's own launch machinery (1.19): the layout it passes
 
@@ -71,8 +72,8 @@ def _describe(kernel, dim, inputs: list):
 
 def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
     """wp.launch(kernel, dim, inputs) on `device` (CUDA: `gpu_block` threads per block); on the CPU a direct call
-    of the compiled kernel once it has been launched (and so compiled and loaded) once. `inputs` holds Warp arrays
-    and Python scalars."""
+    of the compiled kernel once it has been launched (and so compiled and loaded) once. `inputs` holds array
+    descriptors (kernels/_warp/arrays.py), Warp arrays and Python scalars."""
     if device == "cpu" and DIRECT:
         if (dim if isinstance(dim, int) else math.prod(dim)) <= 0:
             return  # wp.launch does nothing either

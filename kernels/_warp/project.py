@@ -1,4 +1,5 @@
-"""Warp kernels of the EWA projection (one thread per Gaussian) and its hand-written backward.
+"""Warp kernels of the EWA projection (one thread per Gaussian on CUDA, per BLOCK Gaussians on the CPU) and its
+hand-written backward.
 
 Forward writes one row per Gaussian: mean2d x, y, conic a, b, c, opacity, r, g, b, z (kernels.raster.PACKED),
 the 3-sigma radius, the tile rectangle, the number of tiles touched and the exp() skip threshold
@@ -6,7 +7,8 @@ pthr = -ln(255 o) - 1e-5 (power below it cannot give alpha >= 1/255); culled Gau
 (non-finite, zero-length quaternion, opacity outside [0, 1]) get ntiles = -1 so the caller can name them.
 Backward first sums the Gaussian's per-tile-entry gradients (kernels/_warp/sort.py lists them), then turns the
 row gradient into gradients of means, quats (through the normalisation), scales, opacity, colour and a
-per-Gaussian [12] slice of the viewmat gradient (rotation row-major, then translation), summed by the caller.
+[12] viewmat gradient (rotation row-major, then translation) per Gaussian (CUDA) or per block of 256 (CPU, summed
+in the thread in index order), which _view_grad sums.
 The math is in kernels/_ref_raster.py.
 """
 
