@@ -1,32 +1,41 @@
-"""torch tensor -> Warp array views for kernel launches, cached by (address, shape, strides, dtype, device).
+"""torch tensor -> Warp kernel argument.
 
-`wp.from_torch` costs tens of microseconds per array, and a rasteriser call passes ~70 arrays; the per-call
-buffers are fresh tensors, but torch's allocator hands the same addresses back call after call, so a view built
-once for an address and layout is reused. A cached view does not own or keep its memory alive: it is only valid
-while the caller holds the tensor, i.e. for the launch it is made for (every view is re-looked-up per launch).
+On the CPU a float32 / int32 tensor becomes Warp's bare array descriptor (`array_t`: data pointer, shape, byte
+strides), which wp.launch takes as it is and kernels/_warp/launch.py `run` copies into the argument struct. It is
+built fresh per launch (~2 us): a wp.array costs ~24 us to create, and a cache of them by (address, layout) missed
+~7 of a rasteriser call's ~75 arrays (torch's allocator does not hand every address back in the same order), while
+its growing population of long-lived objects made Python's full garbage collections (~0.2 s each) come round.
+A descriptor does not own or keep its memory alive: it is only valid while the caller holds the tensor, i.e. for
+the launch it is made for. CUDA tensors and other dtypes go through wp.from_torch.
 """
 
 from __future__ import annotations
 
+import ctypes
+import struct
+
 import torch
 import warp as wp
+from warp._src.types import array_t  # the descriptor type Warp's launches pass (warp 1.19)
 
-_TYPES = {torch.float32: wp.float32, torch.int32: wp.int32}
-_CACHE: dict = {}
-_CACHE_MAX = 4096
+_TYPES = (torch.float32, torch.int32)
+_LAYOUT = struct.Struct("<QQ4i4iHH4x")  # array_t: data, grad, shape[4], strides[4] (bytes), ndim, flags, padding
+assert _LAYOUT.size == ctypes.sizeof(array_t)
+_from = array_t.from_buffer_copy
 
 
 def to_warp(t: torch.Tensor, dtype=None):
-    """A Warp array viewing `t` (float32 or int32, any strides, 0 included); detached, no Warp-side gradient."""
-    key = (t.data_ptr(), tuple(t.shape), t.stride(), t.dtype, t.device.type)
-    a = _CACHE.get(key)
-    if a is None:
-        if len(_CACHE) >= _CACHE_MAX:
-            _CACHE.clear()
-        if t.dtype not in _TYPES or dtype is not None or t.device.type != "cpu" or t.numel() == 0:
-            return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)
-        size = t.element_size()
-        a = wp.array(ptr=t.data_ptr(), dtype=_TYPES[t.dtype], shape=tuple(t.shape),
-                     strides=tuple(s * size for s in t.stride()), device="cpu")
-        _CACHE[key] = a
-    return a
+    """A Warp kernel argument viewing `t` (float32 or int32, up to 4 dims, any strides, 0 included); detached, no
+    Warp-side gradient."""
+    if dtype is None and t.is_cpu and t.dtype in _TYPES:
+        sh, st = t.shape, t.stride()
+        nd = len(sh)
+        if nd == 1:
+            return _from(_LAYOUT.pack(t.data_ptr(), 0, sh[0], 0, 0, 0, 4 * st[0], 0, 0, 0, 1, 0))
+        if nd == 2:
+            return _from(_LAYOUT.pack(t.data_ptr(), 0, sh[0], sh[1], 0, 0, 4 * st[0], 4 * st[1], 0, 0, 2, 0))
+        if 0 < nd <= 4:
+            shape = tuple(sh) + (0,) * (4 - nd)
+            strides = tuple(4 * s for s in st) + (0,) * (4 - nd)
+            return _from(_LAYOUT.pack(t.data_ptr(), 0, *shape, *strides, nd, 0))
+    return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)

@@ -4,6 +4,8 @@ Python thread (the ICP kernels use it; results are bitwise equal to one launch, 
 
 from __future__ import annotations
 
+import ctypes
+import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -33,6 +35,67 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return _POOL
 
 
+# Direct CPU calls. wp.launch spends ~85 us of Python per launch of a ~20-argument kernel (argument checks and
+# packing, module lookup), more than the kernels' own work at small sizes (a 160x120 / 1k-Gaussian rasteriser call
+# is 7 launches). After one ordinary launch of a kernel (which compiles and loads its module), `run` calls the
+# kernel's CPU entry point itself: the ctypes argument struct laid out as Warp lays it out (the same field types,
+# taken from a recorded wp.launch), filled from the array descriptors (kernels/_warp/arrays.py) and the
+# scalars, then the forward hook with the launch bounds. Same compiled code, same arguments: the same results.
+# Anything unusual (CUDA, a kernel this cannot describe) goes through wp.launch.
+_DIRECT: dict = {}  # kernel -> (forward hook, argument struct type, ...) or None (use wp.launch)
+_DIRECT_LOCK = threading.Lock()
+DIRECT = True  # False: every launch through wp.launch (A/B measurements, tests)
+
+
+def _describe(kernel, dim, inputs: list):
+    """(hook, ArgsStruct, kernel_dim, bounds maker, recorded launch) for direct calls of `kernel` on the CPU, or
+    None; launches nothing."""
+    try:
+        from warp._src import context as _ctx  # Warp's own launch machinery (1.19): the layout it passes
+
+        if kernel.is_generic:
+            return None
+        cmd = wp.launch(kernel, dim=dim, inputs=inputs, device="cpu", record_tape=False, record_cmd=True)
+        if not isinstance(cmd, _ctx.Launch) or cmd.block_dim > 1 or cmd.hooks.forward is None:
+            return None
+        fields = [(a.label, type(p)) for a, p in zip(kernel.adj.args, cmd.params[1:])]
+        if len(fields) != len(inputs):
+            return None
+        struct = type("ArgsStruct", (ctypes.Structure,), {"_fields_": fields})
+        struct(*cmd.params[1:])  # every field takes its packed value
+        # cmd holds the module executable: were the module rebuilt (a kernel added to it later), the loaded
+        # code this hook points into stays loaded
+        return cmd.hooks.forward, struct, kernel.adj.kernel_dim, _ctx._build_launch_bounds_from_tuple, cmd
+    except Exception:  # noqa: BLE001 - any surprise: keep wp.launch for this kernel
+        return None
+
+
+def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
+    """wp.launch(kernel, dim, inputs) on `device` (CUDA: `gpu_block` threads per block); on the CPU a direct call
+    of the compiled kernel once it has been launched (and so compiled and loaded) once. `inputs` holds array
+    descriptors (kernels/_warp/arrays.py), Warp arrays and Python scalars."""
+    if device == "cpu" and DIRECT:
+        if (dim if isinstance(dim, int) else math.prod(dim)) <= 0:
+            return  # wp.launch does nothing either
+        d = _DIRECT.get(kernel, False)
+        if d:
+            hook, struct, kdim, bounds_of, _cmd = d
+            try:  # array descriptors (kernels/_warp/arrays.py) and scalars: ctypes checks and copies them
+                args = struct(*inputs)
+            except TypeError:  # wp.array arguments: their descriptors
+                args = struct(*[a.__ctype__() if isinstance(a, wp.array) else a for a in inputs])
+            hook(ctypes.byref(bounds_of(dim if isinstance(dim, tuple) else (dim,), kdim)), ctypes.byref(args))
+            return
+        if d is False and (kernel, device) in _LOADED:
+            with _DIRECT_LOCK:
+                if kernel not in _DIRECT:
+                    _DIRECT[kernel] = _describe(kernel, dim, inputs)
+            return run(kernel, dim, inputs, device)
+    gpu = {} if device == "cpu" else {"block_dim": gpu_block}
+    wp.launch(kernel, dim=dim, inputs=inputs, device=device, record_tape=False, **gpu)
+    _LOADED.add((kernel, device))
+
+
 MIN_SPLIT = 16384  # fewer work items than this run as one launch: a thread hand-off costs ~0.05-0.1 ms
 
 
@@ -55,9 +118,7 @@ def launch(kernel, dim, inputs: list, offset_at: int, device: str, work: int | N
     if parts <= 1 or key not in _LOADED:  # always on CUDA (parts == 1)
         args = list(inputs)
         args[offset_at] = 0
-        gpu = {} if device == "cpu" else {"block_dim": gpu_block}
-        wp.launch(kernel, dim=dim, inputs=args, device=device, record_tape=False, **gpu)
-        _LOADED.add(key)
+        run(kernel, dim, args, device, gpu_block)
         return
     cuts = [rows * k // parts for k in range(parts + 1)]
 
@@ -65,8 +126,7 @@ def launch(kernel, dim, inputs: list, offset_at: int, device: str, work: int | N
         args = list(inputs)
         args[offset_at] = cuts[k]
         n = cuts[k + 1] - cuts[k]
-        wp.launch(kernel, dim=n if isinstance(dim, int) else (n, *dim[1:]), inputs=args, device=device,
-                  record_tape=False)
+        run(kernel, n if isinstance(dim, int) else (n, *dim[1:]), args, device)
 
     pool = _pool(max(1, _cpu_threads() - 1))
     futures = [pool.submit(part, k) for k in range(1, parts)]

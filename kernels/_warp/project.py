@@ -1,4 +1,5 @@
-"""Warp kernels of the EWA projection (one thread per Gaussian) and its hand-written backward.
+"""Warp kernels of the EWA projection (one thread per Gaussian on CUDA, per BLOCK Gaussians on the CPU) and its
+hand-written backward.
 
 Forward writes one row per Gaussian: mean2d x, y, conic a, b, c, opacity, r, g, b, z (kernels.raster.PACKED),
 the 3-sigma radius, the tile rectangle, the number of tiles touched and the exp() skip threshold
@@ -6,7 +7,8 @@ pthr = -ln(255 o) - 1e-5 (power below it cannot give alpha >= 1/255); culled Gau
 (non-finite, zero-length quaternion, opacity outside [0, 1]) get ntiles = -1 so the caller can name them.
 Backward first sums the Gaussian's per-tile-entry gradients (kernels/_warp/sort.py lists them), then turns the
 row gradient into gradients of means, quats (through the normalisation), scales, opacity, colour and a
-per-Gaussian [12] slice of the viewmat gradient (rotation row-major, then translation), summed by the caller.
+[12] viewmat gradient (rotation row-major, then translation) per Gaussian (CUDA) or per block of 256 (CPU, summed
+in the thread in index order), which _view_grad sums.
 The math is in kernels/_ref_raster.py.
 """
 
@@ -15,11 +17,15 @@ from __future__ import annotations
 import warp as wp
 
 from .arrays import to_warp
-from .launch import launch
+from .launch import launch, run
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 TILE = 16
+# CPU: one kernel thread projects BLOCK consecutive Gaussians (a Warp CPU launch pays per thread: the argument
+# struct is copied and the arrays' shapes re-read each time), and the backward sums a block's viewmat parts in
+# the thread (in index order: the sums of _view_grad's blocks, bit for bit). CUDA: one thread per Gaussian.
+BLOCK = 256
 
 # CPU only (a no-op on CUDA): fetch into cache the tile-entry gradient rows of Gaussian i + 2, which the backward
 # gathers next on this thread; they are scattered over the entry array (depth order), and the misses were a third
@@ -60,34 +66,46 @@ def _view_rot(view: wp.array2d(dtype=float)) -> wp.mat33:
                     view[2, 0], view[2, 1], view[2, 2])
 
 
-@wp.kernel
-def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
-                 opac: wp.array(dtype=float), colors: wp.array2d(dtype=float), view: wp.array2d(dtype=float),
-                 fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
-                 offset: int, proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
-                 rect: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float)):
-    i = wp.tid() + offset
+@wp.func
+def _finite(x: float) -> bool:
+    # wp.isfinite without its out-of-line call (13 per Gaussian): false for NaN (no comparison holds) and +-Inf
+    return wp.abs(x) <= 3.4028234663852886e38
+
+
+@wp.func
+def _cull(proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+          ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float), i: int, nt: int):
+    # a culled Gaussian's outputs: zeros, ntiles = nt (0, or -1 for invalid input)
     for k in range(10):
         proj[i, k] = 0.0
     for k in range(4):
         rect[i, k] = 0
     radius[i] = 0
-    ntiles[i] = 0
+    ntiles[i] = nt
     pthr[i] = 0.0
-    ok = wp.isfinite(opac[i]) and opac[i] >= 0.0 and opac[i] <= 1.0
+
+
+@wp.func
+def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
+                 opac: wp.array(dtype=float), colors: wp.array2d(dtype=float), Rv: wp.mat33, tv: wp.vec3,
+                 fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
+                 proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+                 ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float), i: int):
+    # every return path writes all of Gaussian i's outputs
+    ok = _finite(opac[i]) and opac[i] >= 0.0 and opac[i] <= 1.0
     qlen2 = float(0.0)
     for k in range(3):
-        ok = ok and wp.isfinite(means[i, k]) and wp.isfinite(scales[i, k]) and wp.isfinite(colors[i, k])
+        ok = ok and _finite(means[i, k]) and _finite(scales[i, k]) and _finite(colors[i, k])
     for k in range(4):
-        ok = ok and wp.isfinite(quats[i, k])
+        ok = ok and _finite(quats[i, k])
         qlen2 += quats[i, k] * quats[i, k]
     if not ok or qlen2 < 1e-20:
-        ntiles[i] = -1
+        _cull(proj, radius, rect, ntiles, pthr, i, -1)
         return
-    Rv = _view_rot(view)
-    p = wp.mul(Rv, wp.vec3(means[i, 0], means[i, 1], means[i, 2])) + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    p = wp.mul(Rv, wp.vec3(means[i, 0], means[i, 1], means[i, 2])) + tv
     z = p[2]
     if z < near or z > far:
+        _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     inv_z = 1.0 / z
     lim_x = 0.15 * float(width) / fx
@@ -108,6 +126,7 @@ def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     c = wp.dot(T1, T1) + 0.3
     det = a * c - b * b
     if det <= 0.0:
+        _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     mx = fx * p[0] * inv_z + cx
     my = fy * p[1] * inv_z + cy
@@ -120,6 +139,7 @@ def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     y0 = wp.clamp(wp.floor((my - r) / float(TILE)), 0.0, nty)
     y1 = wp.clamp(wp.floor((my + r) / float(TILE)) + 1.0, 0.0, nty)
     if x1 <= x0 or y1 <= y0:
+        _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     inv_det = 1.0 / det
     proj[i, 0] = mx
@@ -142,14 +162,45 @@ def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
 
 
 @wp.kernel
-def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
-                 view: wp.array2d(dtype=float), fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-                 offset: int, proj: wp.array2d(dtype=float), ntiles: wp.array(dtype=wp.int32),
-                 emit_start: wp.array(dtype=wp.int32), emit_pos: wp.array(dtype=wp.int32),
-                 g_entry: wp.array2d(dtype=float), g_means: wp.array2d(dtype=float), g_quats: wp.array2d(dtype=float),
-                 g_scales: wp.array2d(dtype=float), g_opac: wp.array(dtype=float), g_colors: wp.array2d(dtype=float),
-                 g_view: wp.array2d(dtype=float)):
+def _project_fwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
+                 opac: wp.array(dtype=float), colors: wp.array2d(dtype=float), view: wp.array2d(dtype=float),
+                 fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
+                 offset: int, count: int, n: int, proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
+                 rect: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), pthr: wp.array(dtype=float)):
+    # CUDA: one thread per Gaussian (count 1): 80 registers per thread (sm_86, perf/gpu_codegen.py; main's kernel
+    # 86), where the CPU's loop over blocks below takes 94
     i = wp.tid() + offset
+    _project_one(means, quats, scales, opac, colors, _view_rot(view), wp.vec3(view[0, 3], view[1, 3], view[2, 3]),
+                 fx, fy, cx, cy, width, height, near, far, proj, radius, rect, ntiles, pthr, i)
+
+
+@wp.kernel
+def _project_fwd_blocks(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
+                        scales: wp.array2d(dtype=float), opac: wp.array(dtype=float), colors: wp.array2d(dtype=float),
+                        view: wp.array2d(dtype=float), fx: float, fy: float, cx: float, cy: float, width: int,
+                        height: int, near: float, far: float, offset: int, count: int, n: int,
+                        proj: wp.array2d(dtype=float), radius: wp.array(dtype=wp.int32),
+                        rect: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32),
+                        pthr: wp.array(dtype=float)):
+    # CPU: thread = Gaussians [count (tid + offset), + count) (see BLOCK)
+    i0 = (wp.tid() + offset) * count
+    Rv = _view_rot(view)
+    tv = wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    for i in range(i0, wp.min(i0 + count, n)):
+        _project_one(means, quats, scales, opac, colors, Rv, tv, fx, fy, cx, cy, width, height, near, far, proj,
+                     radius, rect, ntiles, pthr, i)
+
+
+@wp.func
+def _project_bwd_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
+                     scales: wp.array2d(dtype=float), Rv: wp.mat33, tv: wp.vec3, fx: float, fy: float, cx: float,
+                     cy: float, width: int, height: int, proj: wp.array2d(dtype=float),
+                     ntiles: wp.array(dtype=wp.int32), emit_start: wp.array(dtype=wp.int32),
+                     emit_pos: wp.array(dtype=wp.int32), g_entry: wp.array2d(dtype=float),
+                     g_means: wp.array2d(dtype=float), g_quats: wp.array2d(dtype=float),
+                     g_scales: wp.array2d(dtype=float), g_opac: wp.array(dtype=float),
+                     g_colors: wp.array2d(dtype=float), i: int):
+    # Gaussian i's gradients; returns its viewmat part (rotation, translation)
     _prefetch_entries(ntiles, emit_start, emit_pos, g_entry, i)
     for k in range(3):
         g_means[i, k] = 0.0
@@ -157,12 +208,10 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
         g_colors[i, k] = 0.0
     for k in range(4):
         g_quats[i, k] = 0.0
-    for k in range(12):
-        g_view[i, k] = 0.0
     g_opac[i] = 0.0
     nt = ntiles[i]
     if nt <= 0:
-        return
+        return wp.mat33(0.0), wp.vec3(0.0)
     # this Gaussian's row gradient: the sum of its tile entries' gradients (no atomics)
     g_mx = float(0.0)
     g_my = float(0.0)
@@ -192,9 +241,8 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     g_colors[i, 1] = g_g
     g_colors[i, 2] = g_b
     # Recompute the forward intermediates (cheaper than storing them).
-    Rv = _view_rot(view)
     m = wp.vec3(means[i, 0], means[i, 1], means[i, 2])
-    p = wp.mul(Rv, m) + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    p = wp.mul(Rv, m) + tv
     inv_z = 1.0 / p[2]
     lim_x = 0.15 * float(width) / fx
     lim_y = 0.15 * float(height) / fy
@@ -267,22 +315,47 @@ def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
     g_means[i, 1] = gm[1]
     g_means[i, 2] = gm[2]
     gRv = wp.mul(gN, wp.transpose(Rq)) + wp.outer(gp, m)
-    for r in range(3):
-        for j in range(3):
-            g_view[i, 3 * r + j] = gRv[r, j]
-        g_view[i, 9 + r] = gp[r]
+    return gRv, gp
 
 
 @wp.kernel
-def _view_grad(parts: wp.array2d(dtype=float), n: int, g_view: wp.array2d(dtype=float)):
-    # g_view [4, 4] = the per-Gaussian parts summed: thread j < 9 -> rotation entry j, 9..11 -> translation, else 0
-    # summed in blocks of 256 (pairwise-like accuracy for large N, float32 only)
+def _project_bwd(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float), scales: wp.array2d(dtype=float),
+                 view: wp.array2d(dtype=float), fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+                 offset: int, count: int, n: int, proj: wp.array2d(dtype=float), ntiles: wp.array(dtype=wp.int32),
+                 emit_start: wp.array(dtype=wp.int32), emit_pos: wp.array(dtype=wp.int32),
+                 g_entry: wp.array2d(dtype=float), g_means: wp.array2d(dtype=float), g_quats: wp.array2d(dtype=float),
+                 g_scales: wp.array2d(dtype=float), g_opac: wp.array(dtype=float), g_colors: wp.array2d(dtype=float),
+                 g_view: wp.array2d(dtype=float)):
+    # thread b = Gaussians [count b, + count); g_view[b] = the sum of their viewmat parts in index order
+    # (rotation row-major, then translation). CUDA: count 1, one row per Gaussian; CPU: count BLOCK.
+    b = wp.tid() + offset
+    i0 = b * count
+    sR = wp.mat33(0.0)
+    st = wp.vec3(0.0)
+    Rv = _view_rot(view)
+    tv = wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    for i in range(i0, wp.min(i0 + count, n)):
+        gR, gt = _project_bwd_one(means, quats, scales, Rv, tv, fx, fy, cx, cy, width, height, proj, ntiles,
+                                  emit_start, emit_pos, g_entry, g_means, g_quats, g_scales, g_opac, g_colors, i)
+        sR = sR + gR
+        st = st + gt
+    for r in range(3):
+        for j in range(3):
+            g_view[b, 3 * r + j] = sR[r, j]
+        g_view[b, 9 + r] = st[r]
+
+
+@wp.kernel
+def _view_grad(parts: wp.array2d(dtype=float), n: int, block: int, g_view: wp.array2d(dtype=float)):
+    # g_view [4, 4] = the n rows of parts summed: thread j < 9 -> rotation entry j, 9..11 -> translation, else 0;
+    # summed in blocks of `block` rows (rows of single Gaussians: 256, pairwise-like accuracy for large N, float32
+    # only; rows that are already the sums of 256 Gaussians: 1, the same sums)
     j = wp.tid()
     s = float(0.0)
     if j < 12:
-        for b in range(0, n, 256):
+        for b in range(0, n, block):
             sb = float(0.0)
-            for i in range(b, wp.min(b + 256, n)):
+            for i in range(b, wp.min(b + block, n)):
                 sb += parts[i, j]
             s += sb
     if j < 9:
@@ -299,22 +372,26 @@ def project_forward(means, quats, scales, opac, colors, view, intr, width, heigh
     if n == 0:
         return
     fx, fy, cx, cy = intr
+    count = BLOCK if device == "cpu" else 1
     inputs = [to_warp(means), to_warp(quats), to_warp(scales), to_warp(opac), to_warp(colors), to_warp(view),
-              fx, fy, cx, cy, width, height, near, far, 0, to_warp(proj), to_warp(radius), to_warp(rect),
-              to_warp(ntiles), to_warp(pthr)]
-    launch(_project_fwd, n, inputs, 14, device)
+              fx, fy, cx, cy, width, height, near, far, 0, count, n, to_warp(proj), to_warp(radius),
+              to_warp(rect), to_warp(ntiles), to_warp(pthr)]
+    launch(_project_fwd_blocks if count > 1 else _project_fwd, (n + count - 1) // count, inputs, 14, device, work=n)
 
 
 def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
                      g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_view_out, device) -> None:
-    """g_view [N, 12] per-Gaussian viewmat parts (scratch), g_view_out [4, 4] their sum."""
+    """g_view [N, 12] scratch for the viewmat parts (per Gaussian, or per BLOCK on the CPU), g_view_out [4, 4]
+    their sum."""
     n = means.shape[0]
     if n == 0:
         return
     fx, fy, cx, cy = intr
+    count = BLOCK if device == "cpu" else 1
+    rows = (n + count - 1) // count
     inputs = [to_warp(means), to_warp(quats), to_warp(scales), to_warp(view), fx, fy, cx, cy, width, height, 0,
-              to_warp(proj), to_warp(ntiles), to_warp(emit_start), to_warp(emit_pos), to_warp(g_entry),
+              count, n, to_warp(proj), to_warp(ntiles), to_warp(emit_start), to_warp(emit_pos), to_warp(g_entry),
               to_warp(g_means), to_warp(g_quats), to_warp(g_scales), to_warp(g_opac), to_warp(g_colors),
               to_warp(g_view)]
-    launch(_project_bwd, n, inputs, 10, device)
-    wp.launch(_view_grad, dim=16, inputs=[to_warp(g_view), n, to_warp(g_view_out)], device=device, record_tape=False)
+    launch(_project_bwd, rows, inputs, 10, device, work=n)
+    run(_view_grad, 16, [to_warp(g_view), rows, 256 // count, to_warp(g_view_out)], device)

@@ -275,8 +275,7 @@ def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> 
     if threads == 1 or n_tiles < 2 or work < MIN_SPLIT_WORK or key not in _launch._LOADED:
         args = list(inputs)
         args[_OFFSET_POS] = 0
-        wp.launch(kernel, dim=n_tiles, inputs=args, device=device, record_tape=False)
-        _launch._LOADED.add(key)
+        _launch.run(kernel, n_tiles, args, device)
         return
     n_chunks = min(n_tiles, CHUNKS_PER_THREAD * threads)
     cuts = [n_tiles * k // n_chunks for k in range(n_chunks + 1)]
@@ -284,7 +283,7 @@ def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> 
     def part(k: int) -> None:
         args = list(inputs)
         args[_OFFSET_POS] = cuts[k]
-        wp.launch(kernel, dim=cuts[k + 1] - cuts[k], inputs=args, device=device, record_tape=False)
+        _launch.run(kernel, cuts[k + 1] - cuts[k], args, device)
 
     chunk = itertools.count()  # chunks are taken in turn by this thread and the pool's (next() holds the GIL)
 

@@ -1,6 +1,8 @@
 """Warp kernels that turn projected Gaussians into depth-ordered per-tile lists, and per-Gaussian hit counts.
 
-`bin_tiles` is one kernel thread (a serial pass, no atomics, deterministic, 32-bit integers only):
+`bin_tiles` runs steps 1-2 on one kernel thread (a serial pass, no atomics, deterministic, 32-bit integers only) and
+step 3 in P parts of the depth order (one per CPU thread; 1 on CUDA and for small N), counted per part, then listed
+per part after the entries of the parts before it, which gives the single pass's lists exactly:
 1. an exclusive scan of the per-Gaussian tile counts (`emit_start`: where Gaussian g's tile entries are listed),
    which also compacts the visible Gaussians and counts invalid ones (ntiles = -1 from the projection);
 2. a stable LSD radix sort of the visible Gaussians by camera depth — the float32 bit pattern of z > 0 read as an
@@ -14,14 +16,17 @@ E > capacity (the caller grows its buffers and calls again).
 
 from __future__ import annotations
 
+import torch
 import warp as wp
 
+from . import launch as _launch
 from .arrays import to_warp as _w
-from .launch import launch
+from .launch import launch, run
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 RADIX_BITS = 11
+BLOCK = 256  # CPU: Gaussians per kernel thread of _touched (a Warp CPU launch pays per thread)
 RADIX = 1 << RADIX_BITS
 # CPU only (a no-op on CUDA): the counting sort visits Gaussians in depth order, so their rectangles and entry
 # starts are random reads; fetch those of the Gaussian 8 places ahead into cache (measured: binning 256k Gaussians of a
@@ -67,12 +72,10 @@ def _radix_pass(src_k: wp.array(dtype=wp.int32), src_v: wp.array(dtype=wp.int32)
 
 
 @wp.kernel
-def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
-         n: int, tiles_x: int, n_tiles: int, capacity: int, status: wp.array(dtype=wp.int32),
+def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), n: int, capacity: int,
+         status: wp.array(dtype=wp.int32),
          emit_start: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.int32),
-         keys2: wp.array(dtype=wp.int32), vals2: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32),
-         tile_start: wp.array(dtype=wp.int32), cursor: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
-         emit_pos: wp.array(dtype=wp.int32)):
+         keys2: wp.array(dtype=wp.int32), vals2: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)):
     total = int(0)
     bad = int(0)
     m = int(0)
@@ -94,27 +97,70 @@ def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), re
     _radix_pass(keys, vals, keys2, vals2, hist, m, 0)
     _radix_pass(keys2, vals2, keys, vals, hist, m, RADIX_BITS)
     _radix_pass(keys, vals, keys2, vals2, hist, m, 2 * RADIX_BITS)  # front to back in vals2
-    for t in range(n_tiles + 1):
-        tile_start[t] = 0
-    for i in range(m):
-        _prefetch_rect(vals2, rect, emit_start, i, m)
-        g = vals2[i]
+    # the per-tile lists: _tile_counts, then _tile_lists
+
+
+@wp.func
+def _part(m: int, p: int, parts: int) -> int:
+    # first depth-order position of part p of `parts` (int64 products: no overflow)
+    return int(wp.int64(m) * wp.int64(p) // wp.int64(parts))
+
+
+@wp.kernel
+def _tile_counts(order: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+                 emit_start: wp.array(dtype=wp.int32), status: wp.array(dtype=wp.int32), capacity: int, tiles_x: int,
+                 n_tiles: int, parts: int, offset: int, counts: wp.array2d(dtype=wp.int32)):
+    # thread p: counts[p, t] = entries of tile t from part p of the depth-ordered Gaussians
+    p = wp.tid() + offset
+    if status[1] > 0 or status[0] > capacity:
+        return
+    m = status[2]
+    for t in range(n_tiles):
+        counts[p, t] = 0
+    end = _part(m, p + 1, parts)
+    for i in range(_part(m, p, parts), end):
+        _prefetch_rect(order, rect, emit_start, i, end)
+        g = order[i]
         for ty in range(rect[g, 1], rect[g, 3]):
             for tx in range(rect[g, 0], rect[g, 2]):
-                t = ty * tiles_x + tx + 1
-                tile_start[t] = tile_start[t] + 1
+                t = ty * tiles_x + tx
+                counts[p, t] = counts[p, t] + 1
+
+
+@wp.kernel
+def _tile_lists(order: wp.array(dtype=wp.int32), rect: wp.array2d(dtype=wp.int32),
+                emit_start: wp.array(dtype=wp.int32), status: wp.array(dtype=wp.int32), capacity: int, tiles_x: int,
+                n_tiles: int, parts: int, offset: int, counts: wp.array2d(dtype=wp.int32),
+                cursor: wp.array2d(dtype=wp.int32), tile_start: wp.array(dtype=wp.int32),
+                entries: wp.array(dtype=wp.int32), emit_pos: wp.array(dtype=wp.int32)):
+    # thread p: lists part p's Gaussians front to back after those of parts < p (so every tile's list is in
+    # depth order); thread 0 also writes tile_start, the exclusive scan of the tiles' entry counts
+    p = wp.tid() + offset
+    if status[1] > 0 or status[0] > capacity:
+        return
+    m = status[2]
+    s = int(0)
     for t in range(n_tiles):
-        tile_start[t + 1] = tile_start[t + 1] + tile_start[t]
-        cursor[t] = tile_start[t]
-    for i in range(m):
-        _prefetch_rect(vals2, rect, emit_start, i, m)
-        g = vals2[i]
+        c = s
+        for q in range(parts):
+            if q < p:
+                c += counts[q, t]
+            s += counts[q, t]
+        cursor[p, t] = c
+        if p == 0:
+            tile_start[t] = c
+    if p == 0:
+        tile_start[n_tiles] = s
+    end = _part(m, p + 1, parts)
+    for i in range(_part(m, p, parts), end):
+        _prefetch_rect(order, rect, emit_start, i, end)
+        g = order[i]
         k = emit_start[g]
         for ty in range(rect[g, 1], rect[g, 3]):
             for tx in range(rect[g, 0], rect[g, 2]):
                 t = ty * tiles_x + tx
-                pos = cursor[t]
-                cursor[t] = pos + 1
+                pos = cursor[p, t]
+                cursor[p, t] = pos + 1
                 entries[pos] = g
                 emit_pos[k] = pos
                 k += 1
@@ -122,30 +168,39 @@ def _bin(zbits: wp.array2d(dtype=wp.int32), ntiles: wp.array(dtype=wp.int32), re
 
 @wp.kernel
 def _touched(ntiles: wp.array(dtype=wp.int32), emit_start: wp.array(dtype=wp.int32),
-             emit_pos: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), offset: int,
+             emit_pos: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), offset: int, count: int, n: int,
              n_touched: wp.array(dtype=wp.int32)):
-    g = wp.tid() + offset
-    s = int(0)
-    nt = ntiles[g]
-    if nt > 0:
-        k0 = emit_start[g]
-        for k in range(k0, k0 + nt):
-            s += hits[emit_pos[k]]
-    n_touched[g] = s
+    # thread = Gaussians [count (tid + offset), + count) (CUDA: count 1; CPU: blocks, as the projection)
+    g0 = (wp.tid() + offset) * count
+    for g in range(g0, wp.min(g0 + count, n)):
+        s = int(0)
+        nt = ntiles[g]
+        if nt > 0:
+            k0 = emit_start[g]
+            for k in range(k0, k0 + nt):
+                s += hits[emit_pos[k]]
+        n_touched[g] = s
 
 
 def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, status, emit_start, scratch, tile_start, cursor,
               entries, emit_pos, device: str) -> None:
-    """proj_bits [>=n, 10] int32 view of the projected rows; scratch [5, >= max(n, RADIX)] int32; see the module doc."""
+    """proj_bits [>=n, 10] int32 view of the projected rows; scratch [5, >= max(n, RADIX)] int32; see the module doc.
+    (`cursor` [n_tiles] is the Taichi kernel's; here the per-tile lists are built in parts, one per CPU thread.)"""
     keys, vals, keys2, vals2, hist = (scratch[k] for k in range(5))
-    wp.launch(_bin, dim=1, inputs=[_w(proj_bits), _w(ntiles), _w(rect), n, tiles_x, n_tiles, entries.shape[0],
-                                   _w(status), _w(emit_start), _w(keys), _w(vals), _w(keys2), _w(vals2), _w(hist),
-                                   _w(tile_start), _w(cursor), _w(entries), _w(emit_pos)],
-              device=device, record_tape=False)
+    run(_bin, 1, [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), _w(keys), _w(vals),
+                  _w(keys2), _w(vals2), _w(hist)], device)
+    parts = _launch._cpu_threads() if device == "cpu" and n >= _launch.MIN_SPLIT else 1
+    tmp = torch.empty((2, parts, n_tiles), dtype=torch.int32, device=scratch.device)
+    counts, cursors = _w(tmp[0]), _w(tmp[1])
+    common = [_w(vals2), _w(rect), _w(emit_start), _w(status), entries.shape[0], tiles_x, n_tiles, parts, 0, counts]
+    launch(_tile_counts, parts, common, 8, device, work=n)
+    launch(_tile_lists, parts, common + [cursors, _w(tile_start), _w(entries), _w(emit_pos)], 8, device, work=n)
 
 
 def count_touched(n: int, ntiles, emit_start, emit_pos, hits, n_touched, device: str) -> None:
     """n_touched[g] = sum of hits over Gaussian g's tile entries, g < n."""
     if n == 0:
         return
-    launch(_touched, n, [_w(ntiles), _w(emit_start), _w(emit_pos), _w(hits), 0, _w(n_touched)], 4, device)
+    count = BLOCK if device == "cpu" else 1
+    launch(_touched, (n + count - 1) // count, [_w(ntiles), _w(emit_start), _w(emit_pos), _w(hits), 0, count, n,
+                                                _w(n_touched)], 4, device, work=n)

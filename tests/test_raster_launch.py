@@ -1,0 +1,69 @@
+"""The Warp rasteriser's CPU launch plumbing (kernels/_warp/launch.py) changes no bit of the results: direct calls
+of the compiled kernels against wp.launch, and launches split over threads against single launches, forward and
+backward, on the perf scene (big enough that projection and compositing split over the cores)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import kernels
+from perf.raster import _loss, _params, make_scene
+
+
+def _run(scene):
+    p = _params(scene, True)
+    p["viewmat"] = scene["viewmat"].clone().requires_grad_(True)
+    o = kernels.rasterize(**p)
+    _loss(o.color, o.depth, o.alpha).backward()
+    outs = [o.color, o.depth, o.depth_normalised, o.alpha, o.radii, o.n_touched]
+    return outs + [p[k].grad for k in ("means", "quats", "scales", "opacities", "colors", "viewmat")]
+
+
+@pytest.fixture
+def warp_cpu():
+    kernels.use("warp", "cpu")
+    from kernels._warp import launch
+
+    return launch
+
+
+@pytest.mark.parametrize("size", [(160, 120, 1_000), (320, 240, 20_000)])
+def test_direct_calls_equal_wp_launch(warp_cpu, monkeypatch, size):
+    w, h, n = size
+    scene = make_scene(n, w, h, seed=3)
+    _run(scene)  # first launches: compile / load
+    direct = _run(scene)
+    assert any(v is not None for v in warp_cpu._DIRECT.values())
+    monkeypatch.setattr(warp_cpu, "DIRECT", False)
+    ref = _run(scene)
+    for a, b in zip(direct, ref):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_split_equal_single_launch(warp_cpu, monkeypatch, threads):
+    scene = make_scene(20_000, 320, 240, seed=4)
+    monkeypatch.setattr(warp_cpu, "_cpu_threads", lambda: threads)  # binning in `threads` parts, launches split
+    _run(scene)
+    split = _run(scene)
+    monkeypatch.setattr(warp_cpu, "_cpu_threads", lambda: 1)
+    one = _run(scene)
+    for a, b in zip(split, one):
+        assert torch.equal(a, b)
+
+
+def test_cuda_shapes_on_the_cpu_equal(warp_cpu, monkeypatch):
+    """The projection and hit counts one Gaussian per kernel thread (their CUDA shape, count 1: the per-Gaussian
+    kernel, viewmat parts per Gaussian summed in blocks of 256 by _view_grad) against the CPU's blocks."""
+    from kernels._warp import project, sort
+
+    scene = make_scene(20_000, 320, 240, seed=5)
+    _run(scene)
+    blocks = _run(scene)
+    monkeypatch.setattr(project, "BLOCK", 1)
+    monkeypatch.setattr(sort, "BLOCK", 1)
+    _run(scene)
+    single = _run(scene)
+    for a, b in zip(blocks, single):
+        assert torch.equal(a, b)
