@@ -9,6 +9,8 @@ again), and loop closure has moved them since mapping fitted them.
 
 from __future__ import annotations
 
+import time
+
 import torch
 
 from kernels import se3
@@ -40,12 +42,14 @@ def _refine_parts(parts, views, view_submaps, cfg, mapping, reference: bool) -> 
     """parts: [(submap, T frame <- submap local)]; refine their merged map over `views` (in that frame;
     view_submaps[i] is the submap of views[i]'s keyframe) and hand each submap its surviving Gaussians back.
     Returns the statistics."""
+    t0 = time.perf_counter()
     parts = [(sm, T, len(sm)) for sm, T in parts if len(sm)]
     merged = GaussianParams.concat([transform_params(sm.params, T) for sm, T, _ in parts])
     runs = cfg.iterations_per_keyframe > 0 and cfg.max_iterations > 0 and views and len(merged)
     owned = torch.ones(len(merged), dtype=torch.bool)
     if runs and cfg.overlap_cull:
         owned = _overlap_keep(parts, views, view_submaps, cfg, merged)
+    cull_s = time.perf_counter() - t0
     refined, kept, st = refine_map(merged.select(owned), views, cfg, mapping, reference=reference)
     keep = owned.clone()
     keep[owned] = kept
@@ -59,7 +63,8 @@ def _refine_parts(parts, views, view_submaps, cfg, mapping, reference: bool) -> 
         pruned += GaussianMap.prune(sm, min_opacity=mapping.prune_min_opacity, max_scale=mapping.prune_max_scale)
     return {"iterations": st.iterations, "keyframes": st.views, "gaussians": len(merged), "overlap_dropped": overlap,
             "hidden_dropped": hidden,
-            "pruned": pruned, "loss_first": st.loss_first, "loss_last": st.loss_last, "seconds": st.seconds}
+            "pruned": pruned, "loss_first": st.loss_first, "loss_last": st.loss_last,
+            "overlap_cull_seconds": cull_s, "seconds": time.perf_counter() - t0}
 
 
 def refine_components(server, cfg, mapping, *, reference: bool = False) -> dict:

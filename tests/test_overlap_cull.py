@@ -112,3 +112,4 @@ def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
                            MappingConfig(), False)
         assert st["overlap_dropped"] == dropped and st["gaussians"] == 800 and st["iterations"] == 4
         assert len(s0) == 400 and len(s1) == 400 - dropped
+        assert 0 <= st["overlap_cull_seconds"] <= st["seconds"]
