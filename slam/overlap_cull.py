@@ -10,7 +10,9 @@ surface* (the centre projects into the keyframe's image, in front of the camera,
 keyframe's depth at that pixel), the one that sees it from closest (finest pixel footprint) names the owner. A
 Gaussian survives in its owner only; a Gaussian that no keyframe observes on its surface (a floater, a
 depth-less region) is kept. The owners partition each surface into patches, each rendered by the submap that saw
-it in most detail, and the refinement then fits the seams.
+it in most detail, and the refinement then fits the seams. Gaussians that mapping seeded in large regions without
+depth (slam.mapper.fallback_depth: windows, sky) have no measured surface to be observed on; those that project
+into such a region of a view are owned by the nearest such view (`OwnerView.no_depth`).
 
 Measured on Redwood 211 (one agent, 5 submaps, 43 keyframes, 320x240): 256k -> 108k Gaussians; the merged map
 before refinement 23.33 -> 23.62 dB; after the same 344 refinement steps 27.26 dB against 27.09, in 57 s against
@@ -40,13 +42,16 @@ class OwnerView:
     viewmat: torch.Tensor  # [4, 4] map frame -> camera (OpenCV axes)
     depth: torch.Tensor  # [H, W] metres, 0 = invalid
     camera: PinholeCamera
+    no_depth: torch.Tensor | None = None  # [H, W] bool: the large regions without depth mapping seeded
 
 
 def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], *, tol_abs: float = 0.03,
                tol_rel: float = 0.02) -> torch.Tensor:
     """keep [N] bool: Gaussian i (centre means[i] in the map frame, of part part[i]) survives when the nearest
     keyframe observing its centre on the keyframe's depth surface (|z - D(u, v)| < max(tol_abs, tol_rel D))
-    belongs to part[i], or when no keyframe observes it. Ties go to the view listed first."""
+    belongs to part[i], or when no keyframe observes it. Ties go to the view listed first. A Gaussian no keyframe
+    observes on a surface but that projects into a view's `no_depth` region (mapping's seeds without depth, which
+    have no measured depth to compare with) is owned by the nearest such view."""
     means = torch.as_tensor(means)
     part = torch.as_tensor(part, dtype=torch.long)
     if means.ndim != 2 or means.shape[1] != 3 or part.shape != (len(means),):
@@ -57,6 +62,8 @@ def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], 
     n = len(means)
     best = torch.full((n,), float("inf"), dtype=torch.float32)
     owner = torch.full((n,), -1, dtype=torch.long)
+    best_nd = torch.full((n,), float("inf"), dtype=torch.float32)
+    owner_nd = torch.full((n,), -1, dtype=torch.long)
     m = means.detach().to(torch.float32)
     for v in views:
         cam = v.camera
@@ -78,4 +85,10 @@ def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], 
         hit = idx[on_surface]
         best[hit] = zi[on_surface]
         owner[hit] = int(v.part)
+        if v.no_depth is not None:
+            nd = torch.as_tensor(v.no_depth, dtype=torch.bool)[w[idx].long(), u[idx].long()] & (zi < best_nd[idx])
+            hit = idx[nd]
+            best_nd[hit] = zi[nd]
+            owner_nd[hit] = int(v.part)
+    owner = torch.where(owner < 0, owner_nd, owner)
     return (owner < 0) | (owner == part)

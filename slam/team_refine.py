@@ -17,6 +17,7 @@ from kernels import se3
 
 from .gaussian_map import GaussianMap, GaussianParams, transform_params
 from .map_refine import RefineView, refine_map
+from .mapper import fallback_depth
 from .overlap_cull import OwnerView, owner_keep
 from .render import viewmat_from_pose
 
@@ -27,13 +28,20 @@ def _view(kf, T_frame_cam, cfg) -> RefineView:
                       f.camera)
 
 
-def _overlap_keep(parts, views, view_submaps, cfg, merged):
+def _overlap_keep(parts, views, view_submaps, cfg, mapping, merged):
     """keep [N] of slam.overlap_cull over `merged` (the parts' Gaussians in order); view_submaps[i]: the submap
-    of views[i]."""
+    of views[i]. With mapping.seed_without_depth, each view's large no-depth regions (where mapping seeded without
+    depth, slam.mapper.fallback_depth) decide the owner of the Gaussians there."""
     index = {id(sm): i for i, (sm, _, _) in enumerate(parts)}
     part = torch.cat([torch.full((n,), i, dtype=torch.long) for i, (_, _, n) in enumerate(parts)])
-    owners = [OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera) for v, sm in zip(views, view_submaps)
-              if id(sm) in index]
+
+    def no_depth(v):
+        if not mapping.seed_without_depth:
+            return None
+        return torch.as_tensor(fallback_depth(v.depth.numpy(), mapping.no_depth_min_region) > 0)
+
+    owners = [OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera, no_depth(v))
+              for v, sm in zip(views, view_submaps) if id(sm) in index]
     return owner_keep(merged.means, part, owners, tol_abs=cfg.overlap_depth_tolerance,
                       tol_rel=cfg.overlap_depth_tolerance_rel)
 
@@ -48,7 +56,7 @@ def _refine_parts(parts, views, view_submaps, cfg, mapping, reference: bool) -> 
     runs = cfg.iterations_per_keyframe > 0 and cfg.max_iterations > 0 and views and len(merged)
     owned = torch.ones(len(merged), dtype=torch.bool)
     if runs and cfg.overlap_cull:
-        owned = _overlap_keep(parts, views, view_submaps, cfg, merged)
+        owned = _overlap_keep(parts, views, view_submaps, cfg, mapping, merged)
     cull_s = time.perf_counter() - t0
     refined, kept, st = refine_map(merged.select(owned), views, cfg, mapping, reference=reference)
     keep = owned.clone()

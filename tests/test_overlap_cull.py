@@ -71,6 +71,24 @@ def test_depth_tolerance_decides_what_is_on_the_surface():
     assert not owner_keep(means, part, views, tol_abs=0.0, tol_rel=0.06)[100:].any()
 
 
+def test_no_depth_regions_give_their_gaussians_one_owner():
+    """Copies seeded without depth (a window, the sky: no measured surface to compare with) are owned by the
+    nearest view whose no-depth region they project into; without the regions every copy stays."""
+    means = torch.cat([_plane(200, seed=8), _plane(200, seed=9)])
+    part = torch.cat([torch.zeros(200), torch.ones(200)]).long()
+    none = torch.zeros(CAM.height, CAM.width, dtype=torch.bool)
+    views = [_view(0, 2.0, valid=none), _view(1, 1.5, valid=none)]
+    assert owner_keep(means, part, views).all()
+    for v in views:
+        v.no_depth = ~none
+    keep = owner_keep(means, part, views)
+    assert not keep[:200].any() and keep[200:].all()
+    # a surface observation still wins over a no-depth one
+    views[0] = _view(0, 2.0)
+    keep = owner_keep(means, part, views)
+    assert keep[:200].all() and not keep[200:].any()
+
+
 def test_bad_input_names_what_was_expected():
     with pytest.raises(InputError, match=r"means \[N, 3\]"):
         owner_keep(torch.zeros(4, 2), torch.zeros(4).long(), [])
