@@ -67,3 +67,17 @@ def test_cuda_shapes_on_the_cpu_equal(warp_cpu, monkeypatch):
     single = _run(scene)
     for a, b in zip(blocks, single):
         assert torch.equal(a, b)
+
+
+def test_without_warp_descriptors_results_are_the_same(warp_cpu, monkeypatch):
+    """A Warp whose array descriptor layout is not the one kernels/_warp/arrays.py knows gets wp.from_torch arrays
+    (and wp.launch's own packing): the same bits, only slower."""
+    from kernels._warp import arrays
+
+    scene = make_scene(1_000, 160, 120, seed=6)
+    _run(scene)
+    fast = _run(scene)
+    monkeypatch.setattr(arrays, "_from", None)
+    slow = _run(scene)
+    for a, b in zip(fast, slow):
+        assert torch.equal(a, b)

@@ -16,18 +16,21 @@ import struct
 
 import torch
 import warp as wp
-from warp._src.types import array_t  # the descriptor type Warp's launches pass (warp 1.19)
 
 _TYPES = (torch.float32, torch.int32)
 _LAYOUT = struct.Struct("<QQ4i4iHH4x")  # array_t: data, grad, shape[4], strides[4] (bytes), ndim, flags, padding
-assert _LAYOUT.size == ctypes.sizeof(array_t)
-_from = array_t.from_buffer_copy
+try:  # the descriptor type Warp's launches pass (Warp 1.19's layout); another Warp: wp.from_torch for everything
+    from warp._src.types import array_t
+
+    _from = array_t.from_buffer_copy if _LAYOUT.size == ctypes.sizeof(array_t) else None
+except ImportError:
+    _from = None
 
 
 def to_warp(t: torch.Tensor, dtype=None):
     """A Warp kernel argument viewing `t` (float32 or int32, up to 4 dims, any strides, 0 included); detached, no
     Warp-side gradient."""
-    if dtype is None and t.is_cpu and t.dtype in _TYPES:
+    if _from is not None and dtype is None and t.is_cpu and t.dtype in _TYPES:
         sh, st = t.shape, t.stride()
         nd = len(sh)
         if nd == 1:
