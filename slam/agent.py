@@ -19,7 +19,7 @@ from .gaussian_map import GaussianMap, GaussianParams
 from .loop_closure import LoopCloser
 from .mapper import MapKeyframe, Mapper
 from .render import render, viewmat_from_pose
-from .submaps import Keyframe, needs_new_submap, start_submap, world_pose
+from .submaps import Keyframe, frame_local_poses, needs_new_submap, start_submap, world_pose
 from .tracker import Tracker
 
 
@@ -160,10 +160,12 @@ class Agent:
     # ---- results ----------------------------------------------------------------------------------------------
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """(timestamps [N], T_world_cam [N, 4, 4]) of every tracked frame, with the current submap frames."""
+        """(timestamps [N], T_world_cam [N, 4, 4]) of every tracked frame, with the current submap frames (and
+        following its keyframe's refined pose, once the map refinement refined it: slam.submaps.frame_local_poses)."""
         if not self.poses:
             return np.zeros(0), np.zeros((0, 4, 4))
-        T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ p.T_local_cam for p in self.poses])
+        local = frame_local_poses(self.poses, self.keyframes)
+        T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ L for p, L in zip(self.poses, local)])
         return np.array([p.timestamp for p in self.poses]), T
 
     def trajectory_no_lc(self) -> tuple[np.ndarray, np.ndarray]:
@@ -180,5 +182,5 @@ class Agent:
         """Render `kf`'s own submap at its pose: (color [H, W, 3], depth [H, W]) — the training-view render."""
         s = self.gmap.submaps[kf.submap_id]
         with torch.no_grad():
-            out = render(s.params, viewmat_from_pose(kf.T_local_cam), camera)
+            out = render(s.params, viewmat_from_pose(kf.T_local), camera)
         return out.color.clamp(0, 1), out.depth_normalised

@@ -101,7 +101,7 @@ def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True) -> di
     for kf, T_world in zip(agent.keyframes, agent.keyframe_world_poses()):
         f = seq[kf.frame_index]
         if own:
-            scores.append(score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local_cam, f.color, f.depth,
+            scores.append(score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local, f.color, f.depth,
                                      seq.camera, agent.cfg)[0])
         if merged:
             merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg)[0])

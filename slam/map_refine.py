@@ -12,6 +12,13 @@ equally) and back-propagates only into the Gaussians whose centre projects into 
 margin): the rasteriser's cost grows with the number of Gaussians it is handed, and most of a room-scale map is
 outside any one view.
 
+With `cfg.refine_poses` each keyframe's pose is refined with the map (a photometric bundle adjustment): every
+step also moves the step's keyframe by a left twist, viewmat = exp(xi) @ viewmat0, through the rasteriser's pose
+gradient, with Adam per keyframe. The first view holds the gauge (it is not moved). The map fitted over
+keyframes whose poses are a few millimetres apart blurs every texture edge by that much; the refined poses are
+returned (`RefineStats.viewmats`) so the caller renders and reports the trajectory at the poses the map was
+fitted to.
+
     from slam.map_refine import RefineView, refine_map
     refined, keep, stats = refine_map(params, views, cfg.map_refine, cfg.mapping)
 """
@@ -24,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from kernels import se3
 from kernels.camera import PinholeCamera
 
 from .config import MappingConfig, MapRefineConfig
@@ -52,6 +60,49 @@ class RefineStats:
     loss_first: float  # mean loss of the first pass over the views
     loss_last: float  # mean loss of the last pass
     seconds: float
+    viewmats: list[torch.Tensor] | None = None  # [4, 4] per view after pose refinement (None: poses not refined)
+    pose_moves: np.ndarray | None = None  # [views, 2] rotation (rad) and translation (m) each view was moved by
+
+
+class _PoseSteps:
+    """Per-view left twists xi_j [omega, v] with viewmat_j = exp(xi_j) @ viewmat0_j, each stepped by its own Adam
+    (a view's pose only has a gradient at its own steps). Views in `fixed` keep their pose."""
+
+    def __init__(self, views: list[RefineView], lr_rotation: float, lr_translation: float, fixed: set[int]):
+        self.vm0 = [v.viewmat.detach().to(torch.float64) for v in views]
+        self.xi = torch.zeros(len(views), 6, dtype=torch.float64)
+        self.m, self.v = torch.zeros_like(self.xi), torch.zeros_like(self.xi)
+        self.t = [0] * len(views)
+        self.lr = torch.tensor([lr_rotation] * 3 + [lr_translation] * 3, dtype=torch.float64)
+        self.fixed = fixed
+
+    def viewmat(self, j: int, view: RefineView) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(viewmat for the step's render, the twist leaf whose .grad the render's backward fills, or None)."""
+        if j in self.fixed:
+            return view.viewmat, None
+        leaf = self.xi[j].clone().requires_grad_(True)
+        return (se3.exp_torch(leaf) @ self.vm0[j]).to(view.viewmat.dtype), leaf
+
+    def step(self, j: int, leaf: torch.Tensor | None) -> None:
+        if leaf is None or leaf.grad is None:
+            return
+        g = leaf.grad.detach()
+        b1, b2 = 0.9, 0.999
+        self.t[j] += 1
+        self.m[j] = b1 * self.m[j] + (1 - b1) * g
+        self.v[j] = b2 * self.v[j] + (1 - b2) * g * g
+        m_hat = self.m[j] / (1 - b1 ** self.t[j])
+        v_hat = self.v[j] / (1 - b2 ** self.t[j])
+        self.xi[j] -= self.lr * m_hat / (v_hat.sqrt() + 1e-12)
+
+    def result(self, dtype) -> tuple[list[torch.Tensor], np.ndarray]:
+        mats = [(se3.exp_torch(x) @ m).to(dtype) for x, m in zip(self.xi, self.vm0)]
+        moves = np.stack([self.xi[:, :3].norm(dim=1).numpy(), np.zeros(len(self.xi))], axis=1)
+        for j, (T, T0) in enumerate(zip(mats, self.vm0)):  # translation of the camera centre, metres
+            c = -T[:3, :3].double().T @ T[:3, 3].double()
+            c0 = -T0[:3, :3].T @ T0[:3, 3]
+            moves[j, 1] = float((c - c0).norm())
+        return mats, moves
 
 
 def iteration_budget(cfg: MapRefineConfig, n_views: int) -> int:
@@ -91,7 +142,7 @@ def contributions(params: GaussianParams, views: list[RefineView], *, reference:
 
 
 def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
-               iterations: int | None = None, reference: bool = False
+               iterations: int | None = None, reference: bool = False, fixed_views: set[int] | None = None
                ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
     """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
     mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
@@ -101,6 +152,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     First, Gaussians that contribute less than `cfg.min_contribution` pixels to every view are dropped: where
     submaps overlap, the surface of one hides the same surface of another, and those hidden copies only cost
     time (measured: half of one agent's merged map, with the same PSNR after refinement).
+
+    With `cfg.refine_poses` the views' poses are refined too, all but `fixed_views` (default: the first view,
+    which holds the gauge): `stats.viewmats` has them, `stats.pose_moves` how far each moved.
 
     Returns (kept Gaussians, refined, in their original order; keep [N] bool over the input; statistics), so the
     caller can hand each submap its own surviving Gaussians back. `iterations` overrides the budget.
@@ -124,6 +178,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         opt = torch.optim.Adam([{"params": [t], "lr": r} for t, r in zip(tensors, lrs)], eps=1e-15)
     # Visibility from the starting means: refinement moves a Gaussian by millimetres, far less than the margin.
     subsets = [visible_indices(p.means.detach(), v, cfg.view_margin) for v in views]
+    poses = (_PoseSteps(views, cfg.lr_pose_rotation, cfg.lr_pose_translation,
+                        fixed={0} if fixed_views is None else set(fixed_views))
+             if cfg.refine_poses and len(views) > 1 else None)
     order: list[int] = []
     losses: list[float] = []
     b = bar(n_it, "[refine] steps", unit="step", enabled=None)  # shown inside slam.progress.reporting(True)
@@ -142,9 +199,12 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
             sub = GaussianParams(p.means[idx], p.log_scales[idx], p.quats[idx], p.logit_opacities[idx],
                                  p.colors[idx])
             opt.zero_grad(set_to_none=True)
-        out = render(sub, v.viewmat, v.camera, reference=reference)
+        viewmat, leaf = poses.viewmat(j, v) if poses is not None else (v.viewmat, None)
+        out = render(sub, viewmat, v.camera, reference=reference)
         loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser)
         loss.backward()
+        if poses is not None:
+            poses.step(j, leaf)
         if cfg.optimizer == "selective":
             sel.step(idx, [sub.means.grad, sub.log_scales.grad, sub.quats.grad, sub.logit_opacities.grad,
                            sub.colors.grad])
@@ -155,5 +215,6 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     k = max(1, min(len(views), len(losses)))
     first = float(np.mean(losses[:k])) if losses else float("nan")
     last = float(np.mean(losses[-k:])) if losses else float("nan")
+    mats, moves = poses.result(views[0].viewmat.dtype) if poses is not None else (None, None)
     return p.detached(), keep, RefineStats(len(losses), len(views), len(params), first, last,
-                                           time.perf_counter() - t0)
+                                           time.perf_counter() - t0, mats, moves)

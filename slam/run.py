@@ -73,18 +73,24 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     t_eval = time.perf_counter()
     own = keyframe_metrics(agent, seq, merged=False)
     t_eval = time.perf_counter() - t_eval  # evaluation is not part of the run's time
+    before = None
     if refine:  # the merged map over all keyframes at their final poses (slam.team_refine)
         from .progress import reporting
         from .team_refine import refine_agent
 
+        before = agent.trajectory()[1] if rc.refine_poses else None
         with reporting(progress):
             refined = refine_agent(agent, rc, cfg.mapping, reference=reference)
     wall = time.perf_counter() - t0 - t_eval
-    return write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined, own_scores=own)
+    return write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined, own_scores=own,
+                         trajectory_before_refine=before)
 
 
 def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
-                  map_refine: dict | None = None, own_scores: dict | None = None) -> dict:
+                  map_refine: dict | None = None, own_scores: dict | None = None,
+                  trajectory_before_refine: np.ndarray | None = None) -> dict:
+    """Write the run's outputs and metrics.json; returns the metrics. trajectory_before_refine: the frames' poses
+    before the map refinement refined the keyframe poses (its ATE is reported as ate_rmse_before_refine)."""
     from slam.trajectory import write_tum
 
     from .ply import save_ply
@@ -123,6 +129,9 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
     if metrics.get("ate_rmse") is not None:  # the same run's tracking-only trajectory, aligned the same way
         metrics["ate_rmse_no_lc"] = _trajectory_metrics(seq, stamps, T_no_lc, None)["ate_rmse"]
+        if trajectory_before_refine is not None:
+            metrics["ate_rmse_before_refine"] = _trajectory_metrics(seq, stamps, trajectory_before_refine,
+                                                                    None)["ate_rmse"]
     # working and input resolution (slam.evaluate_views); own-submap scores as given (taken before refinement)
     metrics.update(keyframe_metrics(agent, seq, own=own_scores is None))
     metrics.update(own_scores or {})

@@ -399,7 +399,9 @@ class Server:
         rendering). per_keyframe=True: every frame follows the pose-graph optimum of the last keyframe before it in
         its submap (T = T_kf^g · T_kf_local⁻¹ · T_frame_local) — the best trajectory estimate the graph gives, since a
         submap's later keyframes have their own optimised poses that the rigid submap move ignores. Frames whose
-        keyframe is not in the last optimised graph keep the rigid move."""
+        keyframe is not in the last optimised graph keep the rigid move. Once the map refinement has refined a
+        keyframe's pose (Keyframe.T_local_refined), its frames follow that pose in both modes: it is the pose the
+        map was fitted to, refined from the pose-graph optimum."""
         s = self.slots[a]
         stamps, T = s.agent.trajectory()
         if not len(T):
@@ -412,8 +414,8 @@ class Server:
             for n, rec in enumerate(s.agent.poses):  # frames in tracking order
                 while j < len(kfs) and kfs[j].frame_index <= rec.frame_index:
                     last, j = kfs[j], j + 1
-                if last is None or last.submap_id != rec.submap_id:
-                    continue
+                if last is None or last.submap_id != rec.submap_id or last.T_local_refined is not None:
+                    continue  # (a refined keyframe: the agent's trajectory already follows its refined pose)
                 T_kf = optimum.get(self.key(a, last.id))
                 if T_kf is not None:
                     T[n] = T_kf @ se3.inverse(last.T_local_cam) @ rec.T_local_cam

@@ -16,8 +16,10 @@ from .gaussian_map import GaussianMap, Submap
 
 @dataclass
 class Keyframe:
-    """A keyframe of the agent. Its world pose is `T_world_local` of its submap composed with `T_local_cam`, so
-    moving the submap (pose-graph optimisation, eq. 14) moves the keyframe with it."""
+    """A keyframe of the agent. Its world pose is `T_world_local` of its submap composed with its local pose, so
+    moving the submap (pose-graph optimisation, eq. 14) moves the keyframe with it. The local pose is the tracked
+    `T_local_cam`, or `T_local_refined` once the global map refinement has refined it (slam.map_refine): the map
+    is fitted to that pose, and the frames tracked after the keyframe follow it (`frame_local_poses`)."""
 
     id: int
     frame_index: int
@@ -27,6 +29,12 @@ class Keyframe:
     map_rgbd: RGBD | None  # mapping resolution; dropped when the submap is retired (unless a team keeps it)
     small: RGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
     descriptor: np.ndarray | None = None  # [D] unit vector
+    T_local_refined: np.ndarray | None = None  # [4, 4] after the map refinement's pose refinement
+
+    @property
+    def T_local(self) -> np.ndarray:
+        """The keyframe's best pose in its submap: refined if it was, else as tracked."""
+        return self.T_local_cam if self.T_local_refined is None else self.T_local_refined
 
 
 def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: int) -> bool:
@@ -51,4 +59,20 @@ def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Key
 
 
 def world_pose(gmap: GaussianMap, kf: Keyframe) -> np.ndarray:
-    return gmap.submaps[kf.submap_id].T_world_local @ kf.T_local_cam
+    return gmap.submaps[kf.submap_id].T_world_local @ kf.T_local
+
+
+def frame_local_poses(poses, keyframes: list[Keyframe]) -> list[np.ndarray]:
+    """Each tracked frame's pose in its submap (`poses`: records with frame_index, submap_id, T_local_cam, in
+    tracking order): as tracked, except after a keyframe of the same submap whose pose was refined, where the frame
+    keeps its tracked pose relative to that keyframe (T_refined · T_kf⁻¹ · T_frame)."""
+    kfs = sorted(keyframes, key=lambda k: k.frame_index)
+    out, j, last = [], 0, None
+    for rec in poses:
+        while j < len(kfs) and kfs[j].frame_index <= rec.frame_index:
+            last, j = kfs[j], j + 1
+        T = rec.T_local_cam
+        if last is not None and last.T_local_refined is not None and last.submap_id == rec.submap_id:
+            T = last.T_local_refined @ se3.inverse(last.T_local_cam) @ T
+        out.append(T)
+    return out

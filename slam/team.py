@@ -203,6 +203,8 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
             print(f"[team] refining the merged map over {n} keyframes (map_refine: "
                   f"{cfg.map_refine.iterations_per_keyframe} steps per keyframe, at most "
                   f"{cfg.map_refine.max_iterations} per component)", file=sys.stderr)
+        traj_before = ([team.trajectory(a) for a in range(len(team.agents))] if cfg.map_refine.refine_poses
+                       else None)
         t_ref = time.perf_counter()
         with reporting(progress):
             refined = team.refine_map()
@@ -210,6 +212,7 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
         if observer is not None:
             observer(team, force=True)
         before["seconds"] = t_ref - t_ev
+        before["trajectories"] = traj_before
     return write_team_results(team, ds, out, wall_s=wall, cpu_s=time.process_time() - cpu0,
                               render_views=render_views, progress=progress, before_refine=before,
                               refine=refined, run_info={"frame_stride": stride, "frame_caps": caps})

@@ -69,6 +69,12 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
 
     write_loops_csv(out / "loops.csv", srv.records)
     traj = _trajectory_metrics(team, ds, est, est_no_lc, out)
+    traj_before = (before_refine or {}).get("trajectories")
+    if traj_before is not None:  # the same scores at the poses before the refinement refined the keyframes
+        tb = _trajectory_metrics(team, ds, dict(zip(names, traj_before)), est_no_lc, None)
+        traj["team_before_refine"] = tb["team"]
+        for entry, e in zip(traj["agents"], tb["agents"]):
+            entry["ate_rmse_before_refine"] = e["ate_rmse"]
     if progress:
         print("[team] rendering evaluation views from the merged map", file=sys.stderr)
     render = render_metrics(team, ds, render_views)
@@ -77,6 +83,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         _render_grid(out / "renders.png", grid)
     before = dict(before_refine or {})
     before.pop("grid", None)
+    before.pop("trajectories", None)
     agents = []
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
         t = ag.time
@@ -93,6 +100,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "status": "complete",
         "dataset": str(ds.root), "dataset_name": ds.name, "agents": agents,
         "ate_rmse_team": traj["team"], "ate_rmse_team_agents": traj["team_agents"],
+        "ate_rmse_team_before_refine": traj.get("team_before_refine"),
         "joined_agents": [names[a] for a in comps.get(0, [])],
         "unjoined_agents": [names[a] for a in range(len(names)) if srv.slots[a].component != 0],
         "all_agents_joined": all(srv.slots[a].component == 0 for a in range(len(names))),
@@ -132,9 +140,9 @@ def _gt(seq):
     return (seq.timestamps[ok], gt[ok]) if ok.any() else None
 
 
-def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict:
+def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path | None) -> dict:
     """Per-agent ATE (own SE(3) alignment) with and without loops, and the team ATE of agent 0's component
-    under ONE alignment (what the merged map's consistency rests on)."""
+    under ONE alignment (what the merged map's consistency rests on). out None: no plots."""
     from .metrics import ate, ate_multi
     from .plots import plot_trajectories
 
@@ -169,7 +177,7 @@ def _trajectory_metrics(team, ds, est: dict, est_no_lc: dict, out: Path) -> dict
             entry = per[names.index(n)]
             if entry["ate_rmse"] is None:  # scored under the team's one alignment instead
                 entry.update(ate_rmse=j.per_agent[n].rmse, ate_matched=j.per_agent[n].matched, ate_align="joint")
-    if gt_pos:
+    if gt_pos and out is not None:
         title = (f"with loop closures: global-frame ATE {100 * team_rmse:.2f} cm (one alignment)"
                  if team_rmse is not None else "with loop closures")
         plot_trajectories(out / "trajectory.png", gt_pos, est_pos, errors=errs, title=title)

@@ -26,3 +26,20 @@ def test_demo_tiny_end_to_end(tmp_path):
     stamp = (out / "dataset" / "dataset.yaml").stat().st_mtime_ns
     assert ensure_dataset(out / "dataset", "tiny", progress=False) == out / "dataset"
     assert (out / "dataset" / "dataset.yaml").stat().st_mtime_ns == stamp
+
+
+def test_tiny_team_with_pose_refinement_reports_the_trajectory_before_and_after(tmp_path):
+    """map_refine.refine_poses (opt-in): the server refines the keyframe poses with the map; metrics.json reports the
+    ATE at the refined poses and before them, and how far the poses moved (a few millimetres, not metres)."""
+    from slam import demo
+
+    cfg = demo.demo_config("tiny").override({"map_refine": {"refine_poses": True}})
+    m = demo.run_demo(tmp_path, preset="tiny", config=cfg, progress=False)
+    assert m["ate_rmse_team"] is not None and m["ate_rmse_team_before_refine"] is not None
+    assert m["ate_rmse_team"] != m["ate_rmse_team_before_refine"]  # the trajectory follows the refined keyframes
+    for a in m["agents"]:
+        assert 0 < a["ate_rmse"] < 0.05 and 0 < a["ate_rmse_before_refine"] < 0.05
+    (st,) = m["map_refine"]["components"].values()
+    assert 0 < st["pose_translation_m_median"] <= st["pose_translation_m_max"] < 0.02
+    assert 0 < st["pose_rotation_deg_max"] < 1.0
+    assert (tmp_path / "results" / "trajectories" / "agent_0.txt").exists()

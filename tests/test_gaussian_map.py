@@ -126,3 +126,25 @@ def test_config_yaml_round_trip_and_validation(tmp_path):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+def test_frames_follow_their_keyframes_refined_pose():
+    """slam.submaps.frame_local_poses: after a keyframe whose pose the map refinement refined, a frame of the same
+    submap keeps its tracked pose relative to that keyframe; frames before it, in another submap, or after an
+    unrefined keyframe keep their tracked pose; Keyframe.T_local prefers the refined pose."""
+    from slam.agent import FramePose
+    from slam.submaps import Keyframe, frame_local_poses
+
+    T = [se3.exp(np.array([0.0, 0.01 * i, 0.0, 0.1 * i, 0.0, 0.02 * i])) for i in range(7)]
+    poses = [FramePose(i, float(i), 0 if i < 5 else 1, T[i]) for i in range(7)]
+    fix = se3.exp(np.array([0.002, 0.0, -0.001, 0.004, 0.003, 0.0]))
+    kfs = [Keyframe(0, 0, 0.0, 0, T[0], None, None), Keyframe(1, 2, 2.0, 0, T[2], None, None),
+           Keyframe(2, 4, 4.0, 0, T[4], None, None), Keyframe(3, 5, 5.0, 1, T[5], None, None)]
+    kfs[1].T_local_refined = T[2] @ fix
+    assert np.array_equal(kfs[0].T_local, T[0]) and np.array_equal(kfs[1].T_local, T[2] @ fix)
+    local = frame_local_poses(poses, kfs)
+    for i in (0, 1, 4, 5, 6):  # before the refined keyframe, after an unrefined one, another submap
+        assert np.array_equal(local[i], T[i])
+    for i in (2, 3):  # the refined keyframe's own frame and the frame tracked after it
+        assert np.allclose(local[i], T[2] @ fix @ se3.inverse(T[2]) @ T[i], atol=1e-12)
+    assert not np.allclose(local[3], T[3], atol=1e-4)

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import kernels
+from kernels import se3
 from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 from slam.overlap_cull import OwnerView, owner_keep
@@ -108,6 +109,7 @@ def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
     from slam.config import MappingConfig, MapRefineConfig
     from slam.gaussian_map import GaussianParams, Submap
     from slam.map_refine import RefineView
+    from slam.submaps import Keyframe
     from slam.team_refine import _refine_parts
 
     kernels.use("warp", "cpu")
@@ -125,9 +127,15 @@ def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
 
     for cull, dropped in ((True, 400), (False, 0)):
         s0, s1 = plane_submap(0, 6), plane_submap(1, 7)
-        cfg = MapRefineConfig(iterations_per_keyframe=2, min_contribution=0.0, overlap_cull=cull)
-        st = _refine_parts([(s0, np.eye(4)), (s1, np.eye(4))], [refine_view(1.0), refine_view(1.6)], [s0, s1], cfg,
-                           MappingConfig(), False)
+        cfg = MapRefineConfig(iterations_per_keyframe=2, min_contribution=0.0, overlap_cull=cull,
+                              refine_poses=True)
+        kfs = [Keyframe(i, i, float(i), i, se3.inverse(refine_view(z).viewmat.double().numpy()), None, None)
+               for i, z in enumerate((1.0, 1.6))]
+        st = _refine_parts([(s0, np.eye(4)), (s1, np.eye(4))], [refine_view(1.0), refine_view(1.6)],
+                           [(s0, kfs[0]), (s1, kfs[1])], cfg, MappingConfig(), False)
         assert st["overlap_dropped"] == dropped and st["gaussians"] == 800 and st["iterations"] == 4
         assert len(s0) == 400 and len(s1) == 400 - dropped
+        # refine_poses: each keyframe gets a refined pose; the first view holds the gauge
+        assert np.allclose(kfs[0].T_local_refined, kfs[0].T_local_cam, atol=1e-6)
+        assert kfs[1].T_local_refined is not None and st["pose_translation_m_max"] < 0.01
         assert 0 <= st["overlap_cull_seconds"] <= st["seconds"]

@@ -168,8 +168,8 @@ def test_trajectory_follows_each_keyframes_optimum_not_only_the_submap_move():
     rng = np.random.default_rng(3)
     T_wl = se3.exp(rng.normal(size=6) * 0.2)  # submap 0 in the agent's world
     local = [se3.exp(rng.normal(size=6) * 0.1) for _ in range(4)]  # frames 0-3 in the submap
-    kfs = [NS(id=0, frame_index=0, submap_id=0, T_local_cam=local[0]),
-           NS(id=1, frame_index=2, submap_id=0, T_local_cam=local[2])]
+    kfs = [NS(id=0, frame_index=0, submap_id=0, T_local_cam=local[0], T_local_refined=None),
+           NS(id=1, frame_index=2, submap_id=0, T_local_cam=local[2], T_local_refined=None)]
 
     class _Agent:
         name, gmap = "a0", NS(submaps=[NS(T_world_local=T_wl)])

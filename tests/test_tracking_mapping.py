@@ -218,6 +218,35 @@ def test_contributions_see_hidden_gaussians(warp_cpu):
     assert w[0] > 10.0 and w[1] < 0.05 * w[0] and w[2] == 0.0
 
 
+def test_refine_map_refines_a_misplaced_keyframe_pose(mapped):
+    """refine_poses: a keyframe handed over 3 cm / 1.1 deg off the pose its image was taken from is moved most of
+    the way back while the map is refined; the first view holds the gauge; refine_poses off returns no poses."""
+    from slam.map_refine import RefineView, refine_map
+
+    cam, cfg, gm, sm, _ = mapped
+    T1 = se3.exp(np.array([0.0, 0.05, 0.0, 0.04, 0.0, 0.0]))
+    T1_off = T1 @ se3.exp(np.array([0.01, -0.015, 0.0, 0.02, -0.02, 0.01]))
+    f0, f1 = _frame(np.eye(4), cam), _frame(T1, cam)
+    views = [RefineView(viewmat_from_pose(np.eye(4)), f0.color_tensor(), f0.depth_tensor(), cam),
+             RefineView(viewmat_from_pose(T1_off), f1.color_tensor(), f1.depth_tensor(), cam)]
+    rc = cfg.map_refine.model_copy(update={"iterations_per_keyframe": 50, "min_contribution": 0.0,
+                                           "refine_poses": True, "lr_pose_translation": 3e-3,
+                                           "lr_pose_rotation": 3e-3})
+
+    def error(viewmat):  # (translation m, rotation deg) of the camera against T1
+        D = se3.inverse(T1) @ se3.inverse(viewmat.double().numpy())
+        return float(np.linalg.norm(D[:3, 3])), float(np.degrees(se3.rotation_angle(D[:3, :3])))
+
+    _, _, st = refine_map(sm.params, views, rc, cfg.mapping)
+    t0, r0 = error(views[1].viewmat)
+    t1, r1 = error(st.viewmats[1])
+    assert t1 < 0.4 * t0 and r1 < 0.5 * r0, (t0, t1, r0, r1)
+    assert torch.allclose(st.viewmats[0], views[0].viewmat, atol=1e-6) and st.pose_moves[0].tolist() == [0.0, 0.0]
+    assert st.pose_moves[1, 1] > 0.5 * t0
+    _, _, off = refine_map(sm.params, views, rc.model_copy(update={"refine_poses": False}), cfg.mapping)
+    assert off.viewmats is None and off.pose_moves is None
+
+
 @pytest.mark.parametrize("optimizer", ["selective", "adam"])
 def test_refine_map_lowers_the_loss_and_keeps_order(mapped, optimizer):
     """Refining a submap over a second view it was never fitted to lowers the loss on that view; 0 steps is a
