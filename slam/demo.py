@@ -23,15 +23,14 @@ from .server import ServerConfig
 
 # Settings per preset on top of SlamConfig's defaults, chosen so the demo fits its time budget on a 2-core CPU.
 DEMO_SETTINGS: dict[str, dict[str, Any]] = {
-    # Mapping renders at 160 px: the working resolution (320 px) costs ~4x the mapping CPU, over the demo's time
-    # budget with this CPU's scalar rasteriser. Coarse tracking only: against maps fitted at 160 px the
-    # frame-to-model refinement (which needs the working resolution) raised the tracking-only ATE of agents 1 / 2
-    # from 0.80 / 0.60 to 1.37 / 1.00 cm (quiet machine, README "Multi-agent team and the demo").
+    # Mapping renders at the working resolution (320 px, session 7; it was 160 px): merged map 27.7 against
+    # 24.0 dB at 320x240, 7.1 against 5.2 min (README "Multi-agent team and the demo"). Fewer mapping iterations
+    # than the defaults (20 / 60 against 30 / 100) keep the demo in its time budget.
     "default": {
         "tracking": {"refine": False},
-        "mapping": {"max_width": 160, "iterations": 20, "first_iterations": 60},
-        # Server-side global map refinement, 20 steps per keyframe (62 keyframes in one component): merged-map PSNR
-        # 29.11 / 29.75 / 30.05 dB at 8 / 14 / 20 steps, demo wall 6.4 / 6.9 / 7.5 min on the idle machine.
+        "mapping": {"iterations": 20, "first_iterations": 60},
+        # Server-side global map refinement, 20 steps per keyframe (62 keyframes in one component). Measured in
+        # session 2 with 160 px maps (evaluated at 160x120): 29.11 / 29.75 / 30.05 dB at 8 / 14 / 20 steps.
         "map_refine": {"iterations_per_keyframe": 20, "max_iterations": 1500},
     },
     "tiny": {
