@@ -14,7 +14,8 @@ outside any one view.
 
 With `cfg.refine_poses` each keyframe's pose is refined with the map (a photometric bundle adjustment): every
 step also moves the step's keyframe by a left twist, viewmat = exp(xi) @ viewmat0, through the rasteriser's pose
-gradient, with Adam per keyframe. The first view holds the gauge (it is not moved). The map fitted over
+gradient, with Adam per keyframe. The first view (or `fixed_views`: a team's first keyframe of each agent) holds
+the gauge (it is not moved). The map fitted over
 keyframes whose poses are a few millimetres apart blurs every texture edge by that much; the refined poses are
 returned (`RefineStats.viewmats`) so the caller renders and reports the trajectory at the poses the map was
 fitted to.

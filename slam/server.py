@@ -24,7 +24,7 @@ from .edge_information import fixed_information
 from .loop_log import INTER, LoopRecord, from_intra
 from .server_config import ServerConfig  # noqa: F401  (re-exported: slam.server.ServerConfig)
 from .server_descriptors import describe_keyframe, make_recognizer_and_encoder
-from .submaps import Keyframe, world_pose
+from .submaps import Keyframe, last_keyframes, world_pose
 
 
 _rigid = se3.project_rigid  # poses composed from many tracked and moved frames drift off SE(3)
@@ -409,12 +409,8 @@ class Server:
         T = s.T_global_world[None] @ T
         if per_keyframe and self.last_graph is not None:
             optimum = self.last_graph[1]
-            kfs = sorted(s.agent.keyframes, key=lambda k: k.frame_index)
-            j, last = 0, None
-            for n, rec in enumerate(s.agent.poses):  # frames in tracking order
-                while j < len(kfs) and kfs[j].frame_index <= rec.frame_index:
-                    last, j = kfs[j], j + 1
-                if last is None or last.submap_id != rec.submap_id or last.T_local_refined is not None:
+            for n, (rec, last) in enumerate(zip(s.agent.poses, last_keyframes(s.agent.poses, s.agent.keyframes))):
+                if last is None or last.T_local_refined is not None:
                     continue  # (a refined keyframe: the agent's trajectory already follows its refined pose)
                 T_kf = optimum.get(self.key(a, last.id))
                 if T_kf is not None:

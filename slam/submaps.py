@@ -62,17 +62,22 @@ def world_pose(gmap: GaussianMap, kf: Keyframe) -> np.ndarray:
     return gmap.submaps[kf.submap_id].T_world_local @ kf.T_local
 
 
-def frame_local_poses(poses, keyframes: list[Keyframe]) -> list[np.ndarray]:
-    """Each tracked frame's pose in its submap (`poses`: records with frame_index, submap_id, T_local_cam, in
-    tracking order): as tracked, except after a keyframe of the same submap whose pose was refined, where the frame
-    keeps its tracked pose relative to that keyframe (T_refined · T_kf⁻¹ · T_frame)."""
+def last_keyframes(poses, keyframes: list[Keyframe]) -> list[Keyframe | None]:
+    """For each tracked frame (`poses`: records with frame_index, in tracking order) the last keyframe at or
+    before it, if that keyframe is in the frame's submap (else None)."""
     kfs = sorted(keyframes, key=lambda k: k.frame_index)
     out, j, last = [], 0, None
     for rec in poses:
         while j < len(kfs) and kfs[j].frame_index <= rec.frame_index:
             last, j = kfs[j], j + 1
-        T = rec.T_local_cam
-        if last is not None and last.T_local_refined is not None and last.submap_id == rec.submap_id:
-            T = last.T_local_refined @ se3.inverse(last.T_local_cam) @ T
-        out.append(T)
+        out.append(last if last is not None and last.submap_id == rec.submap_id else None)
     return out
+
+
+def frame_local_poses(poses, keyframes: list[Keyframe]) -> list[np.ndarray]:
+    """Each tracked frame's pose in its submap (`poses`: records with frame_index, submap_id, T_local_cam, in
+    tracking order): as tracked, except after a keyframe of the same submap whose pose was refined, where the frame
+    keeps its tracked pose relative to that keyframe (T_refined · T_kf⁻¹ · T_frame)."""
+    return [rec.T_local_cam if kf is None or kf.T_local_refined is None
+            else kf.T_local_refined @ se3.inverse(kf.T_local_cam) @ rec.T_local_cam
+            for rec, kf in zip(poses, last_keyframes(poses, keyframes))]

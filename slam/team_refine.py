@@ -32,7 +32,7 @@ def _view(kf, T_frame_cam, cfg) -> RefineView:
 
 def _overlap_keep(parts, views, view_submaps, cfg, mapping, merged):
     """keep [N] of slam.overlap_cull over `merged` (the parts' Gaussians in order); view_submaps[i]: the submap
-    of views[i] With mapping.seed_without_depth, each view's large no-depth regions (where mapping seeded without
+    of views[i]. With mapping.seed_without_depth, each view's large no-depth regions (where mapping seeded without
     depth, slam.mapper.fallback_depth) decide the owner of the Gaussians there."""
     index = {id(sm): i for i, (sm, _, _) in enumerate(parts)}
     part = torch.cat([torch.full((n,), i, dtype=torch.long) for i, (_, _, n) in enumerate(parts)])
