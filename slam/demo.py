@@ -24,7 +24,7 @@ from .server import ServerConfig
 # Settings per preset on top of SlamConfig's defaults, chosen so the demo fits its time budget on a 2-core CPU.
 DEMO_SETTINGS: dict[str, dict[str, Any]] = {
     # Mapping renders at the working resolution (320 px, session 7; it was 160 px): merged map 27.7 against
-    # 24.0 dB at 320x240, 7.1 against 5.2 min (README "Multi-agent team and the demo"). Fewer mapping iterations
+    # 24.0 dB at 320x240, 5.0 min (5.2 at 160 px) (README "Multi-agent team and the demo"). Fewer mapping iterations
     # than the defaults (20 / 60 against 30 / 100) keep the demo in its time budget.
     "default": {
         "tracking": {"refine": False},
