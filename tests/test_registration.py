@@ -12,7 +12,7 @@ from kernels.errors import InputError
 from registration import result as R
 from registration import synthetic
 from registration.icp import icp_clouds, icp_rgbd
-from registration.pointcloud import depth_to_points, voxel_downsample
+from registration.pointcloud import depth_to_points, select_rows, voxel_downsample
 from registration.rgbd import register_rgbd, rgbd_odometry
 
 
@@ -29,6 +29,18 @@ def small_pair():
 @pytest.fixture(scope="module")
 def mid_pair():
     return synthetic.pair(320, 240)
+
+
+def test_select_rows_equals_boolean_indexing():
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    m = torch.rand(24, 32, generator=g) > 0.4
+    a, b = torch.randn(24 * 32, 3, generator=g), torch.arange(24 * 32, dtype=torch.int32)
+    ra, rb = select_rows(m, a, b)
+    flat = m.reshape(-1)
+    assert torch.equal(ra, a[flat]) and torch.equal(rb, b[flat]) and ra.is_contiguous()
+    assert [t.shape[0] for t in select_rows(torch.zeros(5, dtype=torch.bool), a[:5])] == [0]
 
 
 def test_icp_rgbd_recovers_a_known_motion(backend, small_pair):
