@@ -27,7 +27,6 @@ DEMO_SETTINGS: dict[str, dict[str, Any]] = {
     # 24.0 dB at 320x240, 5.0 min (5.2 at 160 px) (README "Multi-agent team and the demo"). Fewer mapping iterations
     # than the defaults (20 / 60 against 30 / 100) keep the demo in its time budget.
     "default": {
-        "tracking": {"refine": False},
         "mapping": {"iterations": 20, "first_iterations": 60},
         # Server-side global map refinement, 20 steps per keyframe (62 keyframes in one component). Measured in
         # session 2 with 160 px maps (evaluated at 160x120): 29.11 / 29.75 / 30.05 dB at 8 / 14 / 20 steps.
@@ -35,7 +34,6 @@ DEMO_SETTINGS: dict[str, dict[str, Any]] = {
     },
     "tiny": {
         "mapping": {"iterations": 10, "first_iterations": 30},
-        "tracking": {"refine": False},
         "keyframes": {"every": 3},
         "loop_closure": {"min_index_gap": 3},
     },

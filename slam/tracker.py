@@ -9,13 +9,12 @@ input, kept where alpha >= `alpha_min`; slam.model_align prepares its vertices /
 intensity residuals at `refine_max_width`, starting from the coarse pose. The twist is applied on the left in the
 view's camera frame (rotation about the camera, not the submap origin).
 
-Measured with perf.tracking_refine (40 frames, loop closure off; README): on the generated demo data ATE 4.1 mm
-vs 8.0 mm coarse-only (1.1-1.5x the coarse tracking wall time, 1.6-1.9x its CPU time, loaded machine); the
-max_view_bias guard drops a view that disagrees with its own keyframe. It helps because the map it aligns to was
-built from
-refined keyframe poses: refining from coarse poses against a map built from coarse poses (shadow run) moved only
-54 % of the frames toward the truth, against 68 % when the refinement runs. On Redwood 211 both stay within
-0.1 mm of each other (2.8 mm), below the ~2 mm accuracy of its reference trajectory.
+With `debias_view` (on by default) the view is placed where its own keyframe aligns to it, so a map that sits a
+few millimetres off its keyframe does not pull every later frame by that offset, which chained from keyframe to
+keyframe and made plain refinement worse than coarse-only on generated data. Measured with perf.tracking_refine
+(loop closure off, README "Frame-to-model refinement"): Redwood 211 10.08 vs 10.25 mm coarse-only at 1.40x the
+coarse tracking time; the demo's three agents 6.3 / 2.8 / 5.5 vs 7.4 / 8.0 / 6.0 mm at 1.24-1.28x. A per-frame
+acceptance test keeps the coarse pose unless the refinement lowers the robust residual against the view.
 
 `method: adam` is the paper's literal eq. 5: Adam on a twist xi = [omega, v] applied on the left of the
 world(local)-to-camera matrix, viewmat = exp(xi) @ viewmat0, through the rasteriser's pose gradient, separate step
