@@ -271,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
                    "ground truth in the per-frame rows")
     p.add_argument("--json", dest="json_out")
     a = p.parse_args(argv)
+    if a.stride < 1 or a.frames < 1:
+        p.error(f"--stride and --frames: expected positive integers, got {a.stride} and {a.frames}")
     from slam.datasets import load_sequence
 
     variants = {k: VARIANTS[k] for k in a.variants.split(",") if k}
