@@ -46,6 +46,8 @@ def _downsample_depth(depth: np.ndarray, nw: int, nh: int) -> np.ndarray:
         # Integer factor: the mean of each block's valid depths, matching the block centre the scaled camera uses.
         # Blocks straddling a depth edge (spread > 5 %) become invalid rather than a flying point between surfaces.
         f = w // nw
+        if f * f < 8:  # f = 2: elementwise over the block's pixels (~10x faster than the block reshape below)
+            return _downsample_depth_small(depth, f)
         b = depth.reshape(nh, f, nw, f).transpose(0, 2, 1, 3).reshape(nh, nw, f * f)
         valid = b > 0
         n = valid.sum(-1)
@@ -55,6 +57,23 @@ def _downsample_depth(depth: np.ndarray, nw: int, nh: int) -> np.ndarray:
         ok = (n > 0) & (hi - lo <= 0.05 * mean)
         return np.where(ok, mean, 0.0).astype(np.float32)
     return cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST)
+
+
+def _downsample_depth_small(depth: np.ndarray, f: int) -> np.ndarray:
+    """The block rule of `_downsample_depth` for f x f blocks with f * f < 8, bit for bit: numpy sums fewer than 8
+    float32 values in order, so adding the block's pixels in row-major order gives the same sums."""
+    px = [depth[i::f, j::f] for i in range(f) for j in range(f)]
+    total = px[0] + px[1]
+    for x in px[2:]:
+        total += x
+    n = np.zeros(total.shape, np.int64)  # int64 as numpy's sum of booleans: the mean below is float64 there too
+    for x in px:
+        n += x > 0
+    hi = np.maximum.reduce(px)  # invalid pixels are 0, below every valid depth (blocks without one are dropped)
+    lo = np.minimum.reduce([np.where(x > 0, x, np.float32(np.inf)) for x in px])
+    mean = np.where(n > 0, total / np.maximum(n, 1), 0.0)
+    ok = (n > 0) & (hi - lo <= 0.05 * mean)
+    return np.where(ok, mean, 0.0).astype(np.float32)
 
 
 def make_rgbd(color: np.ndarray, depth: np.ndarray | None, camera: PinholeCamera, *, min_depth: float,
