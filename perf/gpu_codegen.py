@@ -8,7 +8,7 @@ default, unless the kernel's file lists another in `GPU_BLOCKS = {kernel name: t
 multiprocessor. tests/test_gpu_codegen.py builds the same modules; docs/gpu.md has the table.
 
 Modules: the module of every wp.Kernel defined in a kernels/_warp/*.py file, plus kernels made by factories,
-which a file lists with a function `aot_kernels()` -> {label: kernel} (kernels/_warp/icp.py: the four reduction
+which a file lists with a function `aot_kernels()` -> {label: kernel} (kernels/_warp/icp_reduce.py: the four reduction
 specialisations). A file that sets `CPU_ONLY = True` is left out (kernels/_warp/raster_cpu.py: vector code for the
 CPU, never launched on CUDA).
 """
