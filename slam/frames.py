@@ -43,29 +43,31 @@ class RGBD:
 def _downsample_depth(depth: np.ndarray, nw: int, nh: int) -> np.ndarray:
     h, w = depth.shape
     if w % nw == 0 and h % nh == 0 and w // nw == h // nh:
-        # Integer factor: the mean of each block's valid depths, matching the block centre the scaled camera uses.
-        # Blocks straddling a depth edge (spread > 5 %) become invalid rather than a flying point between surfaces.
         f = w // nw
-        if f * f < 8:  # f = 2: elementwise over the block's pixels (~10x faster than the block reshape below)
-            return _downsample_depth_small(depth, f)
-        b = depth.reshape(nh, f, nw, f).transpose(0, 2, 1, 3).reshape(nh, nw, f * f)
-        valid = b > 0
-        n = valid.sum(-1)
-        mean = np.where(n > 0, b.sum(-1) / np.maximum(n, 1), 0.0)
-        hi = np.where(valid, b, -np.inf).max(-1)
-        lo = np.where(valid, b, np.inf).min(-1)
-        ok = (n > 0) & (hi - lo <= 0.05 * mean)
-        return np.where(ok, mean, 0.0).astype(np.float32)
+        return _halve_depth(depth) if f == 2 else _block_depth(depth, f)
     return cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST)
 
 
-def _downsample_depth_small(depth: np.ndarray, f: int) -> np.ndarray:
-    """The block rule of `_downsample_depth` for f x f blocks with f * f < 8, bit for bit: numpy sums fewer than 8
-    float32 values in order, so adding the block's pixels in row-major order gives the same sums."""
-    px = [depth[i::f, j::f] for i in range(f) for j in range(f)]
-    total = px[0] + px[1]
-    for x in px[2:]:
-        total += x
+def _block_depth(depth: np.ndarray, f: int) -> np.ndarray:
+    """Integer factor f: the mean of each f x f block's valid depths, matching the block centre the scaled camera
+    uses. Blocks straddling a depth edge (spread > 5 %) become invalid rather than a flying point between
+    surfaces."""
+    h, w = depth.shape
+    b = depth.reshape(h // f, f, w // f, f).transpose(0, 2, 1, 3).reshape(h // f, w // f, f * f)
+    valid = b > 0
+    n = valid.sum(-1)
+    mean = np.where(n > 0, b.sum(-1) / np.maximum(n, 1), 0.0)
+    hi = np.where(valid, b, -np.inf).max(-1)
+    lo = np.where(valid, b, np.inf).min(-1)
+    ok = (n > 0) & (hi - lo <= 0.05 * mean)
+    return np.where(ok, mean, 0.0).astype(np.float32)
+
+
+def _halve_depth(depth: np.ndarray) -> np.ndarray:
+    """`_block_depth(depth, 2)` bit for bit, elementwise over the four pixels of each block (13 -> 4.3 ms for a
+    640x480 frame): numpy sums a block's four float32 values in order, and so does this."""
+    px = [depth[i::2, j::2] for i in range(2) for j in range(2)]
+    total = px[0] + px[1] + px[2] + px[3]
     n = np.zeros(total.shape, np.int64)  # int64 as numpy's sum of booleans: the mean below is float64 there too
     for x in px:
         n += x > 0

@@ -5,19 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from kernels.camera import PinholeCamera
-from slam.frames import RGBD, _downsample_depth
-
-
-def _blocks(depth: np.ndarray, f: int) -> np.ndarray:
-    """The block rule written out with a reshape: mean of the valid depths, invalid where they spread > 5 %."""
-    h, w = depth.shape
-    b = depth.reshape(h // f, f, w // f, f).transpose(0, 2, 1, 3).reshape(h // f, w // f, f * f)
-    valid = b > 0
-    n = valid.sum(-1)
-    mean = np.where(n > 0, b.sum(-1) / np.maximum(n, 1), 0.0)
-    hi = np.where(valid, b, -np.inf).max(-1)
-    lo = np.where(valid, b, np.inf).min(-1)
-    return np.where((n > 0) & (hi - lo <= 0.05 * mean), mean, 0.0).astype(np.float32)
+from slam.frames import RGBD, _block_depth, _downsample_depth
 
 
 def test_halving_depth_equals_the_block_rule_bit_for_bit():
@@ -26,7 +14,7 @@ def test_halving_depth_equals_the_block_rule_bit_for_bit():
     d[:, 40:] = 2.0 + 1e-3 * rng.random((48, 24), dtype=np.float32)  # a smooth region: blocks stay valid
     d[rng.random(d.shape) < 0.2] = 0.0
     out = _downsample_depth(d, 32, 24)
-    assert out.dtype == np.float32 and np.array_equal(out, _blocks(d, 2))
+    assert out.dtype == np.float32 and np.array_equal(out, _block_depth(d, 2))
     assert (out[:, 20:] > 0).mean() > 0.9 and (out[:, :20] > 0).mean() < 0.5  # edges dropped, smooth kept
 
 
