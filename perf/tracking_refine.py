@@ -86,22 +86,18 @@ def _view_psnr(view, keyframe, alpha_min: float) -> float:
 def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, shadow: bool = True,
             diagnostics: bool = True, poses: bool = False, stride: int = 1) -> dict:
     """Run one agent over the first `frames` frames of `seq` with tracking `overrides`; see the module doc."""
-    import torch
-
-    import kernels
     from slam.agent import Agent
     from slam.config import SlamConfig
     from slam.run import _trajectory_metrics
     from slam.run_guard import read_frame
+    from slam.runtime import use_kernels
     from slam.tracker import refine_against_view
 
     upd = {"loop_closure": {"enabled": False}, "tracking": overrides}
     if mapping:
         upd["mapping"] = mapping
     cfg = SlamConfig().override(upd)
-    kernels.use(cfg.kernels.backend, cfg.kernels.device)
-    if cfg.kernels.torch_threads:
-        torch.set_num_threads(cfg.kernels.torch_threads)
+    use_kernels(cfg.kernels)
     agent = Agent(seq.camera, cfg, name=seq.name)
     tr = agent.tracker
     tc = cfg.tracking

@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from kernels.errors import InputError
 from kernels.fileio import atomic_write_text, output_dir
@@ -35,13 +34,11 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     failure mid-run writes what was done so far (slam.run_guard, slam.partial_results) and re-raises.
     """
     from .progress import bar
-    import kernels
     from .datasets import load_sequence
+    from .runtime import use_kernels
 
     cfg = config or SlamConfig()
-    kernels.use(cfg.kernels.backend, cfg.kernels.device)
-    if cfg.kernels.torch_threads:
-        torch.set_num_threads(cfg.kernels.torch_threads)
+    use_kernels(cfg.kernels)
     # A loaded sequence is taken as it is (e.g. the one agent of a dataset root holding a single sequence).
     seq = load_sequence(dataset_path) if isinstance(dataset_path, (str, Path)) else dataset_path
     n = len(seq)

@@ -166,17 +166,16 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     strict: stop at an unreadable frame (default: skip it). An interrupt or a failure writes what was done so far
     (slam.partial_results.write_partial_team) and re-raises.
     """
-    import kernels
-
     from .datasets import MultiAgentDataset, load_dataset
     from .progress import TeamRounds, reporting
+    from .runtime import use_kernels
     from .team_results import render_metrics, write_team_results
 
     cfg = config or SlamConfig()
     ds = dataset_path if isinstance(dataset_path, MultiAgentDataset) else load_dataset(dataset_path)
     if ds.kind != "rgbd":
         raise InputError(f"{ds.root}: the GRAND-SLAM team needs RGB-D sequences, this dataset is {ds.kind}")
-    kernels.use(cfg.kernels.backend, cfg.kernels.device)
+    use_kernels(cfg.kernels)  # backend, device and torch's thread count, as `swarmsplat run`
     cap = frames if frames is not None else cfg.max_frames
     caps = []
     for a in range(len(ds.agents)):  # the smaller of the global and the agent's own cap; 0 = no cap
