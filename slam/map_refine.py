@@ -142,6 +142,20 @@ def contributions(params: GaussianParams, views: list[RefineView], *, reference:
     return w
 
 
+def _scatter_grads(tensors: list[torch.Tensor], idx: torch.Tensor, grads: list[torch.Tensor | None]) -> None:
+    """tensors[i].grad = zeros with grads[i] at rows idx (unique): what backward through tensors[i][idx] gives
+    (None where grads[i] is None)."""
+    for t, g in zip(tensors, grads):
+        if g is None:  # no gradient reached these rows: Adam skips the tensor, as after zero_grad(set_to_none)
+            t.grad = None
+            continue
+        if t.grad is None:
+            t.grad = torch.zeros_like(t)
+        else:
+            t.grad.zero_()
+        t.grad.index_copy_(0, idx, g)
+
+
 def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
                iterations: int | None = None, reference: bool = False, fixed_views: set[int] | None = None
                ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
@@ -194,22 +208,21 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         if len(idx) == 0:
             continue
         v = views[j]
-        if cfg.optimizer == "selective":  # the view's rows as leaves; only they are updated
-            sub = GaussianParams(*(t.index_select(0, idx).requires_grad_(True) for t in tensors))
-        else:
-            sub = GaussianParams(p.means[idx], p.log_scales[idx], p.quats[idx], p.logit_opacities[idx],
-                                 p.colors[idx])
-            opt.zero_grad(set_to_none=True)
+        # The view's rows as leaves of their own (index_select); "adam" then scatters their gradients into the
+        # map's zeroed ones, the gradient autograd's indexing gives, bit for bit, at half its cost (measured over
+        # the demo's 211k-Gaussian map, 114k rows per view: 8 vs 15 ms per step).
+        sub = GaussianParams(*(t.detach().index_select(0, idx).requires_grad_(True) for t in tensors))
         viewmat, leaf = poses.viewmat(j, v) if poses is not None else (v.viewmat, None)
         out = render(sub, viewmat, v.camera, reference=reference)
         loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser)
         loss.backward()
         if poses is not None:
             poses.step(j, leaf)
+        grads = [sub.means.grad, sub.log_scales.grad, sub.quats.grad, sub.logit_opacities.grad, sub.colors.grad]
         if cfg.optimizer == "selective":
-            sel.step(idx, [sub.means.grad, sub.log_scales.grad, sub.quats.grad, sub.logit_opacities.grad,
-                           sub.colors.grad])
+            sel.step(idx, grads)
         else:
+            _scatter_grads(tensors, idx, grads)
             opt.step()
         losses.append(float(loss.detach()))
     b.close()
