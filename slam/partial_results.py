@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from .runtime import kernels_record
+
 EVAL_NOTE = "partial result: no evaluation was run; score the trajectory with `swarmsplat eval`"
 
 
@@ -52,7 +54,7 @@ def write_partial_agent(agent, out: Path, *, status: str, reason: str, n_frames:
         "loop_candidates": len(agent.loops.log), "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
         "pose_graph_optimisations": agent.loops.optimisations,
         "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
-        "kernels": agent.cfg.kernels.model_dump(), "note": EVAL_NOTE,
+        "kernels": kernels_record(agent.cfg.kernels), "note": EVAL_NOTE,
     }
     _finish(out, metrics, done, errors)
     return out
@@ -107,7 +109,7 @@ def write_partial_team(team, ds, out: Path, *, status: str, reason: str, wall_s:
         "gaussians": sum(len(ag.gmap) for ag in team.agents), "loops": summary,
         "loops_accepted": summary["intra"]["accepted"] + summary["inter"]["accepted"],
         "loop_candidates": len(srv.records), "pose_graph_optimisations": srv.optimisations,
-        "time_s": {"wall": wall_s, "server": dict(srv.time)}, "kernels": team.cfg.kernels.model_dump(),
+        "time_s": {"wall": wall_s, "server": dict(srv.time)}, "kernels": kernels_record(team.cfg.kernels),
         "run": run_info, "note": EVAL_NOTE,
     }
     _finish(out, metrics, done, errors)

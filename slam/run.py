@@ -20,6 +20,7 @@ from .jsonio import write_json
 from .loop_log import count_by_source
 from .partial_results import write_partial_agent
 from .run_guard import guarded, keep, read_frame
+from .runtime import kernels_record
 
 
 @guarded("run")
@@ -121,7 +122,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
         "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure,
                    "map_refine": map_refine["seconds"] if map_refine else 0.0},
         "map_refine": map_refine,
-        "kernels": agent.cfg.kernels.model_dump(),
+        "kernels": kernels_record(agent.cfg.kernels),
     }
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
     if metrics.get("ate_rmse") is not None:  # the same run's tracking-only trajectory, aligned the same way

@@ -23,3 +23,9 @@ def use_kernels(cfg: KernelsConfig) -> None:
     kernels.use(cfg.backend, cfg.device)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
+
+
+def kernels_record(cfg: KernelsConfig) -> dict:
+    """metrics.json's "kernels": the section as configured plus `torch_threads_in_effect`, the thread count torch
+    actually ran with (the configured value alone once hid that team runs ignored it)."""
+    return {**cfg.model_dump(), "torch_threads_in_effect": torch.get_num_threads()}

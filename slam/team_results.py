@@ -26,6 +26,7 @@ from kernels.fileio import atomic_write_text
 
 from .jsonio import write_json
 from .loop_log import summarise, write_loops_csv
+from .runtime import kernels_record
 
 
 def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, render_views: int = 8,
@@ -124,7 +125,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
                          "encoder": srv.encoder.stats() if srv.encoder is not None else None},
         "time_s": {"wall": wall_s, "cpu": cpu_s, "server": dict(srv.time),
                    "evaluation": time.perf_counter() - t_eval},
-        "kernels": team.cfg.kernels.model_dump(), "run": run_info or {},
+        "kernels": kernels_record(team.cfg.kernels), "run": run_info or {},
     }
     metrics["time_s"]["evaluation"] = time.perf_counter() - t_eval
     write_json(out / "metrics.json", metrics)

@@ -9,7 +9,7 @@ import torch
 
 import kernels
 from slam.config import KernelsConfig, SlamConfig
-from slam.runtime import use_kernels
+from slam.runtime import kernels_record, use_kernels
 
 
 @pytest.fixture
@@ -56,3 +56,9 @@ def test_entry_points_apply_the_kernels_section(entry, monkeypatch, tmp_path, th
     with pytest.raises(_Stop):
         run(root, tmp_path / "out", cfg, progress=False)
     assert [c.torch_threads for c in seen] == [3]
+
+
+def test_kernels_record_says_what_torch_ran_with(threads_back):
+    torch.set_num_threads(2)
+    rec = kernels_record(KernelsConfig(torch_threads=1))
+    assert rec["torch_threads"] == 1 and rec["torch_threads_in_effect"] == 2 and rec["backend"] == "warp"

@@ -52,6 +52,7 @@ def test_two_agents_end_to_end(split_run):
         assert (out / f).is_file(), f
     saved = json.loads((out / "metrics.json").read_text())
     assert [a["name"] for a in saved["agents"]] == ["agent_0", "agent_1"]
+    assert saved["kernels"]["torch_threads"] == saved["kernels"]["torch_threads_in_effect"] == 1  # as configured
     assert [a["frames_tracked"] for a in saved["agents"]] == [5, 6]
     # The shared frames 2-4 give inter-agent loops; the first one brings agent 1 into agent 0's frame.
     inter = [r for r in csv.DictReader(open(out / "loops.csv")) if r["kind"] == "inter"]
