@@ -307,3 +307,50 @@ def n_blocks(n: int, device: str) -> tuple[int, int, int, int]:
     blocks = max(1, min(64, n))
     chunk = (n + blocks - 1) // blocks
     return blocks, chunk, 1, chunk
+
+
+_DUMMY_TERMS: dict = {}
+
+
+@dataclass
+class ReduceTerms:
+    """The scalar and array arguments both backends' point-to-plane reduction kernels take, unpacked from
+    `photo` = (source intensity, target intensity, target gradient [H, W, 2], camera, lambda) and `proj` =
+    (source normals, camera, H, W, max_d, cos_min); placeholders (and has_photo / projective = 0) where absent."""
+
+    s_int: torch.Tensor
+    t_int: torch.Tensor
+    gu: torch.Tensor
+    gv: torch.Tensor
+    lam: float
+    has_photo: int
+    projective: int
+    sn: torch.Tensor
+    th: int
+    tw: int
+    max_d: float
+    cos_min: float
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+def reduce_terms(src: torch.Tensor, photo, proj) -> ReduceTerms:
+    """See ReduceTerms; the placeholders are cached per device (kernels take no 0-sized arrays)."""
+    key = str(src.device)
+    if key not in _DUMMY_TERMS:
+        _DUMMY_TERMS[key] = (torch.zeros(1, dtype=torch.float32, device=src.device),
+                             torch.zeros(2, 2, dtype=torch.float32, device=src.device))
+    s1, i2 = _DUMMY_TERMS[key]
+    s_int, t_int, gu, gv, lam, has = s1, i2, i2, i2, 0.0, 0
+    cam = None
+    if photo is not None:
+        s_int, t_int, grad, cam, lam = photo
+        gu, gv, has = grad[..., 0].contiguous(), grad[..., 1].contiguous(), 1
+    projective, sn, th, tw, max_d, cos_min = 0, src, 0, 0, 0.0, -2.0
+    if proj is not None:
+        sn, cam, th, tw, max_d, cos_min = proj
+        projective = 1
+    fx, fy, cx, cy = (cam.fx, cam.fy, cam.cx, cam.cy) if cam is not None else (1.0, 1.0, 0.0, 0.0)
+    return ReduceTerms(s_int, t_int, gu, gv, lam, has, projective, sn, th, tw, max_d, cos_min, fx, fy, cx, cy)

@@ -12,10 +12,9 @@ import math
 import taichi as ti
 import torch
 
-from ..icp import N_SLOTS, n_blocks
+from ..icp import N_SLOTS, n_blocks, reduce_terms
 
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
-_DUMMY: dict = {}
 
 f32_2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 f32_3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
@@ -334,31 +333,14 @@ def associate_projective(src, T, tv, tn, sn, camera, max_d: float, cos_min: floa
     return out
 
 
-def _dummies(dev: torch.device):
-    key = str(dev)
-    if key not in _DUMMY:
-        _DUMMY[key] = (torch.zeros(1, dtype=torch.float32, device=dev), torch.zeros(2, 2, dtype=torch.float32, device=dev))
-    return _DUMMY[key]
-
-
 def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str, proj=None):
     """proj = (source_normals, camera, H, W, max_d, cos_min) fuses projective association into the pass (idx unused)."""
     n = src.shape[0]
     blocks, start_stride, item_stride, count = n_blocks(n, device)
     out = torch.zeros(blocks, N_SLOTS, dtype=torch.float64, device=src.device)
-    s1, i2 = _dummies(src.device)
-    s_int, t_int, gu, gv, lam, has = s1, i2, i2, i2, 0.0, 0
-    cam = None
-    if photo is not None:
-        s_int, t_int, grad, cam, lam = photo
-        gu, gv, has = grad[..., 0].contiguous(), grad[..., 1].contiguous(), 1
-    projective, sn, th, tw, max_d, cos_min = 0, src, 0, 0, 0.0, -2.0
-    if proj is not None:
-        sn, cam, th, tw, max_d, cos_min = proj
-        projective = 1
-    fx, fy, cx, cy = (cam.fx, cam.fy, cam.cx, cam.cy) if cam is not None else (1.0, 1.0, 0.0, 0.0)
+    r = reduce_terms(src, photo, proj)
     if n:
-        _reduce(src, T, tp, tn, idx, kind, k, has, s_int, t_int, gu, gv, fx, fy, cx, cy, lam, projective, sn, th, tw,
-                max_d, cos_min, blocks, start_stride, item_stride, count, out)
+        _reduce(src, T, tp, tn, idx, kind, k, r.has_photo, r.s_int, r.t_int, r.gu, r.gv, r.fx, r.fy, r.cx, r.cy, r.lam,
+                r.projective, r.sn, r.th, r.tw, r.max_d, r.cos_min, blocks, start_stride, item_stride, count, out)
         _sync(device)
     return out.sum(0)

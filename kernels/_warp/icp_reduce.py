@@ -8,13 +8,11 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from ..icp import N_SLOTS, n_blocks
+from ..icp import N_SLOTS, n_blocks, reduce_terms
 from .icp import _arr, _mat, _project_assoc, _sync, _xform
 from .launch import launch as _launch
 
 wp.set_module_options({"enable_backward": False})
-
-_DUMMY: dict = {}
 
 
 @wp.func
@@ -177,36 +175,19 @@ def aot_kernels() -> dict:
             for p in (False, True) for ph in (False, True)}
 
 
-def _dummies(dev: torch.device):
-    key = str(dev)
-    if key not in _DUMMY:
-        _DUMMY[key] = (torch.zeros(1, dtype=torch.float32, device=dev), torch.zeros(2, 2, dtype=torch.float32, device=dev))
-    return _DUMMY[key]
-
-
 def reduce_point_to_plane(src, T, tp, tn, idx, kind: int, k: float, photo, device: str, proj=None):
     """proj = (source_normals, camera, H, W, max_d, cos_min) fuses projective association into the pass (idx unused)."""
     n = src.shape[0]
     blocks, start_stride, item_stride, count = n_blocks(n, device)
     # every block writes its whole row, so no zero fill (a [16384, 48] float64 memset per call on CUDA)
     out = (torch.empty if n else torch.zeros)(blocks, N_SLOTS, dtype=torch.float64, device=src.device)
-    s1, i2 = _dummies(src.device)
-    s_int, t_int, gu, gv, lam, has = s1, i2, i2, i2, 0.0, 0
-    cam = None
-    if photo is not None:
-        s_int, t_int, grad, cam, lam = photo
-        gu, gv, has = grad[..., 0].contiguous(), grad[..., 1].contiguous(), 1
-    projective, sn, th, tw, max_d, cos_min = 0, src, 0, 0, 0.0, -2.0
-    if proj is not None:
-        sn, cam, th, tw, max_d, cos_min = proj
-        projective = 1
-    fx, fy, cx, cy = (cam.fx, cam.fy, cam.cx, cam.cy) if cam is not None else (1.0, 1.0, 0.0, 0.0)
+    r = reduce_terms(src, photo, proj)
     if n:
-        _launch(_reduce_kernel(bool(projective), bool(has)), blocks,
+        _launch(_reduce_kernel(bool(r.projective), bool(r.has_photo)), blocks,
                 [_arr(src, dtype=wp.vec3), _mat(T), _arr(tp, dtype=wp.vec3),
-                 _arr(tn, dtype=wp.vec3), _arr(idx), kind, k, _arr(s_int),
-                 _arr(t_int), _arr(gu), _arr(gv), fx, fy, cx, cy, lam,
-                 _arr(sn, dtype=wp.vec3), th, tw, max_d, cos_min, 0,
+                 _arr(tn, dtype=wp.vec3), _arr(idx), kind, k, _arr(r.s_int),
+                 _arr(r.t_int), _arr(r.gu), _arr(r.gv), r.fx, r.fy, r.cx, r.cy, r.lam,
+                 _arr(r.sn, dtype=wp.vec3), r.th, r.tw, r.max_d, r.cos_min, 0,
                  start_stride, item_stride, count, _arr(out)], 21, device, work=n, gpu_block=REDUCE_GPU_BLOCK)
         _sync(device)
     return out.sum(0)
