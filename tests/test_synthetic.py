@@ -127,7 +127,7 @@ def test_depth_png_holds_the_rendered_depth(tmp_path):
     out = generate(tmp_path / "clean", cfg)
     world = generate_world(cfg.seed, cfg.world)
     T = agent_poses(world, cfg)[0][1]
-    color, depth = render(world, T, dataset_camera(cfg))
+    color, depth = render(world, T, dataset_camera(cfg), supersample=cfg.supersample)
     d_png = cv2.imread(str(out / "agent_0/depth/000001.png"), cv2.IMREAD_UNCHANGED) / cfg.depth_scale
     np.testing.assert_allclose(d_png, depth, atol=0.51 / cfg.depth_scale)
     c_png = cv2.imread(str(out / "agent_0/rgb/000001.png"))[..., ::-1]
@@ -311,8 +311,61 @@ def test_mono_dataset_files(tmp_path):
     assert len(odo) == len(gt) == 4 and yaml.safe_load((out / "dataset.yaml").read_text())["kind"] == "mono"
 
 
+@pytest.mark.parametrize("s", [2, 3])
+def test_supersampled_pixels_average_their_area_and_keep_the_centre_depth(default_world, s):
+    """Colour is the mean of the pixel's s x s rays, depth / incidence / material the one-ray image's, and the
+    mean is closer to the pixel's area integral (an 8 x 8 grid) than one ray through the centre is."""
+    from slam.synthetic.render import shade, supersampled, trace
+
+    world, cfg, poses = default_world
+    camera = dataset_camera(cfg).scaled(80, 60)
+    T = poses[2][30]
+    one = cast(world, T, camera)
+    many = cast(world, T, camera, supersample=s)
+    fine = supersampled(camera, s)
+    assert (fine.width, fine.height) == (80 * s, 60 * s)
+    raw = shade(world, trace(world, T, fine), fine)
+    np.testing.assert_allclose(many.color[0], raw.color[0].reshape(60, s, 80, s, 3).mean(axis=(1, 3)), atol=1e-6)
+    np.testing.assert_array_equal(many.depth, one.depth)
+    np.testing.assert_array_equal(many.cos_incidence, one.cos_incidence)
+    np.testing.assert_array_equal(many.material, one.material)
+    area = cast(world, T, camera, supersample=8).color
+    err1, err_s = ((one.color - area) ** 2).mean(), ((many.color - area) ** 2).mean()
+    assert err_s < 0.3 * err1, (err1, err_s)
+
+
+def test_texture_kernel_equals_its_numpy_twin(default_world):
+    """The Warp texture kernel against TextureField.shade_numpy at the hits of a supersampled frame (every pattern
+    of the world but one is in these views)."""
+    from slam.synthetic.render import _ray_lengths, supersampled, surface_coordinates, trace
+
+    world, cfg, poses = default_world
+    cam = supersampled(dataset_camera(cfg).scaled(160, 120), 2)
+    tr = trace(world, np.stack([poses[a][20] for a in range(4)]), cam)
+    tri, t = tr.prim.astype(np.int64), tr.t_hit
+    assert np.isfinite(t).all()  # inside the closed world every ray hits
+    s, tt = surface_coordinates(world, tr.rays, t, tri)
+    fp = t * (np.tile(_ray_lengths(cam), 4) / np.float32(cam.fx))
+    mat, light = world.tri_material[tri], world.tri_light[tri]
+    assert len(np.unique(world.texture.materials.pattern[mat])) >= 4
+    got = world.texture.shade(s, tt, mat, fp, light)
+    want = world.texture.shade_numpy(s, tt, mat, fp, light)
+    assert got.dtype == np.float32 and got.shape == want.shape
+    # Stripes and planks divide coordinates near 100 m by periods of centimetres: an ulp of the quotient moves a
+    # soft edge by up to ~2e-4 in colour; elsewhere the two agree to float32 rounding.
+    np.testing.assert_allclose(got, want, atol=5e-4)
+    assert np.abs(got - want).mean() < 2e-5  # 1/200 of an 8-bit level; a wrong formula gives ~1e-2
+
+
+def test_supersample_bad_values():
+    with pytest.raises(InputError, match="supersample"):
+        render(generate_world(0), np.eye(4), dataset_camera(GeneratorConfig.preset("tiny")), supersample=0)
+    with pytest.raises(InputError, match="supersample"):
+        render(generate_world(0), np.eye(4), dataset_camera(GeneratorConfig.preset("tiny")), supersample=1.5)
+
+
 @pytest.mark.parametrize("overrides", [dict(agents=0), dict(agents=7), dict(frames=0), dict(width=-5),
-                                       dict(fps=0.0)])
+                                       dict(fps=0.0), dict(supersample=0), dict(supersample=9)])
 def test_bad_settings_are_input_errors(overrides):
     with pytest.raises(InputError, match=next(iter(overrides))):
         GeneratorConfig.preset("tiny", **overrides)
@@ -347,14 +400,17 @@ def test_cli_generate_and_preview(tmp_path, capsys):
 
     out, png = tmp_path / "ds", tmp_path / "world.png"
     assert main(["generate", "--preset", "tiny", "--frames", "2", "--seed", "4", "--out", str(out),
-                 "--preview", str(png)]) == 0
-    assert yaml.safe_load((out / "dataset.yaml").read_text())["seed"] == 4
+                 "--preview", str(png), "--supersample", "1"]) == 0
+    meta = yaml.safe_load((out / "dataset.yaml").read_text())
+    assert meta["seed"] == 4 and meta["generator"]["supersample"] == 1
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "x").write_text("x")
     assert main(["generate", "--preset", "tiny", "--out", str(tmp_path / "foreign")]) == 2
     assert main(["generate", "--preset", "tiny", "--agents", "9", "--out", str(tmp_path / "n")]) == 2
-    assert "error" in capsys.readouterr().err
+    assert main(["generate", "--preset", "tiny", "--supersample", "0", "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert "error" in err and "supersample" in err
 
 
 def test_surfaces_look_the_same_from_nearby_views(default_world):

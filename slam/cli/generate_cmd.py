@@ -15,6 +15,9 @@ def register(sub) -> None:
     p.add_argument("--height", type=int, help="image height in pixels")
     p.add_argument("--fps", type=float, help="frame rate (sets timestamps)")
     p.add_argument("--seed", type=int, help="random seed: the same seed and settings give identical files")
+    p.add_argument("--supersample", type=int, metavar="S",
+                   help="rays per pixel side, 1-8: colour is the mean of S x S rays over the pixel, depth the "
+                        "centre ray's (default 2; 1 = one ray through the pixel centre, which aliases)")
     p.add_argument("--mono", action="store_true", default=None,
                    help="monocular variant: images + drifting metric odometry, no depth")
     p.add_argument("--preview", metavar="PNG", help="also save a top-down picture of the world and the paths")
@@ -34,7 +37,8 @@ def run(args) -> int:
     if not args.out and not args.preview:
         raise InputError("give --out DIR (and/or --preview PNG)")
     config = GeneratorConfig.preset(args.preset, agents=args.agents, frames=args.frames, width=args.width,
-                                    height=args.height, fps=args.fps, seed=args.seed, mono=args.mono)
+                                    height=args.height, fps=args.fps, seed=args.seed, mono=args.mono,
+                                    supersample=args.supersample)
     if args.out:  # a file in the way or an unwritable place: one line before any rendering
         output_dir(args.out, "--out", create=False)
     if args.preview:

@@ -88,6 +88,9 @@ class GeneratorConfig(_Strict):
     height: int = Field(240, ge=16, le=4096)
     fps: float = Field(15.0, gt=0.0, le=1000.0)
     hfov_deg: float = Field(62.8, gt=10.0, lt=170.0)  # a Kinect-like field of view (fx = 525 at 640 px)
+    # Rays per pixel side: colour is the mean of supersample^2 rays over the pixel's area, depth the pixel-centre
+    # ray's (slam.synthetic.render). 1 = one ray through the pixel centre, which aliases every edge and texture.
+    supersample: int = Field(2, ge=1, le=8)
     depth_scale: float = Field(5000.0, gt=0.0)  # uint16 value per metre, as TUM RGB-D
     mono: bool = False
     # Version of the agent-slot layout of trajectories.py. Only the current one is generated; it is part of

@@ -35,7 +35,7 @@ from slam.trajectory import write_tum
 from .config import GeneratorConfig
 from .mono import drifting_odometry
 from .noise import depth_to_uint16, frame_rng, noisy_color, noisy_depth
-from .render import camera_for, shade, trace
+from .render import camera_for, combine, shade, supersampled, trace
 from .trajectories import agent_trajectory
 from .world import World, generate_world
 
@@ -120,8 +120,13 @@ def _write_agent(folder: Path, world: World, camera: PinholeCamera, poses: np.nd
     # Texturing, noise and PNG encoding (NumPy and OpenCV release the GIL) run in worker threads while the
     # main thread ray-casts the next batch. Each frame's noise comes from its own seeded generator, so the
     # bytes do not depend on timing.
+    ss = config.supersample
+    fine = supersampled(camera, ss)
+
     def finish(start: int, traced) -> int:
-        hits = shade(world, traced, camera)
+        centre, sub = traced
+        hits = shade(world, centre, camera) if sub is None else combine(
+            shade(world, centre, camera, texture=False), shade(world, sub, fine), ss)
         for j in range(len(hits.depth)):
             k = start + j
             rng = frame_rng(config.seed, agent, k)
@@ -136,7 +141,9 @@ def _write_agent(folder: Path, world: World, camera: PinholeCamera, poses: np.nd
     with ThreadPoolExecutor(max_workers=2) as pool:
         pending: list[Future] = []
         for start in range(0, n, _BATCH):
-            pending.append(pool.submit(finish, start, trace(world, poses[start : start + _BATCH], camera)))
+            batch = poses[start : start + _BATCH]
+            traced = (trace(world, batch, camera), trace(world, batch, fine) if ss > 1 else None)
+            pending.append(pool.submit(finish, start, traced))
             while len(pending) > 2:  # bound the memory held by batches waiting to be textured
                 done = pending.pop(0).result()
                 if progress:
