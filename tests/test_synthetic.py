@@ -357,6 +357,25 @@ def test_texture_kernel_equals_its_numpy_twin(default_world):
     assert np.abs(got - want).mean() < 2e-5  # 1/200 of an 8-bit level; a wrong formula gives ~1e-2
 
 
+def test_ray_shading_kernel_equals_its_numpy_twin(default_world):
+    """render.shade_color (surface coordinates, footprint and texture in one Warp kernel) against
+    render.shade_color_numpy on a supersampled batch, with two rays made misses (black in both)."""
+    from slam.synthetic.render import Traced, shade_color, shade_color_numpy, supersampled, trace
+
+    world, cfg, poses = default_world
+    cam = supersampled(dataset_camera(cfg).scaled(80, 60), 2)
+    tr = trace(world, np.stack([poses[a][25] for a in range(4)]), cam)
+    t = tr.t_hit.copy()
+    t[[7, 1234]] = [np.inf, 0.0]
+    tr = Traced(tr.rays, t, tr.prim, tr.shape)
+    got, want = shade_color(world, tr, cam), shade_color_numpy(world, tr, cam)
+    assert got.shape == want.shape == (4, 120, 160, 3) and got.dtype == np.float32
+    flat = got.reshape(-1, 3)
+    assert not flat[[7, 1234]].any() and flat.mean() > 0.05
+    np.testing.assert_allclose(got, want, atol=5e-4)  # the tolerances of the point kernel's test above
+    assert np.abs(got - want).mean() < 2e-5
+
+
 def test_supersample_bad_values():
     with pytest.raises(InputError, match="supersample"):
         render(generate_world(0), np.eye(4), dataset_camera(GeneratorConfig.preset("tiny")), supersample=0)

@@ -97,9 +97,34 @@ def surface_coordinates(world: World, rays: np.ndarray, t: np.ndarray, tri: np.n
     return s, tt
 
 
+def shade_color(world: World, traced: Traced, camera: PinholeCamera) -> np.ndarray:
+    """[N, H, W, 3] float32 colour of the hits of `trace` (black where a ray hit nothing): surface coordinates,
+    pixel footprint and texture in one Warp CPU kernel (slam.synthetic.texture_kernel; safe to run in a worker
+    thread, it releases the GIL). `shade_color_numpy` is its twin."""
+    from .texture import COARSE_TEXEL_M, FINE_TEXEL_M
+    from .texture_kernel import shade_rays_kernel
+
+    n, h, w = traced.shape
+    rgb = shade_rays_kernel(world, traced.rays, traced.t_hit, traced.prim, camera.fx, COARSE_TEXEL_M, FINE_TEXEL_M)
+    return rgb.reshape(n, h, w, 3)
+
+
+def shade_color_numpy(world: World, traced: Traced, camera: PinholeCamera) -> np.ndarray:
+    """`shade_color` in NumPy (its twin, and the generator before session 11)."""
+    n, h, w = traced.shape
+    hit = np.isfinite(traced.t_hit) & (traced.t_hit > 0)
+    idx = np.nonzero(hit)[0]
+    t, tri, r = traced.t_hit[idx], traced.prim[idx].astype(np.int64), traced.rays[idx]
+    s, tt = surface_coordinates(world, r, t, tri)
+    footprint = t * (np.tile(_ray_lengths(camera), n)[idx] / np.float32(camera.fx))  # metres per pixel at the hit
+    color = np.zeros((len(hit), 3), dtype=np.float32)
+    color[idx] = world.texture.shade_numpy(s, tt, world.tri_material[tri], footprint, world.tri_light[tri])
+    return color.reshape(n, h, w, 3)
+
+
 def shade(world: World, traced: Traced, camera: PinholeCamera, *, texture: bool = True) -> Hits:
-    """Texture the hits of `trace` (NumPy; safe to run in a worker thread). texture=False leaves the colour
-    black (depth, incidence and material only)."""
+    """Depth, colour, incidence and material of the hits of `trace` (safe to run in a worker thread).
+    texture=False leaves the colour black (depth, incidence and material only)."""
     rays, t_hit, prim = traced.rays, traced.t_hit, traced.prim
     n, h, w = traced.shape
     hit = np.isfinite(t_hit) & (t_hit > 0)
@@ -110,26 +135,19 @@ def shade(world: World, traced: Traced, camera: PinholeCamera, *, texture: bool 
     r = rays[idx]
     ray_len = np.tile(_ray_lengths(camera), n)[idx]
     mat_hit = world.tri_material[tri]
-    if texture:
-        s, tt = surface_coordinates(world, r, t, tri)
-        footprint = t * (ray_len / np.float32(camera.fx))  # metres per pixel at the hit, along the ray
-        shaded = world.texture.shade(s, tt, mat_hit, footprint, world.tri_light[tri])
-    else:
-        shaded = np.zeros((len(t), 3), dtype=np.float32)
+    color = (shade_color(world, traced, camera) if texture
+             else np.zeros((n, h, w, 3), dtype=np.float32))
     # The faces are axis-aligned: |cos(incidence)| = |ray component along the normal's axis| / |ray|.
     cos_hit = np.abs(np.take_along_axis(r, world.tri_axis[tri][:, None] + 3, 1)[:, 0]) / ray_len
     if all_hit:
-        depth, color, cos_inc, material = t_hit, shaded, cos_hit, mat_hit
+        depth, cos_inc, material = t_hit, cos_hit, mat_hit
     else:
         depth = np.where(hit, t_hit, 0.0).astype(np.float32)
-        color = np.zeros((len(t_hit), 3), dtype=np.float32)
-        color[idx] = shaded
         cos_inc = np.zeros(len(t_hit), dtype=np.float32)
         cos_inc[idx] = cos_hit
         material = np.full(len(t_hit), -1, dtype=np.int64)
         material[idx] = mat_hit
-    return Hits(depth.reshape(n, h, w), color.reshape(n, h, w, 3), cos_inc.reshape(n, h, w),
-                material.reshape(n, h, w))
+    return Hits(depth.reshape(n, h, w), color, cos_inc.reshape(n, h, w), material.reshape(n, h, w))
 
 
 def check_supersample(supersample: int) -> int:
@@ -146,15 +164,15 @@ def supersampled(camera: PinholeCamera, supersample: int) -> PinholeCamera:
     return camera if s == 1 else camera.scaled(camera.width * s, camera.height * s)
 
 
-def combine(centre: Hits, fine: Hits, supersample: int) -> Hits:
-    """One pixel grid from `centre` (one ray per pixel centre, `shade(..., texture=False)` is enough) and `fine`
-    (the same poses through `supersampled(camera, s)`): colour is the mean of each pixel's s x s rays, depth,
-    incidence and material are the centre ray's."""
+def combine(centre: Hits, fine_color: np.ndarray, supersample: int) -> Hits:
+    """One pixel grid from `centre` (one ray per pixel centre, `shade(..., texture=False)` is enough) and
+    `fine_color` [N, s H, s W, 3] (`shade_color` of the same poses through `supersampled(camera, s)`): colour is the
+    mean of each pixel's s x s rays, depth, incidence and material are the centre ray's."""
     s = check_supersample(supersample)
     n, h, w = centre.depth.shape
-    if fine.depth.shape != (n, h * s, w * s):
-        raise InputError(f"combine: fine hits {list(fine.depth.shape)} are not {s} x the centre's {[n, h, w]}")
-    color = fine.color.reshape(n, h, s, w, s, 3).mean(axis=(2, 4), dtype=np.float32)
+    if fine_color.shape != (n, h * s, w * s, 3):
+        raise InputError(f"combine: fine colour {list(fine_color.shape)} is not {s} x the centre's {[n, h, w, 3]}")
+    color = fine_color.reshape(n, h, s, w, s, 3).mean(axis=(2, 4), dtype=np.float32)
     return Hits(centre.depth, color, centre.cos_incidence, centre.material)
 
 
@@ -166,7 +184,7 @@ def cast(world: World, T_world_cam: np.ndarray, camera: PinholeCamera, supersamp
         return shade(world, trace(world, T_world_cam, camera), camera)
     fine = supersampled(camera, s)
     return combine(shade(world, trace(world, T_world_cam, camera), camera, texture=False),
-                   shade(world, trace(world, T_world_cam, fine), fine), s)
+                   shade_color(world, trace(world, T_world_cam, fine), fine), s)
 
 
 def render(world: World, T_world_cam: np.ndarray, camera: PinholeCamera,

@@ -35,7 +35,7 @@ from slam.trajectory import write_tum
 from .config import GeneratorConfig
 from .mono import drifting_odometry
 from .noise import depth_to_uint16, frame_rng, noisy_color, noisy_depth
-from .render import camera_for, combine, shade, supersampled, trace
+from .render import camera_for, combine, shade, shade_color, supersampled, trace
 from .trajectories import agent_trajectory
 from .world import World, generate_world
 
@@ -126,7 +126,7 @@ def _write_agent(folder: Path, world: World, camera: PinholeCamera, poses: np.nd
     def finish(start: int, traced) -> int:
         centre, sub = traced
         hits = shade(world, centre, camera) if sub is None else combine(
-            shade(world, centre, camera, texture=False), shade(world, sub, fine), ss)
+            shade(world, centre, camera, texture=False), shade_color(world, sub, fine), ss)
         for j in range(len(hits.depth)):
             k = start + j
             rng = frame_rng(config.seed, agent, k)
