@@ -156,13 +156,20 @@ def _scatter_grads(tensors: list[torch.Tensor], idx: torch.Tensor, grads: list[t
         t.grad.index_copy_(0, idx, g)
 
 
+def lr_factor(final: float, step: int, steps: int) -> float:
+    """The learning-rate multiplier of step `step` (0-based) of `steps`: geometric from 1 at the first step to
+    `final` at the last (MapRefineConfig.lr_final_scale)."""
+    return float(final) ** (step / max(1, steps - 1))
+
+
 def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
                iterations: int | None = None, reference: bool = False, fixed_views: set[int] | None = None
                ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
     """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
     mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
-    rates x `cfg.lr_scale`. `cfg.optimizer`: "selective" updates only the Gaussians of the step's view
-    (slam.selective_adam), "adam" is torch's Adam over the whole map every step.
+    rates x `cfg.lr_scale`, decaying geometrically to `cfg.lr_final_scale` of that at the last step (`lr_factor`).
+    `cfg.optimizer`: "selective" updates only the Gaussians of the step's view (slam.selective_adam), "adam" is
+    torch's Adam over the whole map every step.
 
     First, Gaussians that contribute less than `cfg.min_contribution` pixels to every view are dropped: where
     submaps overlap, the surface of one hides the same surface of another, and those hidden copies only cost
@@ -199,8 +206,16 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     order: list[int] = []
     losses: list[float] = []
     b = bar(n_it, "[refine] steps", unit="step", enabled=None)  # shown inside slam.progress.reporting(True)
-    for _ in range(n_it):
+    base = list(sel.lrs) if cfg.optimizer == "selective" else [g["lr"] for g in opt.param_groups]
+    for it in range(n_it):
         b.update(1, f"loss {losses[-1]:.4f}" if losses else None)
+        if cfg.lr_final_scale != 1.0:
+            f = lr_factor(cfg.lr_final_scale, it, n_it)
+            if cfg.optimizer == "selective":
+                sel.lrs = [lr * f for lr in base]
+            else:
+                for g, lr in zip(opt.param_groups, base):
+                    g["lr"] = lr * f
         if not order:
             order = torch.randperm(len(views), generator=gen).tolist()
         j = order.pop()

@@ -1,0 +1,64 @@
+"""The map refinement's learning-rate schedule (MapRefineConfig.lr_final_scale): geometric from the start rates to
+lr_final_scale times them at the last step, and what the optimiser is actually given, for both optimisers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import slam.map_refine as mr
+from kernels.camera import PinholeCamera
+from slam.config import MappingConfig, MapRefineConfig
+from slam.gaussian_map import GaussianParams
+from slam.map_refine import RefineView, lr_factor, refine_map
+from slam.render import viewmat_from_pose
+from slam.selective_adam import SelectiveAdam
+
+
+def test_lr_factor_is_geometric_from_one_to_final():
+    f = [lr_factor(0.3, i, 5) for i in range(5)]
+    assert f[0] == 1.0 and f[-1] == pytest.approx(0.3)
+    assert np.allclose(np.diff(np.log(f)), np.log(0.3) / 4)
+    assert lr_factor(0.3, 0, 1) == 1.0  # a single step keeps the start rate
+    assert all(lr_factor(1.0, i, 7) == 1.0 for i in range(7))
+
+
+def _scene():
+    g = torch.Generator().manual_seed(0)
+    n = 40
+    pts = torch.cat([torch.rand(n, 2, generator=g) - 0.5, 2.0 + 0.2 * torch.rand(n, 1, generator=g)], 1)
+    p = GaussianParams.from_points(pts, torch.rand(n, 3, generator=g), torch.full((n,), 0.05))
+    cam = PinholeCamera(40.0, 40.0, 15.5, 11.5, 32, 24)
+    view = RefineView(viewmat_from_pose(np.eye(4)), torch.rand(24, 32, 3, generator=g), torch.full((24, 32), 2.0),
+                      cam)
+    return p, [view]
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "selective"])
+def test_the_optimiser_gets_the_decayed_rates(monkeypatch, optimizer):
+    seen: list[list[float]] = []
+    if optimizer == "adam":
+        make = mr.make_optimizer
+
+        def spy(*a, **k):
+            opt = make(*a, **k)
+            opt.register_step_pre_hook(lambda o, *_: seen.append([g["lr"] for g in o.param_groups]))
+            return opt
+
+        monkeypatch.setattr(mr, "make_optimizer", spy)
+    else:
+        step = SelectiveAdam.step
+
+        def spy_step(self, idx, grads):
+            seen.append(list(self.lrs))
+            return step(self, idx, grads)
+
+        monkeypatch.setattr(SelectiveAdam, "step", spy_step)
+    p, views = _scene()
+    cfg = MapRefineConfig(lr_final_scale=0.25, optimizer=optimizer, min_contribution=0.0, iterations_per_keyframe=5)
+    refine_map(p, views, cfg, MappingConfig(), iterations=5, reference=True)
+    lrs = np.array(seen)
+    assert lrs.shape[0] == 5
+    assert np.allclose(lrs / lrs[0], [[lr_factor(0.25, i, 5)] for i in range(5)])
+    assert lrs[0][0] == pytest.approx(MappingConfig().lr_means * cfg.lr_scale)
