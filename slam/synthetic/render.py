@@ -150,10 +150,15 @@ def shade(world: World, traced: Traced, camera: PinholeCamera, *, texture: bool 
     return Hits(depth.reshape(n, h, w), color, cos_inc.reshape(n, h, w), material.reshape(n, h, w))
 
 
+MAX_SUPERSAMPLE = 8
+
+
 def check_supersample(supersample: int) -> int:
-    s = int(supersample) if isinstance(supersample, (int, np.integer)) else 0
-    if s < 1:
-        raise InputError(f"supersample must be an integer >= 1 (rays per pixel side), got {supersample!r}")
+    ok = isinstance(supersample, (int, np.integer)) and not isinstance(supersample, bool)
+    s = int(supersample) if ok else 0
+    if not 1 <= s <= MAX_SUPERSAMPLE:  # the bound of GeneratorConfig.supersample: 64 rays per pixel at most
+        raise InputError(f"supersample must be an integer from 1 to {MAX_SUPERSAMPLE} (rays per pixel side), "
+                         f"got {supersample!r}")
     return s
 
 
