@@ -88,8 +88,7 @@ def ensure_dataset(folder: str | Path, preset: str, *, seed: int | None = None, 
 def ensure_vocabulary(path: str | Path, preset: str, *, seed: int | None = None, progress: bool = True) -> Path:
     """A bag-of-words vocabulary (RootSIFT, registration.place_recognition) for inter-agent place recognition,
     trained on views of a *different* generated world (seed + 1000) than the dataset's, so no image the team
-    will see is in its training set, rendered with the dataset's rays per pixel (GeneratorConfig.supersample).
-    Reused when present."""
+    will see is in its training set. Reused when present."""
     from registration.place_recognition import make_recognizer
     from slam.synthetic import GeneratorConfig, agent_poses, camera_for, generate_world, render
 
@@ -100,7 +99,7 @@ def ensure_vocabulary(path: str | Path, preset: str, *, seed: int | None = None,
     config = GeneratorConfig.preset(preset, seed=base.seed + 1000)
     world = generate_world(config.seed, config.world)
     camera = camera_for(160, 120, config.hfov_deg)
-    images = [render(world, T, camera, config.supersample)[0] for poses in agent_poses(world, config)
+    images = [render(world, T, camera)[0] for poses in agent_poses(world, config)
               for T in poses[::max(1, config.frames // 30)]]
     if progress:
         print(f"[demo] training a place-recognition vocabulary on {len(images)} views of another world",
