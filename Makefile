@@ -6,7 +6,7 @@ VPY     := $(VENV)/bin/python
 STAMP   := $(VENV)/.swarmsplat-installed
 SUDO    := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 
-.PHONY: setup demo test bench device-check clean-venv
+.PHONY: setup browser demo test bench device-check clean-venv
 
 setup: $(STAMP)
 
@@ -32,7 +32,16 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(VENV)/bin/swarmsplat demo --out runs/demo
 
-test: setup
+# The browser test (`swarmsplat view --screenshot`, tests/test_view_screenshot.py) needs a Chromium: Debian's
+# package, installed when no Chromium is on PATH (test only; the demo does not need it).
+browser:
+	@if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1 \
+		&& ! command -v google-chrome >/dev/null 2>&1 && [ -z "$$SWARMSPLAT_CHROMIUM" ]; then \
+		echo "installing chromium (browser test)"; \
+		$(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium >/dev/null; \
+	fi
+
+test: setup browser
 	$(VPY) -m pytest -q
 
 bench: setup
