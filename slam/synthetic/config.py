@@ -79,6 +79,9 @@ class MonoConfig(_Strict):
     scale: float = Field(1.0, gt=0.0, le=10.0)  # odometry translation = scale * true translation
 
 
+MAX_SUPERSAMPLE = 8  # rays per pixel side: 64 rays per pixel at most (render.check_supersample too)
+
+
 class GeneratorConfig(_Strict):
     name: str = "synthetic"
     seed: int = Field(0, ge=0, lt=2**31)
@@ -90,7 +93,7 @@ class GeneratorConfig(_Strict):
     hfov_deg: float = Field(62.8, gt=10.0, lt=170.0)  # a Kinect-like field of view (fx = 525 at 640 px)
     # Rays per pixel side: colour is the mean of supersample^2 rays over the pixel's area, depth the pixel-centre
     # ray's (slam.synthetic.render). 1 = one ray through the pixel centre, which aliases every edge and texture.
-    supersample: int = Field(2, ge=1, le=8)
+    supersample: int = Field(2, ge=1, le=MAX_SUPERSAMPLE)
     depth_scale: float = Field(5000.0, gt=0.0)  # uint16 value per metre, as TUM RGB-D
     mono: bool = False
     # Version of the agent-slot layout of trajectories.py. Only the current one is generated; it is part of

@@ -22,6 +22,7 @@ from kernels import se3
 from kernels.camera import PinholeCamera
 from kernels.errors import InputError
 
+from .config import MAX_SUPERSAMPLE
 from .world import World
 
 
@@ -150,13 +151,10 @@ def shade(world: World, traced: Traced, camera: PinholeCamera, *, texture: bool 
     return Hits(depth.reshape(n, h, w), color, cos_inc.reshape(n, h, w), material.reshape(n, h, w))
 
 
-MAX_SUPERSAMPLE = 8
-
-
 def check_supersample(supersample: int) -> int:
     ok = isinstance(supersample, (int, np.integer)) and not isinstance(supersample, bool)
     s = int(supersample) if ok else 0
-    if not 1 <= s <= MAX_SUPERSAMPLE:  # the bound of GeneratorConfig.supersample: 64 rays per pixel at most
+    if not 1 <= s <= MAX_SUPERSAMPLE:  # the bound of GeneratorConfig.supersample
         raise InputError(f"supersample must be an integer from 1 to {MAX_SUPERSAMPLE} (rays per pixel side), "
                          f"got {supersample!r}")
     return s

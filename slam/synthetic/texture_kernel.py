@@ -214,9 +214,8 @@ def shade_rays_kernel(world, rays: np.ndarray, t_hit: np.ndarray, prim: np.ndarr
     out = np.empty((m, 3), dtype=np.float32)
     if m == 0:
         return out
-    hit = np.isfinite(t_hit) & (t_hit > 0)
-    tri = np.where(hit, prim, 0).astype(np.int32)  # misses carry Open3D's invalid id; never read, kept in range
-    per_ray = [_t(rays, np.float32), _t(t_hit, np.float32), _t(tri, np.int32)]
+    # A miss carries Open3D's invalid id (uint32 max, -1 as int32); the kernel returns before reading it.
+    per_ray = [_t(rays, np.float32), _t(t_hit, np.float32), _t(prim.astype(np.int32, copy=False), np.int32)]
     tables = [_t(world.tri_surface_axes, np.int32), _t(world.tri_surface_offset, np.float32),
               _t(world.tri_material, np.int32), _t(world.tri_light, np.float32)]
     tex, keep = _texture_inputs(world.texture, coarse_texel_m, fine_texel_m)
