@@ -108,7 +108,8 @@ _FORWARD = _COMMON + r"""
     int* hits_p = (int*)hits.data;
     const size_t hs = hits.strides[0] / sizeof(int);
     for (int e = s0; e < s1; ++e) {
-        int count = 0;
+        alignas(32) int cntv[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+        alignas(32) int finv[8] = {0, 0, 0, 0, 0, 0, 0, 0};
         const int g = I1(entries, e);
         if (e + PREFETCH < s1) {  // entries are in depth order: their rows are scattered over the whole array
             const int gn = I1(entries, e + PREFETCH);
@@ -138,8 +139,9 @@ _FORWARD = _COMMON + r"""
                 float* CBr = CB + (py - y0) * TS;
                 float* DDr = DD + (py - y0) * TS;
                 int* Lr = LAST + (py - y0) * TS;
-                int cnt = 0, fin = 0;
-                for (int j = jlo; j < jhi; ++j) {
+                for (int h = jlo; h < jhi; h += 8)
+                for (int l = 0; l < 8; ++l) {
+                    const int j = h + l;
                     const float Tj = Tr[j];
                     const float dx = fx0 + (float)j;
                     const float power = -0.5f * ca * dx * dx + cdy - bdy * dx;
@@ -156,13 +158,14 @@ _FORWARD = _COMMON + r"""
                     DDr[j] += w * z;
                     Tr[j] = stop ? -Tj : (comp ? tT : Tj);
                     Lr[j] = comp ? k1 : Lr[j];
-                    cnt += comp ? 1 : 0;
-                    fin += stop ? 1 : 0;
+                    cntv[l] += comp ? 1 : 0;
+                    finv[l] += stop ? 1 : 0;
                 }
-                count += cnt;
-                done += fin;
             }
         }
+        int count = 0, fin = 0;
+        for (int l = 0; l < 8; ++l) { count += cntv[l]; fin += finv[l]; }
+        done += fin;
         hits_p[(size_t)e * hs] = count;
     }
     float* col = (float*)color.data;
@@ -256,8 +259,6 @@ _BACKWARD = _COMMON + r"""
                 const float dy = (float)py - my;
                 const float cdy = -0.5f * cc * dy * dy;
                 const float bdy = cb * dy;
-                const float ccdy = cc * dy;
-                const float dy2 = dy * dy;
                 const int row = (py - y0) * TS;
                 for (int h = jlo; h < jhi; h += 8)
                 for (int l = 0; l < 8; ++l) {
@@ -283,19 +284,28 @@ _BACKWARD = _COMMON + r"""
                     v[9][l] += w * gd;
                     v[5][l] += g_a * G;
                     const float g_p = g_a * a;
-                    v[0][l] += g_p * (ca * dx + bdy);
-                    v[1][l] += g_p * (ccdy + cb * dx);
-                    v[2][l] -= 0.5f * g_p * dx * dx;
-                    v[3][l] -= g_p * dx * dy;
-                    v[4][l] -= 0.5f * g_p * dy2;
+                    const float gx = g_p * dx, gy = g_p * dy;
+                    v[0][l] += gx;  // moments of g_p over the pixels: combined into the five gradients below
+                    v[1][l] += gy;
+                    v[2][l] += gx * dx;
+                    v[3][l] += gx * dy;
+                    v[4][l] += gy * dy;
                 }
             }
         }
+        float sum[10];
         for (int m = 0; m < 10; ++m) {
             float s = 0.0f;
             for (int j = 0; j < 8; ++j) s += v[m][j];
-            GE(e, m) = s;
+            sum[m] = s;
         }
+        // d power / d (mx, my, a, b, c) from the moments sum g_p dx, g_p dy, g_p dx^2, g_p dx dy, g_p dy^2
+        GE(e, 0) = ca * sum[0] + cb * sum[1];
+        GE(e, 1) = cc * sum[1] + cb * sum[0];
+        GE(e, 2) = -0.5f * sum[2];
+        GE(e, 3) = -sum[3];
+        GE(e, 4) = -0.5f * sum[4];
+        for (int m = 5; m < 10; ++m) GE(e, m) = sum[m];
     }
 """
 
