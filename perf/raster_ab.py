@@ -1,0 +1,117 @@
+"""The rasteriser against an earlier commit of itself, on this machine, in one run:
+`python -m perf.raster_ab [--against COMMIT] [--rounds R] [--kernels warp|taichi] [--json OUT]`.
+
+Issue 13 asks for forward+backward "at least 4x faster than today": today is the code at the issue's filing
+(commit 143517d, the default here). Milliseconds from different sessions come from different machines, so this
+checks that commit out into a temporary git worktree and times both trees on the same scenes
+(perf/raster.py's `make_scene`, unchanged since then) with the same harness (`perf.raster._ours`: fresh leaf
+tensors, `kernels.rasterize`, and for the backward a sum loss), alternating one process per tree per round so
+machine drift falls on both. Reported: per tree the median over rounds of each process's median, and the ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+
+ISSUE_13_COMMIT = "143517d"
+CASES = [(640, 480, 50_000), (320, 240, 60_000), (320, 240, 10_000), (160, 120, 1_000)]
+
+_CHILD = r"""
+import json, statistics, sys, time
+import torch
+import kernels
+from perf.raster import make_scene, _ours
+torch.set_num_threads(1)
+kernels.use(backend=sys.argv[1], device="cpu")
+out = []
+for w, h, n in json.loads(sys.argv[2]):
+    sc = make_scene(n, w, h)
+    rep = 9 if w * h * n > 5e8 else 25 if n > 1000 else 101
+    row = {"image": f"{w}x{h}", "N": n}
+    for name, bwd in (("fwd_ms", False), ("fwd_bwd_ms", True)):
+        for _ in range(3):
+            _ours(sc, bwd)
+        ts = []
+        for _ in range(rep):
+            t0 = time.perf_counter()
+            _ours(sc, bwd)
+            ts.append(time.perf_counter() - t0)
+        row[name] = statistics.median(ts) * 1e3
+    out.append(row)
+print("RESULT " + json.dumps(out))
+"""
+
+
+def _time_tree(tree: str, backend: str) -> list[dict]:
+    env = dict(os.environ, PYTHONPATH=tree)
+    p = subprocess.run([sys.executable, "-c", _CHILD, backend, json.dumps(CASES)], cwd=tree, env=env,
+                       capture_output=True, text=True, check=False)
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
+    if p.returncode or not lines:
+        raise RuntimeError(f"timing {tree} failed (exit {p.returncode}):\n{p.stderr[-2000:]}")
+    return json.loads(lines[-1][len("RESULT "):])
+
+
+def run(against: str, rounds: int, backend: str) -> dict:
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    head = subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    dirty = bool(subprocess.run(["git", "-C", here, "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, check=True).stdout.strip())
+    with tempfile.TemporaryDirectory(prefix="swarmsplat-ab-") as tmp:
+        old = os.path.join(tmp, "tree")
+        subprocess.run(["git", "-C", here, "worktree", "add", "--detach", old, against], check=True,
+                       capture_output=True)
+        try:
+            runs: dict[str, list] = {"current": [], "against": []}
+            for _ in range(rounds):
+                runs["against"].append(_time_tree(old, backend))
+                runs["current"].append(_time_tree(here, backend))
+        finally:
+            subprocess.run(["git", "-C", here, "worktree", "remove", "--force", old], check=False,
+                           capture_output=True)
+    rows = []
+    for i, (w, h, n) in enumerate(CASES):
+        row = {"backend": backend, "image": f"{w}x{h}", "N": n}
+        for key in ("fwd_ms", "fwd_bwd_ms"):
+            cur = statistics.median(r[i][key] for r in runs["current"])
+            ref = statistics.median(r[i][key] for r in runs["against"])
+            row[f"{key}"] = round(cur, 3)
+            row[f"{key}_{against}"] = round(ref, 3)
+            row[f"speedup_{key[:-3]}"] = round(ref / cur, 3)
+        rows.append(row)
+    return {"subject": "raster-ab", "current": head + ("+changes" if dirty else ""), "against": against,
+            "rounds": rounds, "rows": rows, "load_end": os.getloadavg()[0]}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m perf.raster_ab", description=__doc__.splitlines()[0])
+    p.add_argument("--against", default=ISSUE_13_COMMIT)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--kernels", choices=["warp", "taichi"], default="warp")
+    p.add_argument("--json", dest="json_out")
+    args = p.parse_args(argv)
+    load0 = os.getloadavg()[0]
+    res = run(args.against, max(1, args.rounds), args.kernels)
+    res["load_start"] = load0
+    cols = list(res["rows"][0])
+    print("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
+    for r in res["rows"]:
+        print("| " + " | ".join(str(r[c]) for c in cols) + " |")
+    if args.json_out:
+        from perf.common import machine_info
+
+        res["machine"] = machine_info()
+        with open(args.json_out, "w") as f:
+            json.dump(res, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
