@@ -61,6 +61,16 @@ def machine_info() -> dict:
     return info
 
 
+def print_and_save(res: dict, json_out: str | None) -> None:
+    """Print res["rows"] as a Markdown table; with json_out, write res plus the machine's description there."""
+    print(markdown_table(res["rows"], list(res["rows"][0])))
+    if json_out:
+        import json
+
+        with open(json_out, "w") as f:
+            json.dump(dict(res, machine=machine_info()), f, indent=1)
+
+
 def fmt(v) -> str:
     if isinstance(v, float):
         if v == 0:

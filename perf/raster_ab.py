@@ -100,16 +100,9 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     res = run(args.against, max(1, args.rounds), args.kernels)
     res["load_start"] = load0
-    cols = list(res["rows"][0])
-    print("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    for r in res["rows"]:
-        print("| " + " | ".join(str(r[c]) for c in cols) + " |")
-    if args.json_out:
-        from perf.common import machine_info
+    from perf.common import print_and_save
 
-        res["machine"] = machine_info()
-        with open(args.json_out, "w") as f:
-            json.dump(res, f, indent=1)
+    print_and_save(res, args.json_out)
     return 0
 
 

@@ -15,7 +15,6 @@ Equal times mean no vectorisation: the 8-lane code would be several times faster
 
 
 import argparse
-import json
 import sys
 import time
 
@@ -108,15 +107,9 @@ def main(argv=None) -> int:
     p.add_argument("--json", dest="json_out")
     args = p.parse_args(argv)
     res = run()
-    print("| case | ns_per_pixel | speedup_vs_scalar |\n|---|---:|---:|")
-    for r in res["rows"]:
-        print(f"| {r['case']} | {r['ns_per_pixel']} | {r['speedup_vs_scalar']} |")
-    if args.json_out:
-        from perf.common import machine_info
+    from perf.common import print_and_save
 
-        res["machine"] = machine_info()
-        with open(args.json_out, "w") as f:
-            json.dump(res, f, indent=1)
+    print_and_save(res, args.json_out)
     return 0
 
 
