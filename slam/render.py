@@ -38,6 +38,22 @@ def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera,
                      background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR)
 
 
+def masked_median(values: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """torch.median of values[mask] (the lower of the two middle values; NaN if any value is NaN), as a 0-dim
+    tensor of values' dtype; mask must select at least one value. On the CPU through NumPy's selection: boolean
+    indexing and torch.median cost ~0.36 + 0.47 ms on a 320x240 error image there, NumPy ~0.15 ms in all."""
+    if values.device.type != "cpu":
+        return (values if mask is None else values[mask]).median()
+    a = values.detach().reshape(-1).numpy()
+    a = a[mask.reshape(-1).numpy()] if mask is not None else a.copy()
+    if a.size == 0:
+        raise ValueError("masked_median: the mask selects no value")
+    k = (a.size - 1) // 2
+    a.partition(k)
+    v = a[k] if not np.isnan(a).any() else np.nan
+    return torch.tensor(v, dtype=values.dtype)
+
+
 def rgbd_loss(out, color: torch.Tensor, depth: torch.Tensor, *, lambda_color: float, alpha_power: float,
               alpha_min: float = 0.0, inlier_k: float | None = None, normalise: bool = False) -> torch.Tensor:
     """Eq. 3: sum M_in M_alpha (λ_c |Î - I|_1 + (1 - λ_c) |D̂ - D|_1), normalised by the mask's weight.
@@ -63,8 +79,8 @@ def rgbd_loss(out, color: torch.Tensor, depth: torch.Tensor, *, lambda_color: fl
         with torch.no_grad():
             sel = m > 0
             if bool(sel.any()):
-                mc = e_c.detach()[sel].median()
-                md = e_d.detach()[sel & valid_d].median() if bool((sel & valid_d).any()) else torch.tensor(0.0)
+                mc = masked_median(e_c, sel)
+                md = masked_median(e_d, sel & valid_d) if bool((sel & valid_d).any()) else torch.tensor(0.0)
                 inl = (e_c.detach() <= inlier_k * mc + 1e-6) & (e_d.detach() <= inlier_k * md + 1e-6)
                 m = m * inl
     w = m.sum().clamp_min(1.0)
@@ -88,9 +104,9 @@ class _Eq3Loss(torch.autograd.Function):
             valid = depth.reshape(-1) > 0
             sel = None if alpha_power <= 0 else m0 > 0  # alpha^0 = 1 everywhere
             if sel is None or bool(sel.any()):
-                mc = e_c.median() if sel is None else e_c[sel].median()
+                mc = masked_median(e_c, sel)
                 sv = valid if sel is None else sel & valid
-                md = e_d[sv].median() if bool(sv.any()) else torch.tensor(0.0)
+                md = masked_median(e_d, sv) if bool(sv.any()) else torch.tensor(0.0)
                 thr_c, thr_d = float(inlier_k * mc + 1e-6), float(inlier_k * md + 1e-6)
         lam_d = float(torch.tensor(1.0 - lambda_color, dtype=torch.float32))  # as torch rounds the Python scalar
         row_sums = torch.empty(h, 2, dtype=torch.float32, device=dev)

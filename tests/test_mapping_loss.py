@@ -49,3 +49,28 @@ def test_fused_loss_equals_twin(backend, alpha_power, inlier_k):
     assert gc1.abs().sum() > 0 and gd1.abs().sum() > 0
     if inlier_k is not None and inlier_k < 10:
         assert (gc1[:3] == 0).all()  # the outlier rows are masked out
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 76800])
+def test_masked_median_equals_torch_median(n):
+    """masked_median (NumPy selection on the CPU) returns exactly torch.median of the selected values: the lower
+    middle value for even counts, NaN when a NaN is selected, ties included."""
+    from slam.render import masked_median
+
+    g = torch.Generator().manual_seed(n)
+    v = torch.rand(n, generator=g)
+    v[: n // 3] = 0.25  # ties
+    v = v[torch.randperm(n, generator=g)]
+    for mask in (None, torch.rand(n, generator=g) < 0.6):
+        if mask is not None and not bool(mask.any()):
+            mask[0] = True
+        want = (v if mask is None else v[mask]).median()
+        got = masked_median(v, mask)
+        assert got.dtype == want.dtype and got.shape == want.shape and bool(got == want)
+    img = v.reshape(1, n)
+    assert bool(masked_median(img, img > -1) == img.median())
+    vn = v.clone()
+    vn[n // 2] = float("nan")
+    assert torch.isnan(masked_median(vn)) and torch.isnan(vn.median())
+    with pytest.raises(ValueError, match="selects no value"):
+        masked_median(v, torch.zeros(n, dtype=torch.bool))
