@@ -66,8 +66,11 @@ def run(against: str, rounds: int, backend: str) -> dict:
                                 capture_output=True, text=True, check=True).stdout.strip())
     with tempfile.TemporaryDirectory(prefix="swarmsplat-ab-") as tmp:
         old = os.path.join(tmp, "tree")
-        subprocess.run(["git", "-C", here, "worktree", "add", "--detach", old, against], check=True,
-                       capture_output=True)
+        r = subprocess.run(["git", "-C", here, "worktree", "add", "--detach", old, against], capture_output=True,
+                           text=True, check=False)
+        if r.returncode:
+            raise SystemExit(f"perf.raster_ab: cannot check out --against {against!r} from {here} (a shallow clone "
+                             f"lacks older commits; `git fetch --unshallow`): {r.stderr.strip()}")
         try:
             runs: dict[str, list] = {"current": [], "against": []}
             for _ in range(rounds):
