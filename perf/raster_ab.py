@@ -3,10 +3,11 @@
 
 Issue 13 asks for forward+backward "at least 4x faster than today": today is the code at the issue's filing
 (commit 143517d, the default here). Milliseconds from different sessions come from different machines, so this
-checks that commit out into a temporary git worktree and times both trees on the same scenes
-(perf/raster.py's `make_scene`, unchanged since then) with the same harness (`perf.raster._ours`: fresh leaf
-tensors, `kernels.rasterize`, and for the backward a sum loss), alternating one process per tree per round so
-machine drift falls on both. Reported: per tree the median over rounds of each process's median, and the ratio.
+checks that commit out into a temporary git worktree and times both trees on the same scenes (perf/raster.py's
+`make_scene`, unchanged since then) with the same harness (`perf.raster._ours`: fresh leaf tensors,
+`kernels.rasterize`, and for the backward a sum loss; timed by `perf.common.time_fn`, identical in both trees),
+alternating one process per tree per round so machine drift falls on both. Reported: per tree the median over
+rounds of each process's median, and the ratio.
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ ISSUE_13_COMMIT = "143517d"
 CASES = [(640, 480, 50_000), (320, 240, 60_000), (320, 240, 10_000), (160, 120, 1_000)]
 
 _CHILD = r"""
-import json, statistics, sys, time
+import json, sys
 import torch
 import kernels
+from perf.common import time_fn
 from perf.raster import make_scene, _ours
 torch.set_num_threads(1)
 kernels.use(backend=sys.argv[1], device="cpu")
@@ -35,14 +37,7 @@ for w, h, n in json.loads(sys.argv[2]):
     rep = 9 if w * h * n > 5e8 else 25 if n > 1000 else 101
     row = {"image": f"{w}x{h}", "N": n}
     for name, bwd in (("fwd_ms", False), ("fwd_bwd_ms", True)):
-        for _ in range(3):
-            _ours(sc, bwd)
-        ts = []
-        for _ in range(rep):
-            t0 = time.perf_counter()
-            _ours(sc, bwd)
-            ts.append(time.perf_counter() - t0)
-        row[name] = statistics.median(ts) * 1e3
+        row[name] = time_fn(lambda: _ours(sc, bwd), repeat=rep, warmup=3)["median_s"] * 1e3
     out.append(row)
 print("RESULT " + json.dumps(out))
 """
