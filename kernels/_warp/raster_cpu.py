@@ -7,6 +7,9 @@ tile's per-pixel state in local arrays and composite a Gaussian over the rows of
 groups its x extent reaches, with branch-free code (masks instead of branches, a polynomial exp), which the CPU
 compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction too) turns into 8-lane AVX2
 (or 4-lane SSE / NEON) instructions. Lanes outside the ellipse fail the per-pixel test like any other pixel.
+The per-tile set-up and write-out loops read and write the images row by row through plain pointers (an image
+gradient is contiguous or a broadcast scalar, which reads from a row of its value), so they vectorise too (at
+160x120 with 1k Gaussians, scalar, they cost ~0.1 of the compositing's ~0.48 ms).
 
 The tile body is a native C++ snippet (`wp.func_native`) inside an ordinary Warp kernel: Warp still compiles,
 caches and launches it, and kernels/_warp/raster.py cuts the tiles into chunks over the cores as before. It is a
@@ -168,27 +171,33 @@ _FORWARD = _COMMON + r"""
         done += fin;
         hits_p[(size_t)e * hs] = count;
     }
-    float* col = (float*)color.data;
-    float* dep = (float*)depth.data;
-    float* dno = (float*)dnorm.data;
-    float* alp = (float*)alpha.data;
-    float* tfi = (float*)t_final.data;
-    int* lst = (int*)last.data;
     const float bg0 = F1(bg, 0), bg1 = F1(bg, 1), bg2 = F1(bg, 2);
     for (int r = 0; r < nh; ++r) {
+        // per row: plain pointers the compiler may vectorise through (the outputs are distinct, contiguous arrays)
+        const int q0 = (y0 + r) * width + x0;
+        float* __restrict__ col = (float*)color.data + 3 * q0;
+        float* __restrict__ dep = (float*)depth.data + q0;
+        float* __restrict__ dno = (float*)dnorm.data + q0;
+        float* __restrict__ alp = (float*)alpha.data + q0;
+        float* __restrict__ tfi = (float*)t_final.data + q0;
+        int* __restrict__ lst = (int*)last.data + q0;
+        const float* __restrict__ Tr = T + r * TS;
+        const float* __restrict__ CRr = CR + r * TS;
+        const float* __restrict__ CGr = CG + r * TS;
+        const float* __restrict__ CBr = CB + r * TS;
+        const float* __restrict__ DDr = DD + r * TS;
+        const int* __restrict__ Lr = LAST + r * TS;
         for (int j = 0; j < nw; ++j) {
-            const int i = r * TS + j;
-            const int q = (y0 + r) * width + x0 + j;
-            const float Tv = fabsf(T[i]);
+            const float Tv = fabsf(Tr[j]);
             const float a = 1.0f - Tv;
-            tfi[q] = Tv;
-            alp[q] = a;
-            col[3 * q + 0] = CR[i] + Tv * bg0;
-            col[3 * q + 1] = CG[i] + Tv * bg1;
-            col[3 * q + 2] = CB[i] + Tv * bg2;
-            dep[q] = DD[i];
-            dno[q] = a > 1e-6f ? DD[i] / a : 0.0f;
-            lst[q] = LAST[i];
+            tfi[j] = Tv;
+            alp[j] = a;
+            col[3 * j + 0] = CRr[j] + Tv * bg0;
+            col[3 * j + 1] = CGr[j] + Tv * bg1;
+            col[3 * j + 2] = CBr[j] + Tv * bg2;
+            dep[j] = DDr[j];
+            dno[j] = a > 1e-6f ? DDr[j] / (a > 1e-6f ? a : 1.0f) : 0.0f;
+            lst[j] = Lr[j];
         }
     }
 """
@@ -206,27 +215,51 @@ _BACKWARD = _COMMON + r"""
     for (int i = 0; i < 256; ++i) {
         TR[i] = 1.0f; BH[i] = 0.0f; GR[i] = 0.0f; GG[i] = 0.0f; GB[i] = 0.0f; GD[i] = 0.0f; LAST[i] = 0;
     }
-    for (int r = 0; r < nh; ++r) {
-        for (int j = 0; j < nw; ++j) {
-            const int i = r * TS + j;
-            const int q = (y0 + r) * width + x0 + j;
-            const float TN = F1(t_final, q);
-            const float a_px = 1.0f - TN;
-            float gd = F1(g_depth, q);
-            float ga = F1(g_alpha, q);
-            if (a_px > 1e-6f) {
-                const float gn = F1(g_dnorm, q) / a_px;
-                gd = gd + gn;
-                ga = ga - gn * F1(dnorm, q);
-            }
-            const float gr = F1(g_color, 3 * q + 0), gg = F1(g_color, 3 * q + 1), gb = F1(g_color, 3 * q + 2);
-            GR[i] = gr; GG[i] = gg; GB[i] = gb; GD[i] = gd;
-            TR[i] = TN;
-            BH[i] = (gr * bg0 + gg * bg1 + gb * bg2 - ga) * TN;
-            const int l = I1(last, q);
-            LAST[i] = l;
-            n_live = l > n_live ? l : n_live;
+    // per-pixel inputs, row by row through plain pointers: an image gradient is either contiguous or a broadcast
+    // scalar (stride 0, e.g. from a sum); a broadcast one reads from a row of its value, so every row loop has unit
+    // strides and the compiler vectorises it
+    alignas(64) float cst[4][48];
+    auto rowp = [&](const wp::array_t<float>& a, int q0, int comp, int slot) -> const float* {
+        if (a.strides[0] == 0) {
+            const float v = *(const float*)a.data;
+            for (int i = 0; i < 48; ++i) cst[slot][i] = v;
+            return cst[slot];
         }
+        return (const float*)a.data + (size_t)comp * q0;
+    };
+    for (int r = 0; r < nh; ++r) {
+        const int q0 = (y0 + r) * width + x0;
+        const float* __restrict__ tf = (const float*)t_final.data + q0;
+        const float* __restrict__ dn = (const float*)dnorm.data + q0;
+        const int* __restrict__ ls = (const int*)last.data + q0;
+        const float* __restrict__ gdp = rowp(g_depth, q0, 1, 0);
+        const float* __restrict__ gal = rowp(g_alpha, q0, 1, 1);
+        const float* __restrict__ gdn = rowp(g_dnorm, q0, 1, 2);
+        const float* __restrict__ gco = rowp(g_color, q0, 3, 3);
+        float* __restrict__ GRr = GR + r * TS;
+        float* __restrict__ GGr = GG + r * TS;
+        float* __restrict__ GBr = GB + r * TS;
+        float* __restrict__ GDr = GD + r * TS;
+        float* __restrict__ TRr = TR + r * TS;
+        float* __restrict__ BHr = BH + r * TS;
+        int* __restrict__ Lr = LAST + r * TS;
+        int nl = 0;
+        for (int j = 0; j < nw; ++j) {
+            const float TN = tf[j];
+            const float a_px = 1.0f - TN;
+            const bool ok = a_px > 1e-6f;
+            const float gn = ok ? gdn[j] / (ok ? a_px : 1.0f) : 0.0f;
+            const float gd = gdp[j] + gn;
+            const float ga = gal[j] - gn * dn[j];
+            const float gr = gco[3 * j + 0], gg = gco[3 * j + 1], gb = gco[3 * j + 2];
+            GRr[j] = gr; GGr[j] = gg; GBr[j] = gb; GDr[j] = gd;
+            TRr[j] = TN;
+            BHr[j] = (gr * bg0 + gg * bg1 + gb * bg2 - ga) * TN;
+            const int l = ls[j];
+            Lr[j] = l;
+            nl = l > nl ? l : nl;
+        }
+        n_live = nl > n_live ? nl : n_live;
     }
     char* gbase = (char*)g_entry.data;
     const size_t gs0 = g_entry.strides[0], gs1 = g_entry.strides[1];
