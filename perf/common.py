@@ -101,12 +101,14 @@ def with_scalar_peer(backends: list[str], device: str) -> list[str]:
 
 
 def use_backend(name: str, device: str) -> str:
-    """kernels.use for a perf backend name; SCALAR_PEER is Warp with kernels._warp.raster.CPU_COMPOSITE = "scalar".
-    Returns the kernels backend name."""
+    """kernels.use for a perf backend name; SCALAR_PEER is Warp with its scalar CPU kernels (the CUDA ones):
+    kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = "scalar". Returns the kernels backend
+    name."""
     import kernels
+    from kernels._warp import project as warp_project
     from kernels._warp import raster as warp_raster
 
     base = "warp" if name == SCALAR_PEER else name
     kernels.use(base, device)
-    warp_raster.CPU_COMPOSITE = "scalar" if name == SCALAR_PEER else "vector"
+    warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = "scalar" if name == SCALAR_PEER else "vector"
     return base

@@ -55,9 +55,11 @@ def test_split_equal_single_launch(warp_cpu, monkeypatch, threads):
 
 def test_cuda_shapes_on_the_cpu_equal(warp_cpu, monkeypatch):
     """The projection and hit counts one Gaussian per kernel thread (their CUDA shape, count 1: the per-Gaussian
-    kernel, viewmat parts per Gaussian summed in blocks of 256 by _view_grad) against the CPU's blocks."""
+    kernel, viewmat parts per Gaussian summed in blocks of 256 by _view_grad) against the CPU's blocks, both with
+    the scalar projection kernels (the CUDA ones; tests/test_project_cpu.py checks the CPU's vector ones)."""
     from kernels._warp import project, sort
 
+    monkeypatch.setattr(project, "CPU_PROJECT", "scalar")
     scene = make_scene(20_000, 320, 240, seed=5)
     _run(scene)
     blocks = _run(scene)

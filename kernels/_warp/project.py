@@ -9,13 +9,15 @@ Backward first sums the Gaussian's per-tile-entry gradients (kernels/_warp/sort.
 row gradient into gradients of means, quats (through the normalisation), scales, opacity, colour and a
 [12] viewmat gradient (rotation row-major, then translation) per Gaussian (CUDA) or per block of 256 (CPU, summed
 in the thread in index order), which _view_grad sums.
-The math is in kernels/_ref_raster.py.
+The math is in kernels/_ref_raster.py. On the CPU the same rules run as branch-free vector code
+(kernels/_warp/project_cpu.py, CPU_PROJECT below); these kernels are the CUDA ones and the CPU's scalar peer.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
+from . import project_cpu as _cpu
 from .arrays import to_warp
 from .launch import launch, run
 
@@ -26,6 +28,9 @@ TILE = 16
 # struct is copied and the arrays' shapes re-read each time), and the backward sums a block's viewmat parts in
 # the thread (in index order: the sums of _view_grad's blocks, bit for bit). CUDA: one thread per Gaussian.
 BLOCK = 256
+# "vector": the CPU projects with kernels/_warp/project_cpu.py (same rules, branch-free vector code); "scalar": with
+# the kernels below (the CUDA ones; kept on the CPU as a peer and for tests)
+CPU_PROJECT = "vector"
 
 # CPU only (a no-op on CUDA): fetch into cache the tile-entry gradient rows of Gaussian i + 2, which the backward
 # gathers next on this thread; they are scattered over the entry array (depth order), and the misses were a third
@@ -376,7 +381,10 @@ def project_forward(means, quats, scales, opac, colors, view, intr, width, heigh
     inputs = [to_warp(means), to_warp(quats), to_warp(scales), to_warp(opac), to_warp(colors), to_warp(view),
               fx, fy, cx, cy, width, height, near, far, 0, count, n, to_warp(proj), to_warp(radius),
               to_warp(rect), to_warp(ntiles), to_warp(pthr)]
-    launch(_project_fwd_blocks if count > 1 else _project_fwd, (n + count - 1) // count, inputs, 14, device, work=n)
+    kernel = _project_fwd_blocks if count > 1 else _project_fwd
+    if device == "cpu" and CPU_PROJECT == "vector":
+        kernel = _cpu.forward_blocks
+    launch(kernel, (n + count - 1) // count, inputs, 14, device, work=n)
 
 
 def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
@@ -393,5 +401,6 @@ def project_backward(means, quats, scales, view, intr, width, height, proj, ntil
               count, n, to_warp(proj), to_warp(ntiles), to_warp(emit_start), to_warp(emit_pos), to_warp(g_entry),
               to_warp(g_means), to_warp(g_quats), to_warp(g_scales), to_warp(g_opac), to_warp(g_colors),
               to_warp(g_view)]
-    launch(_project_bwd, rows, inputs, 10, device, work=n)
+    launch(_cpu.backward_blocks if device == "cpu" and CPU_PROJECT == "vector" else _project_bwd, rows, inputs, 10,
+           device, work=n)
     run(_view_grad, 16, [to_warp(g_view), rows, 256 // count, to_warp(g_view_out)], device)
