@@ -44,7 +44,7 @@ class RenderOutput(NamedTuple):
     depth_normalised: torch.Tensor  # [H, W] depth / alpha where alpha > 1e-6, else 0
     alpha: torch.Tensor  # [H, W] 1 - T_final
     radii: torch.Tensor  # [N] int32 pixel radius (3 sigma), 0 for culled Gaussians
-    n_touched: torch.Tensor  # [N] int32 pixels each Gaussian was composited into
+    n_touched: torch.Tensor | None  # [N] int32 pixels each Gaussian was composited into (None: not counted)
 
 
 def finish_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -94,7 +94,7 @@ class _RenderFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, viewmat, background, intr, width, height, near, far,
-                impls, device):
+                impls, device, count_touched):
         project, sort, raster = impls
         n, dev = means.shape[0], means.device
         nb = max(n, 1)  # Taichi rejects 0-sized arguments
@@ -121,8 +121,9 @@ class _RenderFn(torch.autograd.Function):
         bg = background.detach().contiguous()
         raster.render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha,
                               t_final, last, hits, device)
-        n_touched = _empty((n,), _I32, dev)
-        sort.count_touched(n, ntiles, emit_start, emit_pos, hits, n_touched, device)
+        n_touched = _empty((n if count_touched else 0,), _I32, dev)
+        if count_touched:
+            sort.count_touched(n, ntiles, emit_start, emit_pos, hits, n_touched, device)
         ctx.save_for_backward(*args[:3], args[5], proj, pthr, ntiles, tile_start, entries, emit_start, emit_pos, bg,
                               t_final, dnorm, last)
         ctx.dims = (intr, width, height, n_entries, impls, device)
@@ -143,7 +144,7 @@ class _RenderFn(torch.autograd.Function):
         if n == 0 or n_entries == 0:
             z = torch.zeros_like
             return (z(means), z(quats), z(scales), torch.zeros(n, dtype=_F32, device=dev), z(means),
-                    torch.zeros(4, 4, dtype=_F32, device=dev), g_bg) + (None,) * 7
+                    torch.zeros(4, 4, dtype=_F32, device=dev), g_bg) + (None,) * 8
         img = (height, width)
         # image gradients may be strided (e.g. expanded from a sum); the backend makes them contiguous if it must
         zero = torch.zeros((), dtype=_F32, device=dev)
@@ -163,7 +164,7 @@ class _RenderFn(torch.autograd.Function):
         project.project_backward(means, quats, scales, viewmat, intr, width, height, proj, ntiles, emit_start,
                                  emit_pos, g_entry, g_means, g_quats, g_scales, g_opac, g_colors, g_parts, g_view,
                                  device)
-        return (g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_bg) + (None,) * 7
+        return (g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_bg) + (None,) * 8
 
 
 def _explain_invalid(means, quats, scales, opacities, colors) -> None:
@@ -253,6 +254,7 @@ def rasterize(
     background: torch.Tensor | None = None,  # [3], default black
     near: float = 0.01,  # metres
     far: float = 100.0,  # metres
+    count_touched: bool = True,  # False: n_touched is None (saves a pass over the tile entries)
 ) -> RenderOutput:
     """Render colour, depth and alpha of 3D Gaussians with the 3DGS rules on the active backend (`kernels.use`).
 
@@ -267,9 +269,9 @@ def rasterize(
     bg = torch.zeros(3, dtype=_F32, device=dev) if background is None else background.to(_F32)
     color, depth, dnorm, alpha, radii, n_touched = _RenderFn.apply(
         means, quats, scales, opacities, colors, viewmat32, bg, intr, int(width), int(height), near, far, _impls(b),
-        b.device)
+        b.device, bool(count_touched))
     return RenderOutput(color=color, depth=depth, depth_normalised=dnorm, alpha=alpha, radii=radii,
-                        n_touched=n_touched)
+                        n_touched=n_touched if count_touched else None)
 
 
 def twist_gradient(v_viewmat: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:

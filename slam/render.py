@@ -24,18 +24,22 @@ def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera,
            background: tuple[float, float, float] = (0.0, 0.0, 0.0)):
     """Rasterise `params` seen through `viewmat` [4, 4] (local-to-camera; may carry a pose gradient).
 
-    Returns the rasteriser's RenderOutput (color [H, W, 3], depth [H, W] alpha-weighted metres, alpha [H, W], ...).
+    Returns the rasteriser's RenderOutput (color [H, W, 3], depth [H, W] alpha-weighted metres, alpha [H, W], ...;
+    n_touched is None from the kernels: nothing here uses it).
     `reference=True` uses the slow torch twin (tests).
     """
+    extra = {}
     if reference:
         from kernels.reference import rasterize_reference as rasterize
     else:
         from kernels import rasterize
+
+        extra["count_touched"] = False  # the pipeline does not use n_touched (None)
     dev, dt = params.means.device, params.means.dtype
     K = torch.as_tensor(camera.K, dtype=dt, device=dev)
     return rasterize(params.means, params.quats, params.scales, params.opacities, params.colors.clamp(0.0, 1.0),
                      viewmat.to(dt), K, int(camera.width), int(camera.height),
-                     background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR)
+                     background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR, **extra)
 
 
 def masked_median(values: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:

@@ -402,3 +402,19 @@ def test_expanded_upstream_gradients(backend):
         grads.append({k: v.grad for k, v in p.items()})
     for k in grads[0]:
         assert torch.allclose(grads[0][k], grads[1][k], rtol=1e-6, atol=1e-7), k
+
+
+def test_count_touched_off_gives_none_and_the_same_render(backend):
+    s = scene(8, n_plain=40, hard=True)
+    outs, grads = [], []
+    for count in (True, False):
+        p = {k: v.clone().requires_grad_(True) for k, v in s.items()}
+        out = kernels.rasterize(**p, viewmat=viewmat_rotated(), K=K, width=W, height=H, count_touched=count)
+        (out.color.sum() + out.depth.sum()).backward()
+        outs.append(out)
+        grads.append({k: v.grad for k, v in p.items()})
+    assert outs[0].n_touched.sum() > 0 and outs[1].n_touched is None
+    for f in ("color", "depth", "alpha", "depth_normalised", "radii"):
+        assert torch.equal(getattr(outs[0], f), getattr(outs[1], f)), f
+    for k in grads[0]:
+        assert torch.equal(grads[0][k], grads[1][k]), k
