@@ -102,13 +102,16 @@ def with_scalar_peer(backends: list[str], device: str) -> list[str]:
 
 def use_backend(name: str, device: str) -> str:
     """kernels.use for a perf backend name; SCALAR_PEER is Warp with its scalar CPU kernels (the CUDA ones):
-    kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = "scalar". Returns the kernels backend
-    name."""
+    kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = "scalar", kernels._warp.sort.CPU_SORT =
+    "warp". Returns the kernels backend name."""
     import kernels
     from kernels._warp import project as warp_project
     from kernels._warp import raster as warp_raster
+    from kernels._warp import sort as warp_sort
 
     base = "warp" if name == SCALAR_PEER else name
     kernels.use(base, device)
-    warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = "scalar" if name == SCALAR_PEER else "vector"
+    peer = name == SCALAR_PEER
+    warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = "scalar" if peer else "vector"
+    warp_sort.CPU_SORT = "warp" if peer else "native"
     return base

@@ -306,10 +306,11 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         "after one warm-up; loss = sum(colour) + 0.1 sum(depth) + sum(alpha).",
         "Warp on the CPU: tile chunks launched from kernels/_warp/launch.py's thread pool (each launch runs on one "
         "OS thread and releases the GIL); Taichi parallelises the tile loop itself.",
-        f"{SCALAR_PEER}: Warp with its scalar compositing and projection kernels (kernels/_warp/raster.py and "
-        "project.py, the CUDA kernels; kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = "
-        "'scalar'); warp composites and projects with kernels/_warp/raster_cpu.py's and project_cpu.py's vector "
-        "code. vs_scalar_* = warp-scalar time / warp time, same run and scene.",
+        f"{SCALAR_PEER}: Warp with its own compositing, projection and binning kernels (kernels/_warp/raster.py, "
+        "project.py and sort.py, the CUDA kernels, scalar code on the CPU; perf.common.use_backend sets the "
+        "switches); warp composites and projects with kernels/_warp/raster_cpu.py's and project_cpu.py's vector "
+        "code and bins with sort_cpu.py's native code. vs_scalar_* = warp-scalar time / warp time, same run and "
+        "scene.",
     ]
     if skipped:
         notes.append(f"peer not run (N > {PEER_MAX_N} or past the {PEER_BUDGET_S:.0f} s peer budget): "

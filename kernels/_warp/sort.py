@@ -20,6 +20,7 @@ import torch
 import warp as wp
 
 from . import launch as _launch
+from . import sort_cpu as _cpu
 from .arrays import to_warp as _w
 from .launch import launch, run
 
@@ -28,6 +29,9 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 RADIX_BITS = 11
 BLOCK = 256  # CPU: Gaussians per kernel thread of _touched (a Warp CPU launch pays per thread)
 RADIX = 1 << RADIX_BITS
+# "native": the CPU bins with kernels/_warp/sort_cpu.py (the same steps in C++, the same outputs bit for bit);
+# "warp": with the kernels below (the CUDA ones; kept on the CPU as a peer and for tests)
+CPU_SORT = "native"
 # CPU only (a no-op on CUDA): the counting sort visits Gaussians in depth order, so their rectangles and entry
 # starts are random reads; fetch those of the Gaussian 8 places ahead into cache (measured: binning 256k Gaussians of a
 # real map took ~0.3 s, mostly those misses).
@@ -187,14 +191,17 @@ def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, statu
     """proj_bits [>=n, 10] int32 view of the projected rows; scratch [5, >= max(n, RADIX)] int32; see the module doc.
     (`cursor` [n_tiles] is the Taichi kernel's; here the per-tile lists are built in parts, one per CPU thread.)"""
     keys, vals, keys2, vals2, hist = (scratch[k] for k in range(5))
-    run(_bin, 1, [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), _w(keys), _w(vals),
+    native = device == "cpu" and CPU_SORT == "native"
+    k_bin, k_counts, k_lists = (_cpu.bin_sort, _cpu.tile_counts, _cpu.tile_lists) if native else \
+        (_bin, _tile_counts, _tile_lists)
+    run(k_bin, 1, [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), _w(keys), _w(vals),
                   _w(keys2), _w(vals2), _w(hist)], device)
     parts = _launch._cpu_threads() if device == "cpu" and n >= _launch.MIN_SPLIT else 1
     tmp = torch.empty((2, parts, n_tiles), dtype=torch.int32, device=scratch.device)
     counts, cursors = _w(tmp[0]), _w(tmp[1])
     common = [_w(vals2), _w(rect), _w(emit_start), _w(status), entries.shape[0], tiles_x, n_tiles, parts, 0, counts]
-    launch(_tile_counts, parts, common, 8, device, work=n)
-    launch(_tile_lists, parts, common + [cursors, _w(tile_start), _w(entries), _w(emit_pos)], 8, device, work=n)
+    launch(k_counts, parts, common, 8, device, work=n)
+    launch(k_lists, parts, common + [cursors, _w(tile_start), _w(entries), _w(emit_pos)], 8, device, work=n)
 
 
 def count_touched(n: int, ntiles, emit_start, emit_pos, hits, n_touched, device: str) -> None:
