@@ -19,6 +19,7 @@ import torch
 from .config import MappingConfig
 from .frames import RGBD
 from .gaussian_map import GaussianMap, GaussianParams, Submap
+from .param_ops import isotropic_penalty
 from .render import render, rgbd_loss_fused, viewmat_from_pose
 
 
@@ -47,8 +48,7 @@ def mapping_loss(out, color: torch.Tensor, depth: torch.Tensor, params: Gaussian
     loss = rgbd_loss_fused(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
                            inlier_k=cfg.inlier_k)
     if isotropic_regulariser > 0:
-        s = params.scales
-        loss = loss + isotropic_regulariser * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+        loss = loss + isotropic_regulariser * isotropic_penalty(params.scales)
     return loss
 
 

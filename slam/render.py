@@ -9,6 +9,7 @@ import torch
 from kernels.camera import PinholeCamera
 
 from .gaussian_map import GaussianParams
+from .param_ops import clamp01
 
 NEAR, FAR = 0.01, 100.0
 
@@ -37,7 +38,7 @@ def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera,
         extra["count_touched"] = False  # the pipeline does not use n_touched (None)
     dev, dt = params.means.device, params.means.dtype
     K = torch.as_tensor(camera.K, dtype=dt, device=dev)
-    return rasterize(params.means, params.quats, params.scales, params.opacities, params.colors.clamp(0.0, 1.0),
+    return rasterize(params.means, params.quats, params.scales, params.opacities, clamp01(params.colors),
                      viewmat.to(dt), K, int(camera.width), int(camera.height),
                      background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR, **extra)
 
