@@ -10,7 +10,9 @@ rasteriser in `kernels.raster` (the 3DGS rules):
 - radius = ceil(3 sqrt(lambda_max(cov2d))) px; the Gaussian touches the 16x16 tiles whose index range is
   floor((mean2d -/+ radius) / 16); culled when that range is empty;
 - pixel centres sit at integer coordinates (kernels.camera convention);
-- a Gaussian is evaluated at every pixel of every tile it touches (not only inside its radius);
+- a Gaussian is evaluated at every pixel of every tile it touches (not only inside its radius); the kernels list
+  only the touched tiles that meet the box of its alpha >= 1/255 ellipse (widened by 1 %), which changes no
+  pixel: the others fail the alpha test;
 - per pixel, Gaussians are taken front to back by camera z (ties broken by index):
   alpha = min(0.99, o exp(power)), skipped when power > 0 or alpha < 1/255, and compositing stops before the
   Gaussian that would bring the transmittance below 1e-4;

@@ -77,7 +77,32 @@ def test_vector_projection_forward_equals_scalar(modes):
     assert torch.allclose(p_v[:, cols], p_s[:, cols], rtol=1e-5, atol=1e-5)
     assert torch.allclose(p_v[:, 2:5], p_s[:, 2:5], rtol=3e-4, atol=1e-5)
     assert torch.allclose(t_v, t_s, rtol=1e-6, atol=1e-6)
-    assert not p_v[n_v <= 0].any() and not t_v[n_v <= 0].any() and not r_v[n_v <= 0].any()
+    culled = r_v == 0
+    assert not p_v[culled].any() and not t_v[culled].any() and not rc_v[culled].any() and (n_v[culled] <= 0).all()
+
+
+def test_tile_rectangles_are_the_radius_rectangles_cut_to_the_alpha_ellipse(modes):
+    """The listed tiles: inside the 3-sigma radius' rectangle, and for low opacities far fewer (the box of the
+    alpha >= 1/255 ellipse); renders against the twin with these lists are tests/test_raster.py's."""
+    s = _scene()
+    s["opacities"][:350] *= 0.05  # faint: their alpha >= 1/255 ellipse is well inside 3 sigma
+    for mode in ("scalar", "vector"):
+        modes(mode)
+        proj, radius, rect, ntiles, _ = _project(s, _viewmat())
+        vis = radius > 0
+        r = radius.float()
+        ntx, nty = (W + 15) // 16, (H + 15) // 16
+        box = torch.stack([((proj[:, 0] - r) / 16).floor().clamp(0, ntx), ((proj[:, 1] - r) / 16).floor().clamp(0, nty),
+                           ((proj[:, 0] + r) / 16).floor().add(1).clamp(0, ntx),
+                           ((proj[:, 1] + r) / 16).floor().add(1).clamp(0, nty)], 1).int()
+        listed = vis & (ntiles > 0)
+        assert (rect[listed, :2] >= box[listed, :2]).all() and (rect[listed, 2:] <= box[listed, 2:]).all()
+        assert torch.equal(ntiles[vis], ((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1]))[vis])
+        full = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
+        faint = vis.clone()
+        faint[350:] = False
+        assert ntiles[faint].sum() < 0.7 * full[faint].sum(), mode
+        assert (vis & (ntiles == 0)).any(), mode  # visible, but no tile reaches alpha 1/255
 
 
 def test_vector_projection_flags_invalid_input(modes):

@@ -64,6 +64,7 @@ _FORWARD = _COMMON + r"""
     alignas(64) float IN[14][SUB];  // mean xyz, quat wxyz, scale xyz, opacity, colour rgb
     alignas(64) float OUT[10][SUB];  // the projected row (kernels.raster.PACKED)
     alignas(64) int RI[6][SUB];  // radius, rect x0 y0 x1 y1, ntiles
+    alignas(64) float LO[SUB];
     for (int b0 = i0; b0 < i_end; b0 += SUB) {
         const int m = (b0 + SUB < i_end ? b0 + SUB : i_end) - b0;
         for (int t = 0; t < m; ++t) {
@@ -73,6 +74,7 @@ _FORWARD = _COMMON + r"""
             for (int k = 0; k < 3; ++k) IN[7 + k][t] = F2(scales, i, k);
             IN[10][t] = F1(opac, i);
             for (int k = 0; k < 3; ++k) IN[11 + k][t] = F2(colors, i, k);
+            LO[t] = -wp::log(255.0f * IN[10][t]) - 1e-5f;  // the exp() skip threshold pthr
         }
         for (int t = 0; t < m; ++t) {
             const float FMAX = 3.4028234663852886e38f;
@@ -115,6 +117,17 @@ _FORWARD = _COMMON + r"""
             const float y0 = clampf(floorf((my - r) / 16.0f), 0.0f, nty);
             const float y1 = clampf(floorf((my + r) / 16.0f) + 1.0f, 0.0f, nty);
             vis = vis && x1 > x0 && y1 > y0;  // false for NaN as well
+            // the tiles listed: the radius' rectangle cut to the box of the alpha >= 1/255 ellipse (widened as the
+            // compositing widens it), which no composited pixel leaves
+            const float lo = LO[t];
+            const bool lists = lo < 0.0f;
+            const float lgm = -1.01f * lo + 0.01f;
+            const float ex = sqrtf(2.0f * lgm * a), ey = sqrtf(2.0f * lgm * c);
+            float tx0 = floorf((mx - ex) / 16.0f), tx1 = floorf((mx + ex) / 16.0f) + 1.0f;
+            float ty0 = floorf((my - ey) / 16.0f), ty1 = floorf((my + ey) / 16.0f) + 1.0f;
+            tx0 = x0 > tx0 ? x0 : tx0; tx1 = x1 < tx1 ? x1 : tx1;
+            ty0 = y0 > ty0 ? y0 : ty0; ty1 = y1 < ty1 ? y1 : ty1;
+            const bool tiles = vis && lists && tx1 > tx0 && ty1 > ty0;
             const float inv_det = 1.0f / det;
             OUT[0][t] = vis ? mx : 0.0f;
             OUT[1][t] = vis ? my : 0.0f;
@@ -126,8 +139,8 @@ _FORWARD = _COMMON + r"""
             OUT[7][t] = vis ? IN[12][t] : 0.0f;
             OUT[8][t] = vis ? IN[13][t] : 0.0f;
             OUT[9][t] = vis ? z : 0.0f;
-            const int ix0 = vis ? (int)x0 : 0, ix1 = vis ? (int)x1 : 0;
-            const int iy0 = vis ? (int)y0 : 0, iy1 = vis ? (int)y1 : 0;
+            const int ix0 = tiles ? (int)tx0 : 0, ix1 = tiles ? (int)tx1 : 0;
+            const int iy0 = tiles ? (int)ty0 : 0, iy1 = tiles ? (int)ty1 : 0;
             RI[0][t] = vis ? (int)(r < 1073741824.0f ? r : 1073741824.0f) : 0;
             RI[1][t] = ix0; RI[2][t] = iy0; RI[3][t] = ix1; RI[4][t] = iy1;
             RI[5][t] = valid ? (ix1 - ix0) * (iy1 - iy0) : -1;
@@ -142,8 +155,7 @@ _FORWARD = _COMMON + r"""
             const size_t rj = rect.strides[1] / sizeof(int);
             for (int k = 0; k < 4; ++k) rr[k * rj] = RI[1 + k][t];
             *(int*)((char*)ntiles.data + (size_t)i * ntiles.strides[0]) = RI[5][t];
-            *(float*)((char*)pthr.data + (size_t)i * pthr.strides[0]) =
-                RI[5][t] > 0 ? -wp::log(255.0f * OUT[5][t]) - 1e-5f : 0.0f;
+            *(float*)((char*)pthr.data + (size_t)i * pthr.strides[0]) = RI[0][t] > 0 ? LO[t] : 0.0f;
         }
     }
 """
