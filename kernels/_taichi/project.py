@@ -96,17 +96,18 @@ def _project_fwd(means: _f2, quats: _f2, scales: _f2, opac: _f1, colors: _f2, vi
                 y1 = ti.math.clamp(ti.floor((my + r) / TILE) + 1.0, 0.0, nty)
                 if x1 > x0 and y1 > y0:
                     # the tiles listed: the radius' rectangle cut to the box of the alpha >= 1/255 ellipse
-                    # (widened as the compositing widens it), which no composited pixel leaves
+                    # (widened as the compositing widens it; pixel centres at integers), which no composited
+                    # pixel leaves
                     lo = -ti.log(255.0 * opac[i]) - 1e-5
                     tx0, tx1, ty0, ty1 = 0.0, 0.0, 0.0, 0.0
                     if lo < 0.0:
                         lgm = -1.01 * lo + 0.01
                         ex = ti.sqrt(2.0 * lgm * a)
                         ey = ti.sqrt(2.0 * lgm * c)
-                        tx0 = ti.max(x0, ti.floor((mx - ex) / TILE))
-                        tx1 = ti.min(x1, ti.floor((mx + ex) / TILE) + 1.0)
-                        ty0 = ti.max(y0, ti.floor((my - ey) / TILE))
-                        ty1 = ti.min(y1, ti.floor((my + ey) / TILE) + 1.0)
+                        tx0 = ti.max(x0, ti.floor(ti.ceil(mx - ex) / TILE))
+                        tx1 = ti.min(x1, ti.floor(ti.floor(mx + ex) / TILE) + 1.0)
+                        ty0 = ti.max(y0, ti.floor(ti.ceil(my - ey) / TILE))
+                        ty1 = ti.min(y1, ti.floor(ti.floor(my + ey) / TILE) + 1.0)
                     if not (tx1 > tx0 and ty1 > ty0):
                         tx0, tx1, ty0, ty1 = 0.0, 0.0, 0.0, 0.0
                     inv_det = 1.0 / det

@@ -147,16 +147,17 @@ def _project_one(means: wp.array2d(dtype=float), quats: wp.array2d(dtype=float),
         _cull(proj, radius, rect, ntiles, pthr, i, 0)
         return
     # the tiles listed: the radius' rectangle cut to the box of the alpha >= 1/255 ellipse (widened as the
-    # compositing widens it), which no composited pixel leaves: a low-opacity Gaussian's is much smaller
+    # compositing widens it; pixel centres at integers), which no composited pixel leaves: a low-opacity
+    # Gaussian's is much smaller
     lo = -wp.log(255.0 * opac[i]) - 1e-5
     if lo < 0.0:
         lgm = -1.01 * lo + 0.01
         ex = wp.sqrt(2.0 * lgm * a)
         ey = wp.sqrt(2.0 * lgm * c)
-        x0 = wp.max(x0, wp.floor((mx - ex) / float(TILE)))
-        x1 = wp.min(x1, wp.floor((mx + ex) / float(TILE)) + 1.0)
-        y0 = wp.max(y0, wp.floor((my - ey) / float(TILE)))
-        y1 = wp.min(y1, wp.floor((my + ey) / float(TILE)) + 1.0)
+        x0 = wp.max(x0, wp.floor(wp.ceil(mx - ex) / float(TILE)))
+        x1 = wp.min(x1, wp.floor(wp.floor(mx + ex) / float(TILE)) + 1.0)
+        y0 = wp.max(y0, wp.floor(wp.ceil(my - ey) / float(TILE)))
+        y1 = wp.min(y1, wp.floor(wp.floor(my + ey) / float(TILE)) + 1.0)
     if lo >= 0.0 or x1 <= x0 or y1 <= y0:
         x0 = 0.0
         x1 = 0.0

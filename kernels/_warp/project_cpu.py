@@ -118,13 +118,13 @@ _FORWARD = _COMMON + r"""
             const float y1 = clampf(floorf((my + r) / 16.0f) + 1.0f, 0.0f, nty);
             vis = vis && x1 > x0 && y1 > y0;  // false for NaN as well
             // the tiles listed: the radius' rectangle cut to the box of the alpha >= 1/255 ellipse (widened as the
-            // compositing widens it), which no composited pixel leaves
+            // compositing widens it; pixel centres at integers), which no composited pixel leaves
             const float lo = LO[t];
             const bool lists = lo < 0.0f;
             const float lgm = -1.01f * lo + 0.01f;
             const float ex = sqrtf(2.0f * lgm * a), ey = sqrtf(2.0f * lgm * c);
-            float tx0 = floorf((mx - ex) / 16.0f), tx1 = floorf((mx + ex) / 16.0f) + 1.0f;
-            float ty0 = floorf((my - ey) / 16.0f), ty1 = floorf((my + ey) / 16.0f) + 1.0f;
+            float tx0 = floorf(ceilf(mx - ex) / 16.0f), tx1 = floorf(floorf(mx + ex) / 16.0f) + 1.0f;
+            float ty0 = floorf(ceilf(my - ey) / 16.0f), ty1 = floorf(floorf(my + ey) / 16.0f) + 1.0f;
             tx0 = x0 > tx0 ? x0 : tx0; tx1 = x1 < tx1 ? x1 : tx1;
             ty0 = y0 > ty0 ? y0 : ty0; ty1 = y1 < ty1 ? y1 : ty1;
             const bool tiles = vis && lists && tx1 > tx0 && ty1 > ty0;
