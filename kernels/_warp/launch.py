@@ -45,6 +45,7 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 _DIRECT: dict = {}  # kernel -> (forward hook, argument struct type, ...) or None (use wp.launch)
 _DIRECT_LOCK = threading.Lock()
 DIRECT = True  # False: every launch through wp.launch (A/B measurements, tests)
+_BOUNDS: dict = {}  # (launch shape, kernel dims) -> Warp's launch-bounds struct (~3 us to build per launch)
 
 
 def _describe(kernel, dim, inputs: list):
@@ -84,7 +85,13 @@ def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
                 args = struct(*inputs)
             except TypeError:  # wp.array arguments: their descriptors
                 args = struct(*[a.__ctype__() if isinstance(a, wp.array) else a for a in inputs])
-            hook(ctypes.byref(bounds_of(dim if isinstance(dim, tuple) else (dim,), kdim)), ctypes.byref(args))
+            shape = dim if isinstance(dim, tuple) else (dim,)
+            bounds = _BOUNDS.get((shape, kdim))
+            if bounds is None:  # read-only for the kernel: one per launch shape serves every call and thread
+                if len(_BOUNDS) > 4096:
+                    _BOUNDS.clear()
+                bounds = _BOUNDS[(shape, kdim)] = bounds_of(shape, kdim)
+            hook(ctypes.byref(bounds), ctypes.byref(args))
             return
         if d is False and (kernel, device) in _LOADED:
             with _DIRECT_LOCK:
