@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
-from slam.param_ops import clamp01, isotropic_penalty
+from slam.gaussian_map import GaussianParams
+from slam.param_ops import activate, clamp01, isotropic_penalty
 
 
 def test_clamp01_equals_torch_clamp_with_gradients():
@@ -43,3 +45,72 @@ def test_isotropic_penalty_equals_the_plain_form():
 
 def test_isotropic_penalty_of_no_gaussians_is_nan_like_the_plain_form():
     assert torch.isnan(isotropic_penalty(torch.zeros(0, 3)))
+
+
+def _activation_case(n: int, seed: int):
+    g = torch.Generator().manual_seed(seed)
+    log_s = torch.randn(n, 3, generator=g) * 0.7 - 3.0
+    log_s[: n // 3, 1:] = log_s[: n // 3, :1]  # isotropic rows: sign 0, no penalty gradient
+    logits = torch.randn(n, generator=g) * 4.0
+    colors = torch.rand(n, 3, generator=g) * 1.4 - 0.2
+    colors[0] = torch.tensor([0.0, 1.0, 1.2])  # on both bounds (gradient passes) and past one (it does not)
+    ups = (torch.randn(n, 3, generator=g), torch.randn(n, generator=g), torch.randn(n, 3, generator=g))
+    return log_s, logits, colors, ups
+
+
+def _activate_and_grads(log_s, logits, colors, ups, reference: bool, iso_weight: float = 7.0):
+    p = GaussianParams(torch.zeros_like(log_s), log_s.clone().requires_grad_(True), torch.zeros(len(logits), 4),
+                       logits.clone().requires_grad_(True), colors.clone().requires_grad_(True))
+    a = activate(p, reference=reference)
+    loss = (a.scales * ups[0]).sum() + (a.opacities * ups[1]).sum() + (a.colors * ups[2]).sum()
+    if iso_weight:
+        loss = loss + iso_weight * a.isotropic
+    loss.backward()
+    return ([t.detach() for t in (a.scales, a.opacities, a.colors, a.isotropic)],
+            [p.log_scales.grad, p.logit_opacities.grad, p.colors.grad])
+
+
+@pytest.mark.parametrize("mode", ["vector", "scalar"])
+@pytest.mark.parametrize("n", [1, 7, 4097])  # one Gaussian, a ragged few, one past the CPU kernels' block of 4096
+def test_activate_kernels_equal_the_torch_forms(backend, monkeypatch, mode, n):
+    """kernels/_<backend>/activate.py against exp, sigmoid, clamp and isotropic_penalty: values, gradients into
+    log-scales (scale and penalty paths), logits and colours; Warp's CPU vector and scalar kernels both."""
+    if mode == "scalar" and (backend.name != "warp" or backend.device != "cpu"):
+        pytest.skip("the scalar/vector switch is Warp's on the CPU")
+    from kernels._warp import activate as warp_activate
+
+    monkeypatch.setattr(warp_activate, "CPU_ACTIVATE", mode)
+    case = _activation_case(n, seed=n)
+    (v0, g0), (v1, g1) = (_activate_and_grads(*case, reference=r) for r in (True, False))
+    for name, a, b in zip(("scales", "opacities", "colors", "isotropic"), v1, v0):
+        assert torch.allclose(a, b, rtol=3e-7, atol=0), name
+    assert torch.equal(v1[2], v0[2])  # the clamp is exact
+    assert torch.allclose(g1[0], g0[0], rtol=1e-6, atol=1e-12)
+    # sigmoid's o (1 - o) cancels where o ~ 1 in both forms: compare at the gradient's scale
+    assert torch.allclose(g1[1], g0[1], rtol=1e-6, atol=1e-7 * float(g0[1].abs().max()))
+    assert torch.equal(g1[2], g0[2]) and g1[2][0, 2] == 0 and g1[2][0, 0] == case[3][2][0, 0]
+    if n >= 3:
+        iso_rows = slice(0, n // 3)
+        assert torch.allclose(g1[0][iso_rows], case[3][0][iso_rows] * v1[0][iso_rows], rtol=1e-6)
+
+
+def test_activate_without_the_penalty_or_gradients(backend):
+    """No isotropic term in the loss: the scale gradient is the upstream one times s; no grad mode: values only."""
+    log_s, logits, colors, ups = _activation_case(50, seed=3)
+    (v, g) = _activate_and_grads(log_s, logits, colors, ups, reference=False, iso_weight=0.0)
+    assert torch.allclose(g[0], ups[0] * v[0], rtol=1e-6)
+    with torch.no_grad():
+        p = GaussianParams(torch.zeros(50, 3), log_s, torch.zeros(50, 4), logits, colors)
+        a = activate(p)
+    assert not a.scales.requires_grad and torch.allclose(a.scales, torch.exp(log_s), rtol=3e-7)
+
+
+def test_activate_of_no_gaussians_and_of_float64_uses_the_torch_forms():
+    a = activate(GaussianParams.empty())
+    assert a.scales.shape == (0, 3) and torch.isnan(a.isotropic)
+    p = GaussianParams(torch.zeros(2, 3, dtype=torch.float64), torch.zeros(2, 3, dtype=torch.float64),
+                       torch.zeros(2, 4, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+                       torch.full((2, 3), 2.0, dtype=torch.float64))
+    a = activate(p)
+    assert a.scales.dtype == torch.float64 and torch.equal(a.colors, torch.ones(2, 3, dtype=torch.float64))
+    assert float(a.isotropic) == 0.0
