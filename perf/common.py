@@ -102,9 +102,10 @@ def with_scalar_peer(backends: list[str], device: str) -> list[str]:
 
 def use_backend(name: str, device: str) -> str:
     """kernels.use for a perf backend name; SCALAR_PEER is Warp with its scalar CPU kernels (the CUDA ones):
-    kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = "scalar", kernels._warp.sort.CPU_SORT =
-    "warp". Returns the kernels backend name."""
+    kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = kernels._warp.activate.CPU_ACTIVATE =
+    "scalar", kernels._warp.sort.CPU_SORT = "warp". Returns the kernels backend name."""
     import kernels
+    from kernels._warp import activate as warp_activate
     from kernels._warp import project as warp_project
     from kernels._warp import raster as warp_raster
     from kernels._warp import sort as warp_sort
@@ -112,6 +113,6 @@ def use_backend(name: str, device: str) -> str:
     base = "warp" if name == SCALAR_PEER else name
     kernels.use(base, device)
     peer = name == SCALAR_PEER
-    warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = "scalar" if peer else "vector"
+    warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = warp_activate.CPU_ACTIVATE = "scalar" if peer else "vector"
     warp_sort.CPU_SORT = "warp" if peer else "native"
     return base

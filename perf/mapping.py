@@ -91,7 +91,9 @@ def _optimise_s(submap, keyframes, cfg, iterations: int) -> float:
 
 
 def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
-    """The plain loop: torch's default Adam, slam.render.rgbd_loss + the isotropic penalty, one keyframe a step."""
+    """The plain loop: torch's default Adam, torch's activations, slam.render.rgbd_loss + the isotropic penalty, one
+    keyframe a step."""
+    from slam.param_ops import activate
     from slam.render import render, rgbd_loss, viewmat_from_pose
 
     p = submap.params.detached().requires_grad_(True)
@@ -105,7 +107,7 @@ def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
     for i in range(iterations):
         vm, color, depth, cam = targets[i % len(targets)]
         opt.zero_grad(set_to_none=True)
-        out = render(p, vm, cam)
+        out = render(p, vm, cam, activated=activate(p, reference=True))  # torch's exp, sigmoid and clamp
         loss = rgbd_loss(out, color, depth, lambda_color=cfg.lambda_color, alpha_power=cfg.alpha_power,
                          inlier_k=cfg.inlier_k)
         s = p.scales
@@ -119,6 +121,7 @@ def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
 def _split_ms(submap, keyframes, cfg, iterations: int) -> dict:
     """Median per-stage wall times of `iterations` steps of the mapper's own pieces."""
     from slam.mapper import make_optimizer, mapping_loss
+    from slam.param_ops import activate
     from slam.render import render, viewmat_from_pose
 
     p = submap.params.detached().requires_grad_(True)
@@ -130,9 +133,10 @@ def _split_ms(submap, keyframes, cfg, iterations: int) -> dict:
         vm, color, depth, cam = targets[i % len(targets)]
         t0 = time.perf_counter()
         opt.zero_grad(set_to_none=True)
-        out = render(p, vm, cam)
+        act = activate(p)
+        out = render(p, vm, cam, activated=act)
         t1 = time.perf_counter()
-        loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser)
+        loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser, act)
         t2 = time.perf_counter()
         loss.backward()
         t3 = time.perf_counter()

@@ -38,6 +38,7 @@ from kernels.camera import PinholeCamera
 from .config import MappingConfig, MapRefineConfig
 from .gaussian_map import GaussianParams
 from .mapper import make_optimizer, mapping_loss
+from .param_ops import activate
 from .progress import bar
 from .render import NEAR, render
 from .selective_adam import SelectiveAdam
@@ -228,8 +229,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         # the demo's 211k-Gaussian map, 114k rows per view: 8 vs 15 ms per step).
         sub = GaussianParams(*(t.detach().index_select(0, idx).requires_grad_(True) for t in tensors))
         viewmat, leaf = poses.viewmat(j, v) if poses is not None else (v.viewmat, None)
-        out = render(sub, viewmat, v.camera, reference=reference)
-        loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser)
+        act = activate(sub, reference=reference)
+        out = render(sub, viewmat, v.camera, reference=reference, activated=act)
+        loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser, act)
         loss.backward()
         if poses is not None:
             poses.step(j, leaf)

@@ -19,7 +19,7 @@ import torch
 from .config import MappingConfig
 from .frames import RGBD
 from .gaussian_map import GaussianMap, GaussianParams, Submap
-from .param_ops import isotropic_penalty
+from .param_ops import Activated, activate, isotropic_penalty
 from .render import render, rgbd_loss_fused, viewmat_from_pose
 
 
@@ -41,14 +41,17 @@ class MappingStats:
 
 
 def mapping_loss(out, color: torch.Tensor, depth: torch.Tensor, params: GaussianParams, cfg: MappingConfig,
-                 lambda_color: float, isotropic_regulariser: float) -> torch.Tensor:
+                 lambda_color: float, isotropic_regulariser: float, activated: Activated | None = None
+                 ) -> torch.Tensor:
     """Eq. 3 (masked colour + depth loss with cfg's alpha and inlier masks) plus the isotropic-scale penalty on the
-    rendered Gaussians `params`; shared by submap mapping and the server's global refinement. Eq. 3 runs as
-    kernels (slam.render.rgbd_loss_fused, equal to slam.render.rgbd_loss)."""
+    rendered Gaussians `params` (taken from `activated`, their `slam.param_ops.activate`, when given); shared by
+    submap mapping and the server's global refinement. Eq. 3 runs as kernels (slam.render.rgbd_loss_fused, equal
+    to slam.render.rgbd_loss)."""
     loss = rgbd_loss_fused(out, color, depth, lambda_color=lambda_color, alpha_power=cfg.alpha_power,
                            inlier_k=cfg.inlier_k)
     if isotropic_regulariser > 0:
-        loss = loss + isotropic_regulariser * isotropic_penalty(params.scales)
+        iso = activated.isotropic if activated is not None else isotropic_penalty(params.scales)
+        loss = loss + isotropic_regulariser * iso
     return loss
 
 
@@ -162,8 +165,9 @@ class Mapper:
                 j = int(torch.randint(0, len(targets), (1,), generator=self.gen))
             vm, color, depth, cam = targets[j]
             opt.zero_grad(set_to_none=True)
-            out = render(p, vm, cam, reference=self.reference)
-            loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser)
+            act = activate(p, reference=self.reference)
+            out = render(p, vm, cam, reference=self.reference, activated=act)
+            loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser, act)
             loss.backward()
             opt.step()
             losses.append(float(loss.detach()))

@@ -9,7 +9,7 @@ import torch
 from kernels.camera import PinholeCamera
 
 from .gaussian_map import GaussianParams
-from .param_ops import clamp01
+from .param_ops import Activated, activate
 
 NEAR, FAR = 0.01, 100.0
 
@@ -22,8 +22,10 @@ def viewmat_from_pose(T_local_cam: np.ndarray, device="cpu", dtype=torch.float32
 
 
 def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera, *, reference: bool = False,
-           background: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+           background: tuple[float, float, float] = (0.0, 0.0, 0.0), activated: Activated | None = None):
     """Rasterise `params` seen through `viewmat` [4, 4] (local-to-camera; may carry a pose gradient).
+    `activated`: `slam.param_ops.activate(params)` when the caller has it already (mapping: its isotropic penalty
+    goes into the loss); made here otherwise.
 
     Returns the rasteriser's RenderOutput (color [H, W, 3], depth [H, W] alpha-weighted metres, alpha [H, W], ...;
     n_touched is None from the kernels: nothing here uses it).
@@ -38,7 +40,8 @@ def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera,
         extra["count_touched"] = False  # the pipeline does not use n_touched (None)
     dev, dt = params.means.device, params.means.dtype
     K = torch.as_tensor(camera.K, dtype=dt, device=dev)
-    return rasterize(params.means, params.quats, params.scales, params.opacities, clamp01(params.colors),
+    a = activated if activated is not None else activate(params, reference=reference)
+    return rasterize(params.means, params.quats, a.scales, a.opacities, a.colors,
                      viewmat.to(dt), K, int(camera.width), int(camera.height),
                      background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR, **extra)
 
