@@ -120,7 +120,7 @@ class _RenderFn(torch.autograd.Function):
         hits = _empty((max(n_entries, 1),), _I32, dev)
         bg = background.detach().contiguous()
         raster.render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha,
-                              t_final, last, hits, device)
+                              t_final, last, hits, device, count_hits=count_touched)
         n_touched = _empty((n if count_touched else 0,), _I32, dev)
         if count_touched:
             sort.count_touched(n, ntiles, emit_start, emit_pos, hits, n_touched, device)

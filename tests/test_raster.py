@@ -273,18 +273,21 @@ def test_warp_equals_taichi():
     assert torch.allclose(vw, vt, rtol=1e-4, atol=1e-4 * vt.abs().max().item())
 
 
+@pytest.mark.parametrize("name", ["warp", "taichi"])
 @pytest.mark.parametrize("n_plain, w, h", [(60, 45, 37), (900, 40, 33)])  # ragged tiles; many layers: early stop
-def test_warp_cpu_vector_kernels_equal_scalar(monkeypatch, n_plain, w, h):
-    """The CPU's vector compositing (kernels/_warp/raster_cpu.py) against Warp's scalar kernels (the CUDA ones),
-    forward outputs, per-Gaussian pair counts and all gradients, on tiles cut by both image edges."""
-    from kernels._warp import raster as warp_raster
+def test_cpu_vector_kernels_equal_scalar(monkeypatch, name, n_plain, w, h):
+    """The CPU's vector compositing (kernels/_warp/raster_cpu.py, kernels/_taichi/raster_cpu.py) against the
+    backend's scalar kernels (the GPU ones), forward outputs, per-Gaussian pair counts and all gradients, on tiles
+    cut by both image edges."""
+    import importlib
 
+    backend_raster = importlib.import_module(f"kernels._{name}.raster")
     s = scene(5, n_plain=n_plain, hard=True)
     Kr = torch.tensor([[36.0, 0.0, w / 2 - 0.7], [0.0, 35.0, h / 2 + 0.4], [0.0, 0.0, 1.0]])
-    kernels.use("warp", "cpu")
+    kernels.use(name, "cpu")
     results = {}
     for mode in ("scalar", "vector"):
-        monkeypatch.setattr(warp_raster, "CPU_COMPOSITE", mode)
+        monkeypatch.setattr(backend_raster, "CPU_COMPOSITE", mode)
         p = {k: v.clone().requires_grad_(True) for k, v in s.items()}
         vm = viewmat_rotated().requires_grad_(True)
         out = kernels.rasterize(**p, viewmat=vm, K=Kr, width=w, height=h, background=torch.tensor([0.2, 0.5, 0.9]))

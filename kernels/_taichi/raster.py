@@ -9,6 +9,7 @@ mean2d x, y, conic a, b, c, opacity, r, g, b, z.
 
 
 import taichi as ti
+import torch
 
 from .launch import on_cpu
 
@@ -223,14 +224,40 @@ def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, widt
                 g_entry[e, j] = v[j]
 
 
+# "vector": the CPU composites with kernels/_taichi/raster_cpu.py; "scalar": with the kernels above
+CPU_COMPOSITE = "vector"
+
+
 def _sync(device: str) -> None:
     if device == "cuda":
         ti.sync()
 
 
+def _vector(device: str):
+    """kernels/_taichi/raster_cpu.py when the CPU composites with it, else None."""
+    if device == "cpu" and CPU_COMPOSITE == "vector" and on_cpu():
+        from . import raster_cpu  # imports this module's constants
+
+        return raster_cpu
+    return None
+
+
+def _staging(entries):
+    """Per-entry scratch of the vector kernels: packed tile rows and the staged projected rows."""
+    cap = entries.shape[0]
+    return (torch.empty((cap,), dtype=torch.int32, device=entries.device),
+            torch.empty((cap, 11), dtype=torch.float32, device=entries.device))
+
+
 def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
-                   hits, device) -> None:
+                   hits, device, count_hits: bool = True) -> None:
+    """count_hits False: `hits` may be left unwritten (the CPU's vector kernel skips them; nothing reads them)."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    cpu = _vector(device)
+    if cpu is not None:
+        cpu.forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth,
+                     dnorm, alpha, t_final, last, hits, *_staging(entries), bool(count_hits))
+        return
     _forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth, dnorm,
              alpha, t_final, last, hits)
     _sync(device)
@@ -241,6 +268,11 @@ def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final,
     """Image gradients may be strided (expanded); Taichi takes contiguous arrays."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     g_color, g_depth, g_dnorm, g_alpha = (g.contiguous() for g in (g_color, g_depth, g_dnorm, g_alpha))
+    cpu = _vector(device)
+    if cpu is not None:  # its per-pixel scratch lives in registers
+        cpu.backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm,
+                      last, g_color, g_depth, g_dnorm, g_alpha, g_entry, *_staging(entries))
+        return
     _backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm, last,
               g_color, g_depth, g_dnorm, g_alpha, t_run, behind, g_dep, g_entry)
     _sync(device)

@@ -313,7 +313,8 @@ _OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
 
 
 def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
-                   hits, device) -> None:
+                   hits, device, count_hits: bool = True) -> None:
+    """count_hits is accepted for the backends' common signature; these kernels always write hits."""
     color, depth, dnorm, alpha, t_final, last = (t.view(-1) for t in (color, depth, dnorm, alpha, t_final, last))
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,

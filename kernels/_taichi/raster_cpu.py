@@ -1,0 +1,276 @@
+"""CPU compositing kernels of the Taichi rasteriser, written so that LLVM turns them into vector code.
+
+kernels/_taichi/raster.py composites one pixel at a time, which Taichi's CPU code generator emits as scalar code
+(~3.5x slower than Warp's vector snippet, kernels/_warp/raster_cpu.py). Taichi has no native-code escape, so these
+kernels are ordinary Taichi code in the one shape its LLVM pipeline vectorises (read in the optimised IR,
+`ti.init(print_kernel_llvm_ir_optimized=True)`):
+
+- a 16x16 tile is walked **row by row**; a row's 16 pixels are one `ti.Vector` of 16 lanes (LANES) held in
+  registers, and the tile's entries are the inner loop. Every per-pixel value (transmittance, colour, depth,
+  last entry, ...) is loop-carried across the entries, so each is one <16 x float> PHI that LLVM's SLP vectoriser
+  takes as a seed: the per-pixel work becomes 16-lane arithmetic, branch-free (masks and `ti.select`).
+  (Per-pixel state in local arrays indexed by a run-time row, as in the Warp snippet, stays scalar: Taichi
+  indexes them with 32-bit arithmetic without no-wrap flags, so LLVM cannot prove the lanes consecutive.)
+- exp is the Warp snippet's polynomial (Cody-Waite, Cephes' coefficients), with the exponent rounded by an
+  integer conversion: `ti.floor` is not vectorised by Taichi's target (16 scalar calls a row, 1.5x slower).
+- backward: the ten per-Gaussian gradient sums of a row are 16-lane horizontal sums. LLVM vectorises a horizontal
+  sum only where it feeds a PHI, so each row's sums are carried to the next iteration of the entry loop and added
+  into `g_entry` there (and after the loop). Written directly, the whole gradient tail stayed scalar (~1.6x
+  slower than this).
+- a first pass over the tile's entries stages each one's projected row (and the rows of the tile its ellipse
+  reaches, packed in one int) into contiguous scratch, so the row loops read it sequentially.
+
+The rules and outputs are those of kernels/_taichi/raster.py and the twin (kernels.reference): power =
+-0.5 (a dx^2 + c dy^2) - b dx dy in [lo, 0], alpha = min(0.99, opacity exp(power)) >= 1/255, a pixel stops before
+the Gaussian that would take its transmittance below 1e-4; a row whose pixels have all stopped leaves the entry
+loop. Results differ from the scalar kernels by float32 rounding only (the polynomial exp, relative error 1.2e-7,
+and the order of the gradient sums). CPU only: GPU archs keep the scalar kernels (one tile per thread there).
+"""
+
+import taichi as ti
+
+from .raster import ALPHA_MIN, DEPTH_EPS, TILE, _f1, _f2, _f3, _i1, _i2
+
+LANES = TILE  # one tile row per vector (8-lane half rows, with per-half culling, were ~1.5x slower)
+NO_ROWS = -1  # staged code of an entry whose ellipse box misses its tile (or that is culled)
+
+
+@ti.func
+def _exp(x):
+    # exp of each lane, for x in [-20, 0] (clamped): x = n ln2 + r, exp(r) = 1 + r + r^2 P(r) (as the Warp snippet)
+    x = ti.min(ti.max(x, -20.0), 0.0)
+    ni = ti.cast(x * 1.44269504088896341 - 0.5, ti.i32)  # x <= 0: truncation rounds to nearest
+    n = ti.cast(ni, ti.f32)
+    r = x - n * 0.693145751953125
+    r = r - n * 1.42860682030941723e-06
+    r2 = r * r
+    pa = 5.0000001201e-1 + 1.6666665459e-1 * r
+    pb = 4.1665795894e-2 + 8.3334519073e-3 * r
+    pc = 1.3981999507e-3 + 1.9875691500e-4 * r
+    p = (1.0 + r) + r2 * (pa + r2 * (pb + r2 * pc))
+    scale = ti.Vector([0.0] * LANES)
+    for j in ti.static(range(LANES)):
+        scale[j] = ti.bit_cast((ni[j] + 127) << 23, ti.f32)
+    return p * scale
+
+
+@ti.func
+def _tile(t, tiles_x, width, height):
+    # first pixel and size of tile t (cut by the image edges)
+    ty = t // tiles_x
+    x0 = (t - ty * tiles_x) * TILE
+    y0 = ty * TILE
+    return x0, y0, ti.min(x0 + TILE, width) - x0, ti.min(y0 + TILE, height) - y0
+
+
+@ti.func
+def _stage(proj: ti.template(), pthr: ti.template(), entries: ti.template(), rows: ti.template(),
+           rec: ti.template(), e, y0, nh):
+    # rows[e] = first | last << 8 (tile rows the ellipse d^T Q d <= 2 lg reaches, lg widened as the scalar
+    # kernels widen it) or NO_ROWS; rec[e] = mean x, y, conic a, b, c, opacity, lo, r, g, b, z
+    g = entries[e]
+    lo = pthr[g]
+    ca = proj[g, 2]
+    cb = proj[g, 3]
+    cc = proj[g, 4]
+    det_q = ca * cc - cb * cb
+    code = NO_ROWS
+    if lo < 0.0 and det_q > 0.0:
+        my = proj[g, 1]
+        ey = ti.sqrt(2.0 * (-1.01 * lo + 0.01) * ca / det_q)
+        first = ti.cast(ti.math.clamp(ti.ceil(my - ey), ti.cast(y0, ti.f32), ti.cast(y0 + nh, ti.f32)), ti.i32)
+        last = ti.cast(ti.math.clamp(ti.floor(my + ey), ti.cast(y0 - 1, ti.f32), ti.cast(y0 + nh - 1, ti.f32)),
+                       ti.i32)
+        if first <= last:
+            code = (first - y0) | ((last - y0) << 8)
+            rec[e, 0] = proj[g, 0]
+            rec[e, 1] = my
+            rec[e, 2] = ca
+            rec[e, 3] = cb
+            rec[e, 4] = cc
+            rec[e, 5] = proj[g, 5]
+            rec[e, 6] = lo
+            for j in ti.static(range(4)):
+                rec[e, 7 + j] = proj[g, 6 + j]
+    rows[e] = code
+
+
+@ti.func
+def _in_row(code, r):
+    # the entry's ellipse reaches tile row r
+    return code >= 0 and (code & 255) <= r and r <= (code >> 8)
+
+
+@ti.kernel
+def forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
+            tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, dnorm: _f2, alpha: _f2, t_final: _f2,
+            last: _i2, hits: _i1, rows: _i1, rec: _f2, count: ti.template()):
+    # count: write hits (pixels each entry composited); a store in the entry loop costs ~1/3 of the forward
+    ti.loop_config(block_dim=1)  # one tile per task: tiles differ wildly in cost
+    for t in range(n_tiles):
+        x0, y0, nw, nh = _tile(t, tiles_x, width, height)
+        s0 = tile_start[t]
+        s1 = tile_start[t + 1]
+        for e in range(s0, s1):
+            _stage(proj, pthr, entries, rows, rec, e, y0, nh)
+            if ti.static(count):
+                hits[e] = 0
+        lane = ti.Vector([j for j in range(LANES)])
+        for r in range(nh):
+            py = y0 + r
+            pyf = ti.cast(py, ti.f32)
+            pxv = ti.cast(lane + x0, ti.f32)
+            T = ti.select(lane < nw, 1.0, 0.0)  # lanes outside the image never composite
+            cr = ti.Vector([0.0] * LANES)
+            cg = ti.Vector([0.0] * LANES)
+            cb = ti.Vector([0.0] * LANES)
+            dd = ti.Vector([0.0] * LANES)
+            la = ti.Vector([0] * LANES)
+            n_live = nw
+            for e in range(s0, s1):
+                if _in_row(rows[e], r):
+                    dy = pyf - rec[e, 1]
+                    dx = pxv - rec[e, 0]
+                    power = (-0.5 * rec[e, 2]) * dx * dx + (-0.5 * rec[e, 4] * dy * dy) - (rec[e, 3] * dy) * dx
+                    a = ti.min(0.99, rec[e, 5] * _exp(power))
+                    ok = (T > 0.0) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
+                    test_t = T * (1.0 - a)
+                    stop = ok & (test_t < 1e-4)
+                    comp = ok & (test_t >= 1e-4)
+                    w = ti.select(comp, a * T, 0.0)
+                    cr += w * rec[e, 7]
+                    cg += w * rec[e, 8]
+                    cb += w * rec[e, 9]
+                    dd += w * rec[e, 10]
+                    T = ti.select(stop, -T, ti.select(comp, test_t, T))  # negated: stopped
+                    la = ti.select(comp, e - s0 + 1, la)
+                    if ti.static(count):
+                        hits[e] += ti.select(comp, 1, 0).sum()
+                    if stop.any():
+                        n_live -= ti.select(stop, 1, 0).sum()
+                        if n_live <= 0:
+                            break
+            for j in ti.static(range(LANES)):
+                if j < nw:
+                    px = x0 + j
+                    tj = ti.abs(T[j])
+                    aj = 1.0 - tj
+                    t_final[py, px] = tj
+                    alpha[py, px] = aj
+                    color[py, px, 0] = cr[j] + tj * bg[0]
+                    color[py, px, 1] = cg[j] + tj * bg[1]
+                    color[py, px, 2] = cb[j] + tj * bg[2]
+                    depth[py, px] = dd[j]
+                    last[py, px] = la[j]
+                    dn = 0.0
+                    if aj > DEPTH_EPS:
+                        dn = dd[j] / aj
+                    dnorm[py, px] = dn
+
+
+@ti.func
+def _flush(g_entry: ti.template(), e, ca, cb, cc, dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d):
+    # one row's sums into entry e's gradient (mean2d x, y, conic a, b, c, opacity, r, g, b, z); dy is constant
+    # along the row, so d/dmean and d/dconic come from sums of g_p, g_p dx and g_p dx^2
+    g_entry[e, 0] += ca * s_gpdx + cb * dy * s_gp
+    g_entry[e, 1] += cc * dy * s_gp + cb * s_gpdx
+    g_entry[e, 2] -= 0.5 * s_gpdx2
+    g_entry[e, 3] -= dy * s_gpdx
+    g_entry[e, 4] -= 0.5 * dy * dy * s_gp
+    g_entry[e, 5] += s_op
+    g_entry[e, 6] += s_r
+    g_entry[e, 7] += s_g
+    g_entry[e, 8] += s_b
+    g_entry[e, 9] += s_d
+
+
+@ti.kernel
+def backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
+             tiles_x: ti.i32, n_tiles: ti.i32, t_final: _f2, dnorm: _f2, last: _i2, g_color: _f3, g_depth: _f2,
+             g_dnorm: _f2, g_alpha: _f2, g_entry: _f2, rows: _i1, rec: _f2):
+    # Reverse compositing per row (see kernels/_taichi/raster.py for the algebra): T recovers T_k = T_{k+1} /
+    # (1 - a_k) from the back, behind accumulates (dL/dC . colour + dL/dD depth) of everything behind entry k.
+    ti.loop_config(block_dim=1)
+    for t in range(n_tiles):
+        x0, y0, nw, nh = _tile(t, tiles_x, width, height)
+        s0 = tile_start[t]
+        s1 = tile_start[t + 1]
+        for e in range(s0, s1):
+            _stage(proj, pthr, entries, rows, rec, e, y0, nh)
+            for j in ti.static(range(10)):
+                g_entry[e, j] = 0.0
+        lane = ti.Vector([j for j in range(LANES)])
+        for r in range(nh):
+            py = y0 + r
+            pyf = ti.cast(py, ti.f32)
+            pxv = ti.cast(lane + x0, ti.f32)
+            T = ti.Vector([0.0] * LANES)
+            bh = ti.Vector([0.0] * LANES)
+            gr = ti.Vector([0.0] * LANES)
+            gg = ti.Vector([0.0] * LANES)
+            gb = ti.Vector([0.0] * LANES)
+            gd = ti.Vector([0.0] * LANES)
+            la = ti.Vector([0] * LANES)  # lanes outside the image keep last = 0: never active
+            for j in ti.static(range(LANES)):
+                if j < nw:
+                    px = x0 + j
+                    tn = t_final[py, px]
+                    a_px = 1.0 - tn
+                    gdj = g_depth[py, px]
+                    ga = g_alpha[py, px]
+                    if a_px > DEPTH_EPS:  # depth_normalised = depth / alpha folds into the depth and alpha terms
+                        gn = g_dnorm[py, px] / a_px
+                        gdj += gn
+                        ga -= gn * dnorm[py, px]
+                    T[j] = tn
+                    gr[j] = g_color[py, px, 0]
+                    gg[j] = g_color[py, px, 1]
+                    gb[j] = g_color[py, px, 2]
+                    gd[j] = gdj
+                    bh[j] = (gr[j] * bg[0] + gg[j] * bg[1] + gb[j] * bg[2] - ga) * tn
+                    la[j] = last[py, px]
+            n_live = la.max()
+            # the previous row entry's sums, carried to the next iteration (see the module docstring)
+            pe = -1
+            p_ca, p_cb, p_cc, p_dy = 0.0, 0.0, 0.0, 0.0
+            s_gp, s_gpdx, s_gpdx2, s_op = 0.0, 0.0, 0.0, 0.0
+            s_r, s_g, s_b, s_d = 0.0, 0.0, 0.0, 0.0
+            for i in range(n_live):
+                k = n_live - 1 - i
+                e = s0 + k
+                if _in_row(rows[e], r):
+                    ca = rec[e, 2]
+                    cb_ = rec[e, 3]
+                    cc = rec[e, 4]
+                    dy = pyf - rec[e, 1]
+                    dx = pxv - rec[e, 0]
+                    power = (-0.5 * ca) * dx * dx + (-0.5 * cc * dy * dy) - (cb_ * dy) * dx
+                    G = _exp(power)
+                    raw = rec[e, 5] * G
+                    a = ti.min(0.99, raw)
+                    act = (la > k) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
+                    if act.any():  # no lane composited this entry: nothing to add
+                        if pe >= 0:
+                            _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
+                        inv_1ma = 1.0 / (1.0 - a)
+                        tk = T * inv_1ma
+                        T = ti.select(act, tk, T)
+                        w = ti.select(act, a * tk, 0.0)
+                        front = gr * rec[e, 7] + gg * rec[e, 8] + gb * rec[e, 9] + gd * rec[e, 10]
+                        g_a = tk * front - bh * inv_1ma
+                        bh += w * front
+                        g_a = ti.select(act & (raw < 0.99), g_a, 0.0)  # alpha clamped at 0.99: no gradient
+                        g_p = g_a * a
+                        g_pdx = g_p * dx
+                        s_gp = g_p.sum()
+                        s_gpdx = g_pdx.sum()
+                        s_gpdx2 = (g_pdx * dx).sum()
+                        s_op = (g_a * G).sum()
+                        s_r = (w * gr).sum()
+                        s_g = (w * gg).sum()
+                        s_b = (w * gb).sum()
+                        s_d = (w * gd).sum()
+                        pe = e
+                        p_ca, p_cb, p_cc, p_dy = ca, cb_, cc, dy
+            if pe >= 0:
+                _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
