@@ -89,6 +89,7 @@ def markdown_table(rows: list[dict], columns: list[str]) -> str:
 
 
 SCALAR_PEER = "warp-scalar"  # Warp with its scalar compositing kernels on the CPU (the CUDA ones): the same-run peer
+TAICHI_SCALAR_PEER = "taichi-scalar"  # Taichi with its one-pixel-at-a-time compositing (its GPU kernels) on the CPU
 
 
 def with_scalar_peer(backends: list[str], device: str) -> list[str]:
@@ -103,16 +104,20 @@ def with_scalar_peer(backends: list[str], device: str) -> list[str]:
 def use_backend(name: str, device: str) -> str:
     """kernels.use for a perf backend name; SCALAR_PEER is Warp with its scalar CPU kernels (the CUDA ones):
     kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = kernels._warp.activate.CPU_ACTIVATE =
-    "scalar", kernels._warp.sort.CPU_SORT = "warp". Returns the kernels backend name."""
+    "scalar", kernels._warp.sort.CPU_SORT = "warp"; TAICHI_SCALAR_PEER is Taichi with
+    kernels._taichi.raster.CPU_COMPOSITE = "scalar". Returns the kernels backend name."""
     import kernels
     from kernels._warp import activate as warp_activate
     from kernels._warp import project as warp_project
     from kernels._warp import raster as warp_raster
     from kernels._warp import sort as warp_sort
 
-    base = "warp" if name == SCALAR_PEER else name
+    from kernels._taichi import raster as taichi_raster
+
+    base = {SCALAR_PEER: "warp", TAICHI_SCALAR_PEER: "taichi"}.get(name, name)
     kernels.use(base, device)
     peer = name == SCALAR_PEER
     warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = warp_activate.CPU_ACTIVATE = "scalar" if peer else "vector"
     warp_sort.CPU_SORT = "warp" if peer else "native"
+    taichi_raster.CPU_COMPOSITE = "scalar" if name == TAICHI_SCALAR_PEER else "vector"
     return base

@@ -28,7 +28,10 @@ import json, sys
 import torch
 import kernels
 from perf.common import time_fn
+import inspect
 from perf.raster import make_scene, _ours
+# the same call in both trees: the issue-13 code always counted n_touched, so count here too where _ours can opt out
+count = {"count": True} if "count" in inspect.signature(_ours).parameters else {}
 torch.set_num_threads(1)
 kernels.use(backend=sys.argv[1], device="cpu")
 out = []
@@ -37,7 +40,7 @@ for w, h, n in json.loads(sys.argv[2]):
     rep = 9 if w * h * n > 5e8 else 25 if n > 1000 else 101
     row = {"image": f"{w}x{h}", "N": n}
     for name, bwd in (("fwd_ms", False), ("fwd_bwd_ms", True)):
-        row[name] = time_fn(lambda: _ours(sc, bwd), repeat=rep, warmup=3)["median_s"] * 1e3
+        row[name] = time_fn(lambda: _ours(sc, bwd, **count), repeat=rep, warmup=3)["median_s"] * 1e3
     out.append(row)
 print("RESULT " + json.dumps(out))
 """

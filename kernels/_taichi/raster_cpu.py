@@ -29,6 +29,7 @@ and the order of the gradient sums). CPU only: GPU archs keep the scalar kernels
 
 import taichi as ti
 
+from .launch import SPREAD
 from .raster import ALPHA_MIN, DEPTH_EPS, TILE, _f1, _f2, _f3, _i1, _i2
 
 LANES = TILE  # one tile row per vector (8-lane half rows, with per-half culling, were ~1.5x slower)
@@ -101,71 +102,80 @@ def _in_row(code, r):
     return code >= 0 and (code & 255) <= r and r <= (code >> 8)
 
 
+@ti.func
+def _forward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.template(), entries: ti.template(),
+                  bg: ti.template(), width, height, tiles_x, t, color: ti.template(), depth: ti.template(),
+                  dnorm: ti.template(), alpha: ti.template(), t_final: ti.template(), last: ti.template(),
+                  hits: ti.template(), rows: ti.template(), rec: ti.template(), count: ti.template()):
+    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
+    s0 = tile_start[t]
+    s1 = tile_start[t + 1]
+    for e in range(s0, s1):
+        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
+        if ti.static(count):
+            hits[e] = 0
+    lane = ti.Vector([j for j in range(LANES)])
+    for r in range(nh):
+        py = y0 + r
+        pyf = ti.cast(py, ti.f32)
+        pxv = ti.cast(lane + x0, ti.f32)
+        T = ti.select(lane < nw, 1.0, 0.0)  # lanes outside the image never composite
+        cr = ti.Vector([0.0] * LANES)
+        cg = ti.Vector([0.0] * LANES)
+        cb = ti.Vector([0.0] * LANES)
+        dd = ti.Vector([0.0] * LANES)
+        la = ti.Vector([0] * LANES)
+        n_live = nw
+        for e in range(s0, s1):
+            if _in_row(rows[e], r):
+                dy = pyf - rec[e, 1]
+                dx = pxv - rec[e, 0]
+                power = (-0.5 * rec[e, 2]) * dx * dx + (-0.5 * rec[e, 4] * dy * dy) - (rec[e, 3] * dy) * dx
+                a = ti.min(0.99, rec[e, 5] * _exp(power))
+                ok = (T > 0.0) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
+                test_t = T * (1.0 - a)
+                stop = ok & (test_t < 1e-4)
+                comp = ok & (test_t >= 1e-4)
+                w = ti.select(comp, a * T, 0.0)
+                cr += w * rec[e, 7]
+                cg += w * rec[e, 8]
+                cb += w * rec[e, 9]
+                dd += w * rec[e, 10]
+                T = ti.select(stop, -T, ti.select(comp, test_t, T))  # negated: stopped
+                la = ti.select(comp, e - s0 + 1, la)
+                if ti.static(count):
+                    hits[e] += ti.select(comp, 1, 0).sum()
+                if stop.any():
+                    n_live -= ti.select(stop, 1, 0).sum()
+                    if n_live <= 0:
+                        break
+        for j in ti.static(range(LANES)):
+            if j < nw:
+                px = x0 + j
+                tj = ti.abs(T[j])
+                aj = 1.0 - tj
+                t_final[py, px] = tj
+                alpha[py, px] = aj
+                color[py, px, 0] = cr[j] + tj * bg[0]
+                color[py, px, 1] = cg[j] + tj * bg[1]
+                color[py, px, 2] = cb[j] + tj * bg[2]
+                depth[py, px] = dd[j]
+                last[py, px] = la[j]
+                dn = 0.0
+                if aj > DEPTH_EPS:
+                    dn = dd[j] / aj
+                dnorm[py, px] = dn
+
+
 @ti.kernel
 def forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
             tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, dnorm: _f2, alpha: _f2, t_final: _f2,
             last: _i2, hits: _i1, rows: _i1, rec: _f2, count: ti.template()):
     # count: write hits (pixels each entry composited); a store in the entry loop costs ~1/3 of the forward
-    ti.loop_config(block_dim=1)  # one tile per task: tiles differ wildly in cost
-    for t in range(n_tiles):
-        x0, y0, nw, nh = _tile(t, tiles_x, width, height)
-        s0 = tile_start[t]
-        s1 = tile_start[t + 1]
-        for e in range(s0, s1):
-            _stage(proj, pthr, entries, rows, rec, e, y0, nh)
-            if ti.static(count):
-                hits[e] = 0
-        lane = ti.Vector([j for j in range(LANES)])
-        for r in range(nh):
-            py = y0 + r
-            pyf = ti.cast(py, ti.f32)
-            pxv = ti.cast(lane + x0, ti.f32)
-            T = ti.select(lane < nw, 1.0, 0.0)  # lanes outside the image never composite
-            cr = ti.Vector([0.0] * LANES)
-            cg = ti.Vector([0.0] * LANES)
-            cb = ti.Vector([0.0] * LANES)
-            dd = ti.Vector([0.0] * LANES)
-            la = ti.Vector([0] * LANES)
-            n_live = nw
-            for e in range(s0, s1):
-                if _in_row(rows[e], r):
-                    dy = pyf - rec[e, 1]
-                    dx = pxv - rec[e, 0]
-                    power = (-0.5 * rec[e, 2]) * dx * dx + (-0.5 * rec[e, 4] * dy * dy) - (rec[e, 3] * dy) * dx
-                    a = ti.min(0.99, rec[e, 5] * _exp(power))
-                    ok = (T > 0.0) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
-                    test_t = T * (1.0 - a)
-                    stop = ok & (test_t < 1e-4)
-                    comp = ok & (test_t >= 1e-4)
-                    w = ti.select(comp, a * T, 0.0)
-                    cr += w * rec[e, 7]
-                    cg += w * rec[e, 8]
-                    cb += w * rec[e, 9]
-                    dd += w * rec[e, 10]
-                    T = ti.select(stop, -T, ti.select(comp, test_t, T))  # negated: stopped
-                    la = ti.select(comp, e - s0 + 1, la)
-                    if ti.static(count):
-                        hits[e] += ti.select(comp, 1, 0).sum()
-                    if stop.any():
-                        n_live -= ti.select(stop, 1, 0).sum()
-                        if n_live <= 0:
-                            break
-            for j in ti.static(range(LANES)):
-                if j < nw:
-                    px = x0 + j
-                    tj = ti.abs(T[j])
-                    aj = 1.0 - tj
-                    t_final[py, px] = tj
-                    alpha[py, px] = aj
-                    color[py, px, 0] = cr[j] + tj * bg[0]
-                    color[py, px, 1] = cg[j] + tj * bg[1]
-                    color[py, px, 2] = cb[j] + tj * bg[2]
-                    depth[py, px] = dd[j]
-                    last[py, px] = la[j]
-                    dn = 0.0
-                    if aj > DEPTH_EPS:
-                        dn = dd[j] / aj
-                    dnorm[py, px] = dn
+    for it in range(n_tiles * SPREAD):  # one tile per SPREAD iterations (kernels/_taichi/launch.py)
+        if it % SPREAD == 0:
+            _forward_tile(proj, pthr, tile_start, entries, bg, width, height, tiles_x, it // SPREAD, color, depth,
+                          dnorm, alpha, t_final, last, hits, rows, rec, count)
 
 
 @ti.func
@@ -184,93 +194,102 @@ def _flush(g_entry: ti.template(), e, ca, cb, cc, dy, s_gp, s_gpdx, s_gpdx2, s_o
     g_entry[e, 9] += s_d
 
 
+@ti.func
+def _backward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.template(), entries: ti.template(),
+                   bg: ti.template(), width, height, tiles_x, t, t_final: ti.template(), dnorm: ti.template(),
+                   last: ti.template(), g_color: ti.template(), g_depth: ti.template(), g_dnorm: ti.template(),
+                   g_alpha: ti.template(), g_entry: ti.template(), rows: ti.template(), rec: ti.template()):
+    # Reverse compositing per row (see kernels/_taichi/raster.py for the algebra): T recovers T_k = T_{k+1} /
+    # (1 - a_k) from the back, behind accumulates (dL/dC . colour + dL/dD depth) of everything behind entry k.
+    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
+    s0 = tile_start[t]
+    s1 = tile_start[t + 1]
+    for e in range(s0, s1):
+        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
+        for j in ti.static(range(10)):
+            g_entry[e, j] = 0.0
+    lane = ti.Vector([j for j in range(LANES)])
+    for r in range(nh):
+        py = y0 + r
+        pyf = ti.cast(py, ti.f32)
+        pxv = ti.cast(lane + x0, ti.f32)
+        T = ti.Vector([0.0] * LANES)
+        bh = ti.Vector([0.0] * LANES)
+        gr = ti.Vector([0.0] * LANES)
+        gg = ti.Vector([0.0] * LANES)
+        gb = ti.Vector([0.0] * LANES)
+        gd = ti.Vector([0.0] * LANES)
+        la = ti.Vector([0] * LANES)  # lanes outside the image keep last = 0: never active
+        for j in ti.static(range(LANES)):
+            if j < nw:
+                px = x0 + j
+                tn = t_final[py, px]
+                a_px = 1.0 - tn
+                gdj = g_depth[py, px]
+                ga = g_alpha[py, px]
+                if a_px > DEPTH_EPS:  # depth_normalised = depth / alpha folds into the depth and alpha terms
+                    gn = g_dnorm[py, px] / a_px
+                    gdj += gn
+                    ga -= gn * dnorm[py, px]
+                T[j] = tn
+                gr[j] = g_color[py, px, 0]
+                gg[j] = g_color[py, px, 1]
+                gb[j] = g_color[py, px, 2]
+                gd[j] = gdj
+                bh[j] = (gr[j] * bg[0] + gg[j] * bg[1] + gb[j] * bg[2] - ga) * tn
+                la[j] = last[py, px]
+        n_live = la.max()
+        # the previous row entry's sums, carried to the next iteration (see the module docstring)
+        pe = -1
+        p_ca, p_cb, p_cc, p_dy = 0.0, 0.0, 0.0, 0.0
+        s_gp, s_gpdx, s_gpdx2, s_op = 0.0, 0.0, 0.0, 0.0
+        s_r, s_g, s_b, s_d = 0.0, 0.0, 0.0, 0.0
+        for i in range(n_live):
+            k = n_live - 1 - i
+            e = s0 + k
+            if _in_row(rows[e], r):
+                ca = rec[e, 2]
+                cb_ = rec[e, 3]
+                cc = rec[e, 4]
+                dy = pyf - rec[e, 1]
+                dx = pxv - rec[e, 0]
+                power = (-0.5 * ca) * dx * dx + (-0.5 * cc * dy * dy) - (cb_ * dy) * dx
+                G = _exp(power)
+                raw = rec[e, 5] * G
+                a = ti.min(0.99, raw)
+                act = (la > k) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
+                if act.any():  # no lane composited this entry: nothing to add
+                    if pe >= 0:
+                        _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
+                    inv_1ma = 1.0 / (1.0 - a)
+                    tk = T * inv_1ma
+                    T = ti.select(act, tk, T)
+                    w = ti.select(act, a * tk, 0.0)
+                    front = gr * rec[e, 7] + gg * rec[e, 8] + gb * rec[e, 9] + gd * rec[e, 10]
+                    g_a = tk * front - bh * inv_1ma
+                    bh += w * front
+                    g_a = ti.select(act & (raw < 0.99), g_a, 0.0)  # alpha clamped at 0.99: no gradient
+                    g_p = g_a * a
+                    g_pdx = g_p * dx
+                    s_gp = g_p.sum()
+                    s_gpdx = g_pdx.sum()
+                    s_gpdx2 = (g_pdx * dx).sum()
+                    s_op = (g_a * G).sum()
+                    s_r = (w * gr).sum()
+                    s_g = (w * gg).sum()
+                    s_b = (w * gb).sum()
+                    s_d = (w * gd).sum()
+                    pe = e
+                    p_ca, p_cb, p_cc, p_dy = ca, cb_, cc, dy
+        if pe >= 0:
+            _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
+
+
 @ti.kernel
 def backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
              tiles_x: ti.i32, n_tiles: ti.i32, t_final: _f2, dnorm: _f2, last: _i2, g_color: _f3, g_depth: _f2,
              g_dnorm: _f2, g_alpha: _f2, g_entry: _f2, rows: _i1, rec: _f2):
-    # Reverse compositing per row (see kernels/_taichi/raster.py for the algebra): T recovers T_k = T_{k+1} /
-    # (1 - a_k) from the back, behind accumulates (dL/dC . colour + dL/dD depth) of everything behind entry k.
-    ti.loop_config(block_dim=1)
-    for t in range(n_tiles):
-        x0, y0, nw, nh = _tile(t, tiles_x, width, height)
-        s0 = tile_start[t]
-        s1 = tile_start[t + 1]
-        for e in range(s0, s1):
-            _stage(proj, pthr, entries, rows, rec, e, y0, nh)
-            for j in ti.static(range(10)):
-                g_entry[e, j] = 0.0
-        lane = ti.Vector([j for j in range(LANES)])
-        for r in range(nh):
-            py = y0 + r
-            pyf = ti.cast(py, ti.f32)
-            pxv = ti.cast(lane + x0, ti.f32)
-            T = ti.Vector([0.0] * LANES)
-            bh = ti.Vector([0.0] * LANES)
-            gr = ti.Vector([0.0] * LANES)
-            gg = ti.Vector([0.0] * LANES)
-            gb = ti.Vector([0.0] * LANES)
-            gd = ti.Vector([0.0] * LANES)
-            la = ti.Vector([0] * LANES)  # lanes outside the image keep last = 0: never active
-            for j in ti.static(range(LANES)):
-                if j < nw:
-                    px = x0 + j
-                    tn = t_final[py, px]
-                    a_px = 1.0 - tn
-                    gdj = g_depth[py, px]
-                    ga = g_alpha[py, px]
-                    if a_px > DEPTH_EPS:  # depth_normalised = depth / alpha folds into the depth and alpha terms
-                        gn = g_dnorm[py, px] / a_px
-                        gdj += gn
-                        ga -= gn * dnorm[py, px]
-                    T[j] = tn
-                    gr[j] = g_color[py, px, 0]
-                    gg[j] = g_color[py, px, 1]
-                    gb[j] = g_color[py, px, 2]
-                    gd[j] = gdj
-                    bh[j] = (gr[j] * bg[0] + gg[j] * bg[1] + gb[j] * bg[2] - ga) * tn
-                    la[j] = last[py, px]
-            n_live = la.max()
-            # the previous row entry's sums, carried to the next iteration (see the module docstring)
-            pe = -1
-            p_ca, p_cb, p_cc, p_dy = 0.0, 0.0, 0.0, 0.0
-            s_gp, s_gpdx, s_gpdx2, s_op = 0.0, 0.0, 0.0, 0.0
-            s_r, s_g, s_b, s_d = 0.0, 0.0, 0.0, 0.0
-            for i in range(n_live):
-                k = n_live - 1 - i
-                e = s0 + k
-                if _in_row(rows[e], r):
-                    ca = rec[e, 2]
-                    cb_ = rec[e, 3]
-                    cc = rec[e, 4]
-                    dy = pyf - rec[e, 1]
-                    dx = pxv - rec[e, 0]
-                    power = (-0.5 * ca) * dx * dx + (-0.5 * cc * dy * dy) - (cb_ * dy) * dx
-                    G = _exp(power)
-                    raw = rec[e, 5] * G
-                    a = ti.min(0.99, raw)
-                    act = (la > k) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
-                    if act.any():  # no lane composited this entry: nothing to add
-                        if pe >= 0:
-                            _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
-                        inv_1ma = 1.0 / (1.0 - a)
-                        tk = T * inv_1ma
-                        T = ti.select(act, tk, T)
-                        w = ti.select(act, a * tk, 0.0)
-                        front = gr * rec[e, 7] + gg * rec[e, 8] + gb * rec[e, 9] + gd * rec[e, 10]
-                        g_a = tk * front - bh * inv_1ma
-                        bh += w * front
-                        g_a = ti.select(act & (raw < 0.99), g_a, 0.0)  # alpha clamped at 0.99: no gradient
-                        g_p = g_a * a
-                        g_pdx = g_p * dx
-                        s_gp = g_p.sum()
-                        s_gpdx = g_pdx.sum()
-                        s_gpdx2 = (g_pdx * dx).sum()
-                        s_op = (g_a * G).sum()
-                        s_r = (w * gr).sum()
-                        s_g = (w * gg).sum()
-                        s_b = (w * gb).sum()
-                        s_d = (w * gd).sum()
-                        pe = e
-                        p_ca, p_cb, p_cc, p_dy = ca, cb_, cc, dy
-            if pe >= 0:
-                _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
+    for it in range(n_tiles * SPREAD):  # one tile per SPREAD iterations (kernels/_taichi/launch.py)
+        if it % SPREAD == 0:
+            _backward_tile(proj, pthr, tile_start, entries, bg, width, height, tiles_x, it // SPREAD, t_final,
+                           dnorm, last, g_color, g_depth, g_dnorm, g_alpha, g_entry, rows, rec)
