@@ -8,6 +8,8 @@ viewmat slices, summed by `_view_grad`. Finiteness is tested on the bit pattern 
 
 import taichi as ti
 
+from .launch import SPREAD, on_cpu
+
 TILE = 16
 
 _f1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -234,7 +236,11 @@ def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy:
 
 @ti.kernel
 def _view_grad(parts: _f2, n: ti.i32, g_view: _f2):
-    for j in range(16):  # g_view [4, 4]: j < 9 rotation entry j, 9..11 translation, else 0
+    sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: the 12 sums on all cores (kernels/_taichi/launch.py)
+    for it in range(16 * sp):  # g_view [4, 4]: j < 9 rotation entry j, 9..11 translation, else 0
+        if it % sp != 0:
+            continue
+        j = it // sp
         s = 0.0
         if j < 12:  # summed in blocks of 256 (pairwise-like accuracy for large N, float32 only)
             for b in range((n + 255) // 256):
