@@ -13,10 +13,10 @@ kernels are ordinary Taichi code in the one shape its LLVM pipeline vectorises (
   indexes them with 32-bit arithmetic without no-wrap flags, so LLVM cannot prove the lanes consecutive.)
 - exp is the Warp snippet's polynomial (Cody-Waite, Cephes' coefficients), with the exponent rounded by an
   integer conversion: `ti.floor` is not vectorised by Taichi's target (16 scalar calls a row, 1.5x slower).
-- backward: the ten per-Gaussian gradient sums of a row are 16-lane horizontal sums. LLVM vectorises a horizontal
-  sum only where it feeds a PHI, so each row's sums are carried to the next iteration of the entry loop and added
-  into `g_entry` there (and after the loop). Written directly, the whole gradient tail stayed scalar (~1.6x
-  slower than this).
+- backward: two rows at a time (32 lanes); the ten per-Gaussian gradient sums of a row pair are horizontal sums.
+  LLVM vectorises a horizontal sum only where it feeds a PHI, so each pair's sums are carried to the next
+  iteration of the entry loop and added into `g_entry` there (and after the loop). Written directly, the whole
+  gradient tail stayed scalar (~1.6x slower than this).
 - a first pass over the tile's entries stages each one's projected row (and the rows of the tile its ellipse
   reaches, packed in one int) into contiguous scratch, so the row loops read it sequentially.
 
@@ -179,14 +179,14 @@ def forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width:
 
 
 @ti.func
-def _flush(g_entry: ti.template(), e, ca, cb, cc, dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d):
-    # one row's sums into entry e's gradient (mean2d x, y, conic a, b, c, opacity, r, g, b, z); dy is constant
-    # along the row, so d/dmean and d/dconic come from sums of g_p, g_p dx and g_p dx^2
-    g_entry[e, 0] += ca * s_gpdx + cb * dy * s_gp
-    g_entry[e, 1] += cc * dy * s_gp + cb * s_gpdx
-    g_entry[e, 2] -= 0.5 * s_gpdx2
-    g_entry[e, 3] -= dy * s_gpdx
-    g_entry[e, 4] -= 0.5 * dy * dy * s_gp
+def _flush(g_entry: ti.template(), e, ca, cb, cc, s_dx, s_dy, s_dx2, s_dxdy, s_dy2, s_op, s_r, s_g, s_b, s_d):
+    # a row pair's sums into entry e's gradient (mean2d x, y, conic a, b, c, opacity, r, g, b, z): d/dmean and
+    # d/dconic from the sums of g_p dx, g_p dy, g_p dx^2, g_p dx dy and g_p dy^2
+    g_entry[e, 0] += ca * s_dx + cb * s_dy
+    g_entry[e, 1] += cc * s_dy + cb * s_dx
+    g_entry[e, 2] -= 0.5 * s_dx2
+    g_entry[e, 3] -= s_dxdy
+    g_entry[e, 4] -= 0.5 * s_dy2
     g_entry[e, 5] += s_op
     g_entry[e, 6] += s_r
     g_entry[e, 7] += s_g
@@ -195,31 +195,19 @@ def _flush(g_entry: ti.template(), e, ca, cb, cc, dy, s_gp, s_gpdx, s_gpdx2, s_o
 
 
 @ti.func
-def _backward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.template(), entries: ti.template(),
-                   bg: ti.template(), width, height, tiles_x, t, t_final: ti.template(), dnorm: ti.template(),
-                   last: ti.template(), g_color: ti.template(), g_depth: ti.template(), g_dnorm: ti.template(),
-                   g_alpha: ti.template(), g_entry: ti.template(), rows: ti.template(), rec: ti.template()):
-    # Reverse compositing per row (see kernels/_taichi/raster.py for the algebra): T recovers T_k = T_{k+1} /
-    # (1 - a_k) from the back, behind accumulates (dL/dC . colour + dL/dD depth) of everything behind entry k.
-    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
-    s0 = tile_start[t]
-    s1 = tile_start[t + 1]
-    for e in range(s0, s1):
-        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
-        for j in ti.static(range(10)):
-            g_entry[e, j] = 0.0
-    lane = ti.Vector([j for j in range(LANES)])
-    for r in range(nh):
-        py = y0 + r
-        pyf = ti.cast(py, ti.f32)
-        pxv = ti.cast(lane + x0, ti.f32)
-        T = ti.Vector([0.0] * LANES)
-        bh = ti.Vector([0.0] * LANES)
-        gr = ti.Vector([0.0] * LANES)
-        gg = ti.Vector([0.0] * LANES)
-        gb = ti.Vector([0.0] * LANES)
-        gd = ti.Vector([0.0] * LANES)
-        la = ti.Vector([0] * LANES)  # lanes outside the image keep last = 0: never active
+def _load_row(t_final: ti.template(), dnorm: ti.template(), last: ti.template(), g_color: ti.template(),
+              g_depth: ti.template(), g_dnorm: ti.template(), g_alpha: ti.template(), bg: ti.template(), py, x0, nw,
+              ok):
+    # one tile row's per-pixel state for the reverse pass (ok False: a row below the image, every lane inactive);
+    # depth_normalised = depth / alpha folds into the depth and alpha terms here
+    T = ti.Vector([0.0] * LANES)
+    bh = ti.Vector([0.0] * LANES)
+    gr = ti.Vector([0.0] * LANES)
+    gg = ti.Vector([0.0] * LANES)
+    gb = ti.Vector([0.0] * LANES)
+    gd = ti.Vector([0.0] * LANES)
+    la = ti.Vector([0] * LANES)
+    if ok:
         for j in ti.static(range(LANES)):
             if j < nw:
                 px = x0 + j
@@ -227,7 +215,7 @@ def _backward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.temp
                 a_px = 1.0 - tn
                 gdj = g_depth[py, px]
                 ga = g_alpha[py, px]
-                if a_px > DEPTH_EPS:  # depth_normalised = depth / alpha folds into the depth and alpha terms
+                if a_px > DEPTH_EPS:
                     gn = g_dnorm[py, px] / a_px
                     gdj += gn
                     ga -= gn * dnorm[py, px]
@@ -238,51 +226,110 @@ def _backward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.temp
                 gd[j] = gdj
                 bh[j] = (gr[j] * bg[0] + gg[j] * bg[1] + gb[j] * bg[2] - ga) * tn
                 la[j] = last[py, px]
-        n_live = la.max()
-        # the previous row entry's sums, carried to the next iteration (see the module docstring)
+    return T, bh, gr, gg, gb, gd, la
+
+
+@ti.func
+def _backward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.template(), entries: ti.template(),
+                   bg: ti.template(), width, height, tiles_x, t, t_final: ti.template(), dnorm: ti.template(),
+                   last: ti.template(), g_color: ti.template(), g_depth: ti.template(), g_dnorm: ti.template(),
+                   g_alpha: ti.template(), g_entry: ti.template(), rows: ti.template(), rec: ti.template()):
+    # Reverse compositing (see kernels/_taichi/raster.py for the algebra) two tile rows at a time: T recovers
+    # T_k = T_{k+1} / (1 - a_k) from the back, behind accumulates (dL/dC . colour + dL/dD depth) of everything
+    # behind entry k. A row pair shares the entry's loads, its ten sums and its gradient write (one row at a time
+    # was 1.3-1.4x slower).
+    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
+    s0 = tile_start[t]
+    s1 = tile_start[t + 1]
+    for e in range(s0, s1):
+        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
+        for j in ti.static(range(10)):
+            g_entry[e, j] = 0.0
+    lane = ti.Vector([j for j in range(LANES)])
+    pxv = ti.cast(lane + x0, ti.f32)
+    for q in range((nh + 1) // 2):
+        r0 = 2 * q
+        r1 = r0 + 1
+        T0, bh0, gr0, gg0, gb0, gd0, la0 = _load_row(t_final, dnorm, last, g_color, g_depth, g_dnorm, g_alpha, bg,
+                                                     y0 + r0, x0, nw, True)
+        T1, bh1, gr1, gg1, gb1, gd1, la1 = _load_row(t_final, dnorm, last, g_color, g_depth, g_dnorm, g_alpha, bg,
+                                                     y0 + r1, x0, nw, r1 < nh)
+        n_live = ti.max(la0.max(), la1.max())
+        # the previous entry's sums, carried to the next iteration (see the module docstring)
         pe = -1
-        p_ca, p_cb, p_cc, p_dy = 0.0, 0.0, 0.0, 0.0
-        s_gp, s_gpdx, s_gpdx2, s_op = 0.0, 0.0, 0.0, 0.0
-        s_r, s_g, s_b, s_d = 0.0, 0.0, 0.0, 0.0
+        p_ca, p_cb, p_cc = 0.0, 0.0, 0.0
+        s_dx, s_dy, s_dx2, s_dxdy, s_dy2 = 0.0, 0.0, 0.0, 0.0, 0.0
+        s_op, s_r, s_g, s_b, s_d = 0.0, 0.0, 0.0, 0.0, 0.0
+        pyf0 = ti.cast(y0 + r0, ti.f32)
         for i in range(n_live):
             k = n_live - 1 - i
             e = s0 + k
-            if _in_row(rows[e], r):
+            code = rows[e]
+            if code >= 0 and (code & 255) <= r1 and r0 <= (code >> 8):
+                in0 = (code & 255) <= r0
+                in1 = r1 <= (code >> 8)
                 ca = rec[e, 2]
                 cb_ = rec[e, 3]
                 cc = rec[e, 4]
-                dy = pyf - rec[e, 1]
+                op = rec[e, 5]
+                lo = rec[e, 6]
                 dx = pxv - rec[e, 0]
-                power = (-0.5 * ca) * dx * dx + (-0.5 * cc * dy * dy) - (cb_ * dy) * dx
-                G = _exp(power)
-                raw = rec[e, 5] * G
-                a = ti.min(0.99, raw)
-                act = (la > k) & (power <= 0.0) & (power >= rec[e, 6]) & (a >= ALPHA_MIN)
-                if act.any():  # no lane composited this entry: nothing to add
+                dy0 = pyf0 - rec[e, 1]
+                dy1 = dy0 + 1.0
+                pxx = (-0.5 * ca) * dx * dx
+                p0 = pxx + (-0.5 * cc * dy0 * dy0) - (cb_ * dy0) * dx
+                p1 = pxx + (-0.5 * cc * dy1 * dy1) - (cb_ * dy1) * dx
+                G0 = _exp(p0)
+                G1 = _exp(p1)
+                raw0 = op * G0
+                raw1 = op * G1
+                a0 = ti.min(0.99, raw0)
+                a1 = ti.min(0.99, raw1)
+                act0 = (la0 > k) & (p0 <= 0.0) & (p0 >= lo) & (a0 >= ALPHA_MIN) & in0
+                act1 = (la1 > k) & (p1 <= 0.0) & (p1 >= lo) & (a1 >= ALPHA_MIN) & in1
+                if act0.any() or act1.any():  # no lane composited this entry: nothing to add
                     if pe >= 0:
-                        _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
-                    inv_1ma = 1.0 / (1.0 - a)
-                    tk = T * inv_1ma
-                    T = ti.select(act, tk, T)
-                    w = ti.select(act, a * tk, 0.0)
-                    front = gr * rec[e, 7] + gg * rec[e, 8] + gb * rec[e, 9] + gd * rec[e, 10]
-                    g_a = tk * front - bh * inv_1ma
-                    bh += w * front
-                    g_a = ti.select(act & (raw < 0.99), g_a, 0.0)  # alpha clamped at 0.99: no gradient
-                    g_p = g_a * a
-                    g_pdx = g_p * dx
-                    s_gp = g_p.sum()
-                    s_gpdx = g_pdx.sum()
-                    s_gpdx2 = (g_pdx * dx).sum()
-                    s_op = (g_a * G).sum()
-                    s_r = (w * gr).sum()
-                    s_g = (w * gg).sum()
-                    s_b = (w * gb).sum()
-                    s_d = (w * gd).sum()
+                        _flush(g_entry, pe, p_ca, p_cb, p_cc, s_dx, s_dy, s_dx2, s_dxdy, s_dy2, s_op, s_r, s_g, s_b,
+                               s_d)
+                    cr = rec[e, 7]
+                    cg = rec[e, 8]
+                    cbl = rec[e, 9]
+                    z = rec[e, 10]
+                    i0 = 1.0 / (1.0 - a0)
+                    i1 = 1.0 / (1.0 - a1)
+                    tk0 = T0 * i0
+                    tk1 = T1 * i1
+                    T0 = ti.select(act0, tk0, T0)
+                    T1 = ti.select(act1, tk1, T1)
+                    w0 = ti.select(act0, a0 * tk0, 0.0)
+                    w1 = ti.select(act1, a1 * tk1, 0.0)
+                    f0 = gr0 * cr + gg0 * cg + gb0 * cbl + gd0 * z
+                    f1 = gr1 * cr + gg1 * cg + gb1 * cbl + gd1 * z
+                    # alpha clamped at 0.99: no gradient through it
+                    ga0 = ti.select(act0 & (raw0 < 0.99), tk0 * f0 - bh0 * i0, 0.0)
+                    ga1 = ti.select(act1 & (raw1 < 0.99), tk1 * f1 - bh1 * i1, 0.0)
+                    bh0 += w0 * f0
+                    bh1 += w1 * f1
+                    gp0 = ga0 * a0
+                    gp1 = ga1 * a1
+                    gpdy0 = gp0 * dy0
+                    gpdy1 = gp1 * dy1
+                    gpdx = gp0 * dx + gp1 * dx
+                    gpdy = gpdy0 + gpdy1
+                    s_dx = gpdx.sum()
+                    s_dy = gpdy.sum()
+                    s_dx2 = (gpdx * dx).sum()
+                    s_dxdy = (gpdy * dx).sum()
+                    s_dy2 = (gpdy0 * dy0 + gpdy1 * dy1).sum()
+                    s_op = (ga0 * G0 + ga1 * G1).sum()
+                    s_r = (w0 * gr0 + w1 * gr1).sum()
+                    s_g = (w0 * gg0 + w1 * gg1).sum()
+                    s_b = (w0 * gb0 + w1 * gb1).sum()
+                    s_d = (w0 * gd0 + w1 * gd1).sum()
                     pe = e
-                    p_ca, p_cb, p_cc, p_dy = ca, cb_, cc, dy
+                    p_ca, p_cb, p_cc = ca, cb_, cc
         if pe >= 0:
-            _flush(g_entry, pe, p_ca, p_cb, p_cc, p_dy, s_gp, s_gpdx, s_gpdx2, s_op, s_r, s_g, s_b, s_d)
+            _flush(g_entry, pe, p_ca, p_cb, p_cc, s_dx, s_dy, s_dx2, s_dxdy, s_dy2, s_op, s_r, s_g, s_b, s_d)
 
 
 @ti.kernel
