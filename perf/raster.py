@@ -317,7 +317,8 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         "each (forward without autograd, then forward+backward), same process and scene; ours: median of repeats "
         "after one warm-up; loss = sum(colour) + 0.1 sum(depth) + sum(alpha).",
         "Warp on the CPU: tile chunks launched from kernels/_warp/launch.py's thread pool (each launch runs on one "
-        "OS thread and releases the GIL); Taichi parallelises the tile loop itself.",
+        "OS thread and releases the GIL); Taichi parallelises the tile loop itself (spread over n_tiles * "
+        "kernels._taichi.launch.SPREAD iterations, since Taichi makes CPU tasks of >= 512 iterations).",
         f"{SCALAR_PEER}: Warp with its own compositing, projection and binning kernels (kernels/_warp/raster.py, "
         "project.py and sort.py, the CUDA kernels, scalar code on the CPU; perf.common.use_backend sets the "
         "switches); warp composites and projects with kernels/_warp/raster_cpu.py's and project_cpu.py's vector "
