@@ -3,7 +3,8 @@
 Neighbour search uses a uniform grid of cubic cells hashed into a power-of-two table; the table is built with
 torch (counting sort of points by cell hash) and queried here. Points keep their own cell coordinates so hash
 collisions between cells never mix neighbour sets. Reductions write one float64 row per block; Taichi runs the
-outermost loop over blocks in parallel on every core.
+outermost loop over blocks in parallel on every core (on the CPU spread over SPREAD iterations each: Taichi makes
+CPU tasks of >= 512 iterations, so 64 blocks or 480 rows were one task on one core).
 """
 
 
@@ -13,6 +14,7 @@ import taichi as ti
 import torch
 
 from ..icp import N_SLOTS, n_blocks, reduce_terms
+from .launch import SPREAD, on_cpu
 
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
 
@@ -41,7 +43,13 @@ def _vertices_normals(depth: f32_2, ifx: ti.f32, ify: ti.f32, cx: ti.f32, cy: ti
     H, W = depth.shape[0], depth.shape[1]
     # Parallel over (row, chunk of `chunk` pixels): whole rows on the CPU (no index division per pixel), one
     # pixel per thread on CUDA.
-    for v, kc in ti.ndrange(H, (W + chunk - 1) // chunk):
+    nk = (W + chunk - 1) // chunk
+    sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: rows spread over the cores (kernels/_taichi/launch.py)
+    for it in range(H * nk * sp):
+        if it % sp != 0:
+            continue
+        v = it // sp // nk
+        kc = it // sp - v * nk
         for u in range(kc * chunk, ti.min(W, kc * chunk + chunk)):
             d = depth[v, u]
             p = ti.Vector([0.0, 0.0, 0.0])
@@ -208,7 +216,11 @@ def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dt
     # Same scheme as the Warp kernel: runs of SUB points summed in float32 over the upper triangle, flushed into
     # float64 per block; blocks run in parallel over the cores.
     n_pts = src.shape[0]
-    for b in range(blocks):
+    sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: spread over the cores (kernels/_taichi/launch.py)
+    for it in range((blocks) * sp):
+        if it % sp != 0:
+            continue
+        b = it // sp
         acc = ti.Vector.zero(ti.f64, 33)
         for s in range((count + SUB - 1) // SUB):
             part = ti.Vector.zero(ti.f32, 33)

@@ -3,6 +3,8 @@ iteration per image row, flat arrays."""
 
 import taichi as ti
 
+from .launch import SPREAD, on_cpu
+
 _f1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 _f2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 
@@ -20,7 +22,11 @@ def _sign(x):
 @ti.kernel
 def _errors(r_c: _f1, color: _f1, r_d: _f1, depth: _f1, alpha: _f1, height: ti.i32, width: ti.i32, power: ti.f32,
             e_c: _f1, e_d: _f1, m0: _f1):
-    for y in range(height):
+    sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: rows spread over the cores (kernels/_taichi/launch.py)
+    for it in range(height * sp):
+        if it % sp != 0:
+            continue
+        y = it // sp
         for x in range(width):
             q = y * width + x
             e_c[q] = (ti.abs(r_c[3 * q] - color[3 * q]) + ti.abs(r_c[3 * q + 1] - color[3 * q + 1])
@@ -38,7 +44,11 @@ def _errors(r_c: _f1, color: _f1, r_d: _f1, depth: _f1, alpha: _f1, height: ti.i
 @ti.kernel
 def _masked_sums(e_c: _f1, e_d: _f1, m0: _f1, height: ti.i32, width: ti.i32, lam: ti.f32, lam_d: ti.f32,
                  thr_c: ti.f32, thr_d: ti.f32, row_sums: _f2, mask: _f1):
-    for y in range(height):
+    sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: rows spread over the cores (kernels/_taichi/launch.py)
+    for it in range(height * sp):
+        if it % sp != 0:
+            continue
+        y = it // sp
         sw = 0.0
         sl = 0.0
         for x in range(width):
@@ -56,7 +66,11 @@ def _masked_sums(e_c: _f1, e_d: _f1, m0: _f1, height: ti.i32, width: ti.i32, lam
 @ti.kernel
 def _grads(r_c: _f1, color: _f1, r_d: _f1, depth: _f1, mask: _f1, height: ti.i32, width: ti.i32, s: ti.f32,
            lam: ti.f32, lam_d: ti.f32, g_c: _f1, g_d: _f1):
-    for y in range(height):
+    sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: rows spread over the cores (kernels/_taichi/launch.py)
+    for it in range(height * sp):
+        if it % sp != 0:
+            continue
+        y = it // sp
         for x in range(width):
             q = y * width + x
             sm = s * mask[q]
