@@ -133,8 +133,10 @@ class _RenderFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_dnorm, g_alpha, _g_radii, _g_touched):
+        # detached: a saved output (dnorm) comes back requiring grad, and Taichi, handed a tensor that requires grad,
+        # allocates it a .grad (or warns, for a non-leaf) on every launch
         (means, quats, scales, viewmat, proj, pthr, ntiles, tile_start, entries, emit_start, emit_pos, bg, t_final,
-         dnorm, last) = ctx.saved_tensors
+         dnorm, last) = (t.detach() for t in ctx.saved_tensors)
         intr, width, height, n_entries, (project, _sort, raster), device = ctx.dims
         n, dev = means.shape[0], means.device
         g_bg = None

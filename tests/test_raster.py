@@ -421,3 +421,19 @@ def test_count_touched_off_gives_none_and_the_same_render(backend):
         assert torch.equal(getattr(outs[0], f), getattr(outs[1], f)), f
     for k in grads[0]:
         assert torch.equal(grads[0][k], grads[1][k]), k
+
+
+def test_kernels_are_handed_no_tensor_that_requires_grad(backend):
+    """Taichi gives a tensor that requires grad a .grad (a leaf) or warns (a non-leaf: the saved depth_normalised
+    output) on every launch; forward and backward hand the kernels detached tensors only."""
+    import warnings
+
+    s = scene(3)
+    p = {k: v.clone().requires_grad_(True) for k, v in s.items()}
+    vm = viewmat_rotated().requires_grad_(True)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*grad attribute.*")
+        out = kernels.rasterize(**p, viewmat=vm, K=K, width=W, height=H)
+        assert all(v.grad is None for v in p.values()) and vm.grad is None  # nothing allocated by the forward
+        (out.color.sum() + out.depth_normalised.sum() + out.alpha.sum()).backward()
+    assert all(torch.isfinite(v.grad).all() for v in p.values())
