@@ -12,7 +12,9 @@ kernels are ordinary Taichi code in the one shape its LLVM pipeline vectorises (
   (Per-pixel state in local arrays indexed by a run-time row, as in the Warp snippet, stays scalar: Taichi
   indexes them with 32-bit arithmetic without no-wrap flags, so LLVM cannot prove the lanes consecutive.)
 - exp is the Warp snippet's polynomial (Cody-Waite, Cephes' coefficients), with the exponent rounded by an
-  integer conversion: `ti.floor` is not vectorised by Taichi's target (16 scalar calls a row, 1.5x slower).
+  integer conversion (x <= 0): with `ti.floor` there the forward was 1.5x slower (same harness; not pinned down).
+- Taichi compiles for SSE here (128-bit; no setting for the target's features in Taichi 1.7), so a 16-lane
+  vector is four instructions wide per operation, against Warp's `-march=native` snippet.
 - backward: two rows at a time (32 lanes); the ten per-Gaussian gradient sums of a row pair are horizontal sums.
   LLVM vectorises a horizontal sum only where it feeds a PHI, so each pair's sums are carried to the next
   iteration of the entry loop and added into `g_entry` there (and after the loop). Written directly, the whole
@@ -171,7 +173,7 @@ def _forward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.templ
 def forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
             tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, dnorm: _f2, alpha: _f2, t_final: _f2,
             last: _i2, hits: _i1, rows: _i1, rec: _f2, count: ti.template()):
-    # count: write hits (pixels each entry composited); a store in the entry loop costs ~1/3 of the forward
+    # count: write hits (pixels each entry composited); that store in the entry loop makes the forward ~1.7x slower
     for it in range(n_tiles * SPREAD):  # one tile per SPREAD iterations (kernels/_taichi/launch.py)
         if it % SPREAD == 0:
             _forward_tile(proj, pthr, tile_start, entries, bg, width, height, tiles_x, it // SPREAD, color, depth,
