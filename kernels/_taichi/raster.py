@@ -244,11 +244,11 @@ def _vector(device: str):
     return None
 
 
-def _staging(entries):
-    """Per-entry scratch of the vector kernels: packed tile rows and the staged projected rows."""
-    cap = entries.shape[0]
-    return (torch.empty((cap,), dtype=torch.int32, device=entries.device),
-            torch.empty((cap, 11), dtype=torch.float32, device=entries.device))
+def _staging(tile_start):
+    """Per-entry scratch of the vector kernels (CPU tensors): packed tile rows and the staged projected rows, one
+    per tile entry in use (the entry buffer itself is larger: its capacity)."""
+    n = max(int(tile_start[-1]), 1)
+    return (torch.empty((n,), dtype=torch.int32), torch.empty((n, 11), dtype=torch.float32))
 
 
 def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
@@ -258,7 +258,7 @@ def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, de
     cpu = _vector(device)
     if cpu is not None:
         cpu.forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth,
-                     dnorm, alpha, t_final, last, hits, *_staging(entries), bool(count_hits))
+                     dnorm, alpha, t_final, last, hits, *_staging(tile_start), bool(count_hits))
         return
     _forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth, dnorm,
              alpha, t_final, last, hits)
@@ -273,7 +273,7 @@ def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final,
     cpu = _vector(device)
     if cpu is not None:  # its per-pixel scratch lives in registers
         cpu.backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm,
-                      last, g_color, g_depth, g_dnorm, g_alpha, g_entry, *_staging(entries))
+                      last, g_color, g_depth, g_dnorm, g_alpha, g_entry, *_staging(tile_start))
         return
     _backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm, last,
               g_color, g_depth, g_dnorm, g_alpha, t_run, behind, g_dep, g_entry)
