@@ -134,6 +134,23 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
                     dnorm[py, px] = dn
 
 
+@ti.func
+def _reverse_start(t_final: ti.template(), dnorm: ti.template(), g_color: ti.template(), g_depth: ti.template(),
+                   g_dnorm: ti.template(), g_alpha: ti.template(), bg: ti.template(), py, px):
+    # a pixel's start of the reverse pass: its final transmittance, its depth gradient with depth_normalised =
+    # depth / alpha folded in, and the term of everything behind the last entry (background, alpha)
+    tn = t_final[py, px]
+    a_px = 1.0 - tn
+    gd = g_depth[py, px]
+    ga = g_alpha[py, px]
+    if a_px > DEPTH_EPS:
+        gn = g_dnorm[py, px] / a_px
+        gd += gn
+        ga -= gn * dnorm[py, px]
+    bh = (g_color[py, px, 0] * bg[0] + g_color[py, px, 1] * bg[1] + g_color[py, px, 2] * bg[2] - ga) * tn
+    return tn, gd, bh
+
+
 @ti.kernel
 def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
               tiles_x: ti.i32, n_tiles: ti.i32, t_final: _f2, dnorm: _f2, last: _i2, g_color: _f3, g_depth: _f2,
@@ -152,18 +169,10 @@ def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, widt
             n_live = 0
             for py in range(y0, y1):
                 for px in range(x0, x1):
-                    TN = t_final[py, px]
-                    a_px = 1.0 - TN
-                    gd = g_depth[py, px]
-                    ga = g_alpha[py, px]
-                    if a_px > DEPTH_EPS:
-                        gn = g_dnorm[py, px] / a_px
-                        gd += gn
-                        ga -= gn * dnorm[py, px]
+                    TN, gd, bh = _reverse_start(t_final, dnorm, g_color, g_depth, g_dnorm, g_alpha, bg, py, px)
                     g_dep[py, px] = gd
                     t_run[py, px] = TN
-                    behind[py, px] = (g_color[py, px, 0] * bg[0] + g_color[py, px, 1] * bg[1]
-                                      + g_color[py, px, 2] * bg[2] - ga) * TN
+                    behind[py, px] = bh
                     n_live = ti.max(n_live, last[py, px])
             s0 = tile_start[t]
             s1 = tile_start[t + 1]

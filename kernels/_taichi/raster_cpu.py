@@ -32,7 +32,7 @@ and the order of the gradient sums). CPU only: GPU archs keep the scalar kernels
 import taichi as ti
 
 from .launch import SPREAD
-from .raster import ALPHA_MIN, DEPTH_EPS, TILE, _f1, _f2, _f3, _i1, _i2
+from .raster import ALPHA_MIN, DEPTH_EPS, TILE, _f1, _f2, _f3, _i1, _i2, _reverse_start
 
 LANES = TILE  # one tile row per vector (8-lane half rows, with per-half culling, were ~1.5x slower)
 NO_ROWS = -1  # staged code of an entry whose ellipse box misses its tile (or that is culled)
@@ -200,8 +200,7 @@ def _flush(g_entry: ti.template(), e, ca, cb, cc, s_dx, s_dy, s_dx2, s_dxdy, s_d
 def _load_row(t_final: ti.template(), dnorm: ti.template(), last: ti.template(), g_color: ti.template(),
               g_depth: ti.template(), g_dnorm: ti.template(), g_alpha: ti.template(), bg: ti.template(), py, x0, nw,
               ok):
-    # one tile row's per-pixel state for the reverse pass (ok False: a row below the image, every lane inactive);
-    # depth_normalised = depth / alpha folds into the depth and alpha terms here
+    # one tile row's per-pixel state for the reverse pass (ok False: a row below the image, every lane inactive)
     T = ti.Vector([0.0] * LANES)
     bh = ti.Vector([0.0] * LANES)
     gr = ti.Vector([0.0] * LANES)
@@ -213,20 +212,10 @@ def _load_row(t_final: ti.template(), dnorm: ti.template(), last: ti.template(),
         for j in ti.static(range(LANES)):
             if j < nw:
                 px = x0 + j
-                tn = t_final[py, px]
-                a_px = 1.0 - tn
-                gdj = g_depth[py, px]
-                ga = g_alpha[py, px]
-                if a_px > DEPTH_EPS:
-                    gn = g_dnorm[py, px] / a_px
-                    gdj += gn
-                    ga -= gn * dnorm[py, px]
-                T[j] = tn
+                T[j], gd[j], bh[j] = _reverse_start(t_final, dnorm, g_color, g_depth, g_dnorm, g_alpha, bg, py, px)
                 gr[j] = g_color[py, px, 0]
                 gg[j] = g_color[py, px, 1]
                 gb[j] = g_color[py, px, 2]
-                gd[j] = gdj
-                bh[j] = (gr[j] * bg[0] + gg[j] * bg[1] + gb[j] * bg[2] - ga) * tn
                 la[j] = last[py, px]
     return T, bh, gr, gg, gb, gd, la
 
