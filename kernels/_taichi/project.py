@@ -136,7 +136,25 @@ def _project_fwd(means: _f2, quats: _f2, scales: _f2, opac: _f1, colors: _f2, vi
 def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
                  width: ti.i32, height: ti.i32, proj: _f2, ntiles: _i1, emit_start: _i1, emit_pos: _i1, g_entry: _f2,
                  g_means: _f2, g_quats: _f2, g_scales: _f2, g_opac: _f1, g_colors: _f2, g_view: _f2):
+    # pass 1: each Gaussian's row gradient, the sum of its tile entries' (no atomics), into g_view[i, :10] as
+    # scratch; a loop that only gathers keeps many of its cache misses in flight
     for i in range(means.shape[0]):
+        nt = ntiles[i]
+        if nt > 0:
+            gs = ti.Vector([0.0] * 10)
+            k0 = emit_start[i]
+            for k in range(k0, k0 + nt):
+                e = emit_pos[k]
+                for j in ti.static(range(10)):
+                    gs[j] += g_entry[e, j]
+            for j in ti.static(range(10)):
+                g_view[i, j] = gs[j]
+    for i in range(means.shape[0]):
+        nt = ntiles[i]
+        gr = ti.Vector([0.0] * 10)
+        if nt > 0:
+            for j in ti.static(range(10)):
+                gr[j] = g_view[i, j]
         for k in ti.static(range(3)):
             g_means[i, k] = 0.0
             g_scales[i, k] = 0.0
@@ -146,14 +164,7 @@ def _project_bwd(means: _f2, quats: _f2, scales: _f2, view: _f2, fx: ti.f32, fy:
         for k in ti.static(range(12)):
             g_view[i, k] = 0.0
         g_opac[i] = 0.0
-        nt = ntiles[i]
         if nt > 0:
-            gr = ti.Vector([0.0] * 10)  # this Gaussian's row gradient: the sum of its tile entries' (no atomics)
-            k0 = emit_start[i]
-            for k in range(k0, k0 + nt):
-                e = emit_pos[k]
-                for j in ti.static(range(10)):
-                    gr[j] += g_entry[e, j]
             g_opac[i] = gr[5]
             for j in ti.static(range(3)):
                 g_colors[i, j] = gr[6 + j]
