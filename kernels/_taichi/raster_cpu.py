@@ -13,8 +13,9 @@ kernels are ordinary Taichi code in the one shape its LLVM pipeline vectorises (
   indexes them with 32-bit arithmetic without no-wrap flags, so LLVM cannot prove the lanes consecutive.)
 - exp is the Warp snippet's polynomial (Cody-Waite, Cephes' coefficients), with the exponent rounded by an
   integer conversion (x <= 0): with `ti.floor` there the forward was 1.5x slower (same harness; not pinned down).
-- Taichi compiles for SSE here (128-bit; no setting for the target's features in Taichi 1.7), so a 16-lane
-  vector is four instructions wide per operation, against Warp's `-march=native` snippet.
+- Taichi compiles for the host CPU (AVX-512 zmm code here; `ti.init(print_kernel_asm=True)` shows it), but the
+  per-entry sums, the gradient writes and the per-lane loads stay scalar, and the backward's two rows of state
+  spill to the stack.
 - backward: two rows at a time (32 lanes); the ten per-Gaussian gradient sums of a row pair are horizontal sums.
   LLVM vectorises a horizontal sum only where it feeds a PHI, so each pair's sums are carried to the next
   iteration of the entry loop and added into `g_entry` there (and after the loop). Written directly, the whole
