@@ -112,12 +112,13 @@ def use_backend(name: str, device: str) -> str:
     from kernels._warp import raster as warp_raster
     from kernels._warp import sort as warp_sort
 
-    from kernels._taichi import raster as taichi_raster
-
     base = {SCALAR_PEER: "warp", TAICHI_SCALAR_PEER: "taichi"}.get(name, name)
     kernels.use(base, device)
     peer = name == SCALAR_PEER
     warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = warp_activate.CPU_ACTIVATE = "scalar" if peer else "vector"
     warp_sort.CPU_SORT = "warp" if peer else "native"
-    taichi_raster.CPU_COMPOSITE = "scalar" if name == TAICHI_SCALAR_PEER else "vector"
+    if base == "taichi":  # imported only here: a Warp-only install (e.g. a Jetson without Taichi) has no taichi
+        from kernels._taichi import raster as taichi_raster
+
+        taichi_raster.CPU_COMPOSITE = "scalar" if name == TAICHI_SCALAR_PEER else "vector"
     return base
