@@ -30,6 +30,17 @@ _i2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 
 
 @ti.func
+def _entry_conic(proj: ti.template(), pthr: ti.template(), entries: ti.template(), e):
+    # tile entry e's Gaussian, its exp() skip threshold lo and conic a, b, c with its determinant; it composites
+    # nothing unless lo < 0 and det_q > 0
+    g = entries[e]
+    ca = proj[g, 2]
+    cb = proj[g, 3]
+    cc = proj[g, 4]
+    return g, pthr[g], ca, cb, cc, ca * cc - cb * cb
+
+
+@ti.func
 def _rows(my, ca, det_q, lg, y0, y1):
     # Rows of the tile [y0, y1) the ellipse d^T Q d <= 2 lg can reach (lg already widened); (first, last).
     ey = ti.sqrt(2.0 * lg * ca / det_q)
@@ -59,79 +70,75 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
     # Entry-outer per tile, as the Warp kernel: t_final holds the running transmittance, negated once done.
     sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: one tile per SPREAD iterations (kernels/_taichi/launch.py)
     for it in range(n_tiles * sp):
-        if it % sp == 0:
-            t = it // sp
-            ty = t // tiles_x
-            tx = t - ty * tiles_x
-            x0 = tx * TILE
-            y0 = ty * TILE
-            x1 = ti.min(x0 + TILE, width)
-            y1 = ti.min(y0 + TILE, height)
-            for py in range(y0, y1):
-                for px in range(x0, x1):
-                    t_final[py, px] = 1.0
-                    color[py, px, 0] = 0.0
-                    color[py, px, 1] = 0.0
-                    color[py, px, 2] = 0.0
-                    depth[py, px] = 0.0
-                    last[py, px] = 0
-            npix = (x1 - x0) * (y1 - y0)
-            done = 0
-            s0 = tile_start[t]
-            s1 = tile_start[t + 1]
-            for e in range(s0, s1):
-                count = 0
-                g = entries[e]
-                lo = pthr[g]
-                ca = proj[g, 2]
-                cb = proj[g, 3]
-                cc = proj[g, 4]
-                det_q = ca * cc - cb * cb
-                if done < npix and lo < 0.0 and det_q > 0.0:
-                    mx = proj[g, 0]
-                    my = proj[g, 1]
-                    op = proj[g, 5]
-                    inv_ca = 1.0 / ca
-                    lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
-                    rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
-                    for py in range(rows[0], rows[1] + 1):
-                        dy = ti.cast(py, ti.f32) - my
-                        span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
-                        for px in range(span[0], span[1] + 1):
-                            T = t_final[py, px]
-                            if T > 0.0:
-                                dx = ti.cast(px, ti.f32) - mx
-                                power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                                if power <= 0.0 and power >= lo:
-                                    a = ti.min(0.99, op * ti.exp(power))
-                                    if a >= ALPHA_MIN:
-                                        test_T = T * (1.0 - a)
-                                        if test_T < 1e-4:
-                                            t_final[py, px] = -T
-                                            done += 1
-                                        else:
-                                            w = a * T
-                                            color[py, px, 0] = color[py, px, 0] + w * proj[g, 6]
-                                            color[py, px, 1] = color[py, px, 1] + w * proj[g, 7]
-                                            color[py, px, 2] = color[py, px, 2] + w * proj[g, 8]
-                                            depth[py, px] = depth[py, px] + w * proj[g, 9]
-                                            t_final[py, px] = test_T
-                                            last[py, px] = e - s0 + 1
-                                            count += 1
-                hits[e] = count
-            for py in range(y0, y1):
-                for px in range(x0, x1):
-                    T = ti.abs(t_final[py, px])
-                    t_final[py, px] = T
-                    a = 1.0 - T
-                    alpha[py, px] = a
-                    color[py, px, 0] = color[py, px, 0] + T * bg[0]
-                    color[py, px, 1] = color[py, px, 1] + T * bg[1]
-                    color[py, px, 2] = color[py, px, 2] + T * bg[2]
-                    dn = 0.0
-                    if a > DEPTH_EPS:
-                        dn = depth[py, px] / a
-                    dnorm[py, px] = dn
+        if it % sp != 0:
+            continue
+        t = it // sp
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * TILE
+        y0 = ty * TILE
+        x1 = ti.min(x0 + TILE, width)
+        y1 = ti.min(y0 + TILE, height)
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                t_final[py, px] = 1.0
+                color[py, px, 0] = 0.0
+                color[py, px, 1] = 0.0
+                color[py, px, 2] = 0.0
+                depth[py, px] = 0.0
+                last[py, px] = 0
+        npix = (x1 - x0) * (y1 - y0)
+        done = 0
+        s0 = tile_start[t]
+        s1 = tile_start[t + 1]
+        for e in range(s0, s1):
+            count = 0
+            g, lo, ca, cb, cc, det_q = _entry_conic(proj, pthr, entries, e)
+            if done < npix and lo < 0.0 and det_q > 0.0:
+                mx = proj[g, 0]
+                my = proj[g, 1]
+                op = proj[g, 5]
+                inv_ca = 1.0 / ca
+                lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
+                rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
+                for py in range(rows[0], rows[1] + 1):
+                    dy = ti.cast(py, ti.f32) - my
+                    span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
+                    for px in range(span[0], span[1] + 1):
+                        T = t_final[py, px]
+                        if T > 0.0:
+                            dx = ti.cast(px, ti.f32) - mx
+                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            if power <= 0.0 and power >= lo:
+                                a = ti.min(0.99, op * ti.exp(power))
+                                if a >= ALPHA_MIN:
+                                    test_T = T * (1.0 - a)
+                                    if test_T < 1e-4:
+                                        t_final[py, px] = -T
+                                        done += 1
+                                    else:
+                                        w = a * T
+                                        color[py, px, 0] = color[py, px, 0] + w * proj[g, 6]
+                                        color[py, px, 1] = color[py, px, 1] + w * proj[g, 7]
+                                        color[py, px, 2] = color[py, px, 2] + w * proj[g, 8]
+                                        depth[py, px] = depth[py, px] + w * proj[g, 9]
+                                        t_final[py, px] = test_T
+                                        last[py, px] = e - s0 + 1
+                                        count += 1
+            hits[e] = count
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                T = ti.abs(t_final[py, px])
+                t_final[py, px] = T
+                a = 1.0 - T
+                alpha[py, px] = a
+                color[py, px, 0] = color[py, px, 0] + T * bg[0]
+                color[py, px, 1] = color[py, px, 1] + T * bg[1]
+                color[py, px, 2] = color[py, px, 2] + T * bg[2]
+                dn = 0.0
+                if a > DEPTH_EPS:
+                    dn = depth[py, px] / a
+                dnorm[py, px] = dn
 
 
 @ti.func
@@ -158,86 +165,87 @@ def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, widt
     # Reverse compositing, entry-outer from the back of each tile list (see the Warp kernel for the algebra).
     sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: one tile per SPREAD iterations (kernels/_taichi/launch.py)
     for it in range(n_tiles * sp):
-        if it % sp == 0:
-            t = it // sp
-            ty = t // tiles_x
-            tx = t - ty * tiles_x
-            x0 = tx * TILE
-            y0 = ty * TILE
-            x1 = ti.min(x0 + TILE, width)
-            y1 = ti.min(y0 + TILE, height)
-            n_live = 0
-            for py in range(y0, y1):
-                for px in range(x0, x1):
-                    TN, gd, bh = _reverse_start(t_final, dnorm, g_color, g_depth, g_dnorm, g_alpha, bg, py, px)
-                    g_dep[py, px] = gd
-                    t_run[py, px] = TN
-                    behind[py, px] = bh
-                    n_live = ti.max(n_live, last[py, px])
-            s0 = tile_start[t]
-            s1 = tile_start[t + 1]
-            for e in range(s0 + n_live, s1):
-                for j in ti.static(range(10)):
-                    g_entry[e, j] = 0.0
-            for i in range(n_live):
-                k = n_live - 1 - i
-                e = s0 + k
-                g = entries[e]
-                mx = proj[g, 0]
-                my = proj[g, 1]
-                ca = proj[g, 2]
-                cb = proj[g, 3]
-                cc = proj[g, 4]
-                op = proj[g, 5]
-                cr = proj[g, 6]
-                cg = proj[g, 7]
-                cbl = proj[g, 8]
-                z = proj[g, 9]
-                lo = pthr[g]
-                det_q = ca * cc - cb * cb
-                v = ti.Vector([0.0] * 10)  # d/d(mean2d x, y, conic a, b, c, opacity, r, g, b, z)
-                if lo < 0.0 and det_q > 0.0:
-                    inv_ca = 1.0 / ca
-                    lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
-                    rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
-                    for py in range(rows[0], rows[1] + 1):
-                        dy = ti.cast(py, ti.f32) - my
-                        span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
-                        for px in range(span[0], span[1] + 1):
-                            if k < last[py, px]:
-                                dx = ti.cast(px, ti.f32) - mx
-                                power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                                if power <= 0.0 and power >= lo:
-                                    G = ti.exp(power)
-                                    raw = op * G
-                                    a = ti.min(0.99, raw)
-                                    if a >= ALPHA_MIN:
-                                        inv_1ma = 1.0 / (1.0 - a)
-                                        T = t_run[py, px] * inv_1ma
-                                        t_run[py, px] = T
-                                        w = a * T
-                                        gr = g_color[py, px, 0]
-                                        gg = g_color[py, px, 1]
-                                        gb = g_color[py, px, 2]
-                                        gd = g_dep[py, px]
-                                        front = gr * cr + gg * cg + gb * cbl + gd * z
-                                        bh = behind[py, px]
-                                        g_a = T * front - bh * inv_1ma
-                                        behind[py, px] = bh + w * front
-                                        v[6] += w * gr
-                                        v[7] += w * gg
-                                        v[8] += w * gb
-                                        v[9] += w * gd
-                                        if raw < 0.99:
-                                            v[5] += g_a * G
-                                            g_p = g_a * a
-                                            v[0] += g_p * (ca * dx + cb * dy)
-                                            v[1] += g_p * (cc * dy + cb * dx)
-                                            v[2] -= 0.5 * g_p * dx * dx
-                                            v[3] -= g_p * dx * dy
-                                            v[4] -= 0.5 * g_p * dy * dy
-                for j in ti.static(range(10)):
-                    g_entry[e, j] = v[j]
+        if it % sp != 0:
+            continue
+        t = it // sp
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * TILE
+        y0 = ty * TILE
+        x1 = ti.min(x0 + TILE, width)
+        y1 = ti.min(y0 + TILE, height)
+        n_live = 0
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                TN, gd, bh = _reverse_start(t_final, dnorm, g_color, g_depth, g_dnorm, g_alpha, bg, py, px)
+                g_dep[py, px] = gd
+                t_run[py, px] = TN
+                behind[py, px] = bh
+                n_live = ti.max(n_live, last[py, px])
+        s0 = tile_start[t]
+        s1 = tile_start[t + 1]
+        for e in range(s0 + n_live, s1):
+            for j in ti.static(range(10)):
+                g_entry[e, j] = 0.0
+        for i in range(n_live):
+            k = n_live - 1 - i
+            e = s0 + k
+            g = entries[e]
+            mx = proj[g, 0]
+            my = proj[g, 1]
+            ca = proj[g, 2]
+            cb = proj[g, 3]
+            cc = proj[g, 4]
+            op = proj[g, 5]
+            cr = proj[g, 6]
+            cg = proj[g, 7]
+            cbl = proj[g, 8]
+            z = proj[g, 9]
+            lo = pthr[g]
+            det_q = ca * cc - cb * cb
+            v = ti.Vector([0.0] * 10)  # d/d(mean2d x, y, conic a, b, c, opacity, r, g, b, z)
+            if lo < 0.0 and det_q > 0.0:
+                inv_ca = 1.0 / ca
+                lgm2ca = 2.0 * ca * (-1.01 * lo + 0.01)
+                rows = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y1)
+                for py in range(rows[0], rows[1] + 1):
+                    dy = ti.cast(py, ti.f32) - my
+                    span = _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1)
+                    for px in range(span[0], span[1] + 1):
+                        if k < last[py, px]:
+                            dx = ti.cast(px, ti.f32) - mx
+                            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                            if power <= 0.0 and power >= lo:
+                                G = ti.exp(power)
+                                raw = op * G
+                                a = ti.min(0.99, raw)
+                                if a >= ALPHA_MIN:
+                                    inv_1ma = 1.0 / (1.0 - a)
+                                    T = t_run[py, px] * inv_1ma
+                                    t_run[py, px] = T
+                                    w = a * T
+                                    gr = g_color[py, px, 0]
+                                    gg = g_color[py, px, 1]
+                                    gb = g_color[py, px, 2]
+                                    gd = g_dep[py, px]
+                                    front = gr * cr + gg * cg + gb * cbl + gd * z
+                                    bh = behind[py, px]
+                                    g_a = T * front - bh * inv_1ma
+                                    behind[py, px] = bh + w * front
+                                    v[6] += w * gr
+                                    v[7] += w * gg
+                                    v[8] += w * gb
+                                    v[9] += w * gd
+                                    if raw < 0.99:
+                                        v[5] += g_a * G
+                                        g_p = g_a * a
+                                        v[0] += g_p * (ca * dx + cb * dy)
+                                        v[1] += g_p * (cc * dy + cb * dx)
+                                        v[2] -= 0.5 * g_p * dx * dx
+                                        v[3] -= g_p * dx * dy
+                                        v[4] -= 0.5 * g_p * dy * dy
+            for j in ti.static(range(10)):
+                g_entry[e, j] = v[j]
 
 
 # "vector": the CPU composites with kernels/_taichi/raster_cpu.py; "scalar": with the kernels above

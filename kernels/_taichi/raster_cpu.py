@@ -33,7 +33,7 @@ and the order of the gradient sums). CPU only: GPU archs keep the scalar kernels
 import taichi as ti
 
 from .launch import SPREAD
-from .raster import ALPHA_MIN, DEPTH_EPS, TILE, _f1, _f2, _f3, _i1, _i2, _reverse_start
+from .raster import ALPHA_MIN, DEPTH_EPS, TILE, _entry_conic, _f1, _f2, _f3, _i1, _i2, _reverse_start, _rows
 
 LANES = TILE  # one tile row per vector (8-lane half rows, with per-half culling, were ~1.5x slower)
 NO_ROWS = -1  # staged code of an entry whose ellipse box misses its tile (or that is culled)
@@ -72,21 +72,13 @@ def _stage(proj: ti.template(), pthr: ti.template(), entries: ti.template(), row
            rec: ti.template(), e, y0, nh):
     # rows[e] = first | last << 8 (tile rows the ellipse d^T Q d <= 2 lg reaches, lg widened as the scalar
     # kernels widen it) or NO_ROWS; rec[e] = mean x, y, conic a, b, c, opacity, lo, r, g, b, z
-    g = entries[e]
-    lo = pthr[g]
-    ca = proj[g, 2]
-    cb = proj[g, 3]
-    cc = proj[g, 4]
-    det_q = ca * cc - cb * cb
+    g, lo, ca, cb, cc, det_q = _entry_conic(proj, pthr, entries, e)
     code = NO_ROWS
     if lo < 0.0 and det_q > 0.0:
         my = proj[g, 1]
-        ey = ti.sqrt(2.0 * (-1.01 * lo + 0.01) * ca / det_q)
-        first = ti.cast(ti.math.clamp(ti.ceil(my - ey), ti.cast(y0, ti.f32), ti.cast(y0 + nh, ti.f32)), ti.i32)
-        last = ti.cast(ti.math.clamp(ti.floor(my + ey), ti.cast(y0 - 1, ti.f32), ti.cast(y0 + nh - 1, ti.f32)),
-                       ti.i32)
-        if first <= last:
-            code = (first - y0) | ((last - y0) << 8)
+        span = _rows(my, ca, det_q, -1.01 * lo + 0.01, y0, y0 + nh)
+        if span[0] <= span[1]:
+            code = (span[0] - y0) | ((span[1] - y0) << 8)
             rec[e, 0] = proj[g, 0]
             rec[e, 1] = my
             rec[e, 2] = ca
