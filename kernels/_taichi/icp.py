@@ -217,7 +217,7 @@ def _reduce(src: f32_2, T: f32_2, tp: f32_2, tn: f32_2, idx: ti.types.ndarray(dt
     # float64 per block; blocks run in parallel over the cores.
     n_pts = src.shape[0]
     sp = ti.static(SPREAD if on_cpu() else 1)  # CPU: spread over the cores (kernels/_taichi/launch.py)
-    for it in range((blocks) * sp):
+    for it in range(blocks * sp):
         if it % sp != 0:
             continue
         b = it // sp
