@@ -104,10 +104,11 @@ def with_scalar_peer(backends: list[str], device: str) -> list[str]:
 def use_backend(name: str, device: str) -> str:
     """kernels.use for a perf backend name; SCALAR_PEER is Warp with its scalar CPU kernels (the CUDA ones):
     kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = kernels._warp.activate.CPU_ACTIVATE =
-    "scalar", kernels._warp.sort.CPU_SORT = "warp"; TAICHI_SCALAR_PEER is Taichi with
+    "scalar", kernels._warp.sort.CPU_SORT = "warp", kernels._warp.loss.CPU_LOSS = "scalar"; TAICHI_SCALAR_PEER is Taichi with
     kernels._taichi.raster.CPU_COMPOSITE = "scalar". Returns the kernels backend name."""
     import kernels
     from kernels._warp import activate as warp_activate
+    from kernels._warp import loss as warp_loss
     from kernels._warp import project as warp_project
     from kernels._warp import raster as warp_raster
     from kernels._warp import sort as warp_sort
@@ -117,6 +118,7 @@ def use_backend(name: str, device: str) -> str:
     peer = name == SCALAR_PEER
     warp_raster.CPU_COMPOSITE = warp_project.CPU_PROJECT = warp_activate.CPU_ACTIVATE = "scalar" if peer else "vector"
     warp_sort.CPU_SORT = "warp" if peer else "native"
+    warp_loss.CPU_LOSS = "scalar" if peer else "native"
     if base == "taichi":  # imported only here: a Warp-only install (e.g. a Jetson without Taichi) has no taichi
         from kernels._taichi import raster as taichi_raster
 

@@ -74,3 +74,25 @@ def test_masked_median_equals_torch_median(n):
     assert torch.isnan(masked_median(vn)) and torch.isnan(vn.median())
     with pytest.raises(ValueError, match="selects no value"):
         masked_median(v, torch.zeros(n, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("alpha_power, inlier_k", [(4.0, 3.0), (0.0, None)])
+def test_warp_native_cpu_loss_equals_scalar_kernels(alpha_power, inlier_k, monkeypatch):
+    """kernels/_warp/loss_cpu.py (the CPU's row loops) writes the same bits as kernels/_warp/loss.py's scalar
+    kernels: loss value and both gradients, with NaN alphas, exact-zero errors and invalid depth in the frame."""
+    import kernels
+    from kernels._warp import loss as warp_loss
+
+    kernels.use("warp", "cpu")
+    results = []
+    for mode in ("scalar", "native"):
+        monkeypatch.setattr(warp_loss, "CPU_LOSS", mode)
+        r_c, r_d, alpha, color, depth = _case(9)
+        alpha[1, :2] = float("nan")
+        out = RenderOutput(r_c, r_d, r_d, alpha, torch.zeros(0), torch.zeros(0))
+        loss = rgbd_loss_fused(out, color, depth, lambda_color=0.9, alpha_power=alpha_power, inlier_k=inlier_k)
+        (1.7 * loss).backward()
+        results.append((loss.detach(), r_c.grad, r_d.grad))
+    for a, b in zip(*results):
+        assert torch.equal(a, b), (a, b)
+    assert results[1][1].abs().sum() > 0 and results[1][2].abs().sum() > 0

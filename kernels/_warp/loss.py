@@ -13,10 +13,21 @@ from __future__ import annotations
 
 import warp as wp
 
+from . import loss_cpu as _cpu
 from .arrays import to_warp
 from .launch import launch
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
+
+# "native": the CPU runs kernels/_warp/loss_cpu.py (flat row loops over contiguous arrays, vector code, bitwise
+# equal outputs); "scalar": the kernels below, as on CUDA (perf's scalar peer).
+CPU_LOSS = "native"
+
+
+def _pick(kernel, native, device: str, *tensors):
+    if device == "cpu" and CPU_LOSS == "native" and all(t.is_contiguous() for t in tensors):
+        return native
+    return kernel
 
 
 @wp.func
@@ -86,9 +97,10 @@ def _grads(r_c: wp.array(dtype=float), color: wp.array(dtype=float), r_d: wp.arr
 
 def errors(r_c, color, r_d, depth, alpha, power: float, e_c, e_d, m0, device: str) -> None:
     h, w = depth.shape
-    inputs = [to_warp(t.reshape(-1)) for t in (r_c, color, r_d, depth, alpha)] + [w, float(power), 0] + \
-        [to_warp(t) for t in (e_c, e_d, m0)]
-    launch(_errors, h, inputs, 7, device, work=h * w // 16)  # ~1 ms: one thread
+    ins = [t.reshape(-1) for t in (r_c, color, r_d, depth, alpha)]
+    inputs = [to_warp(t) for t in ins] + [w, float(power), 0] + [to_warp(t) for t in (e_c, e_d, m0)]
+    kernel = _pick(_errors, _cpu.errors, device, *ins, e_c, e_d, m0)
+    launch(kernel, h, inputs, 7, device, work=h * w // 16)  # 320x240: one thread
 
 
 def masked_sums(e_c, e_d, m0, width: int, lam: float, lam_d: float, thr_c: float, thr_d: float, row_sums, mask,
@@ -96,11 +108,14 @@ def masked_sums(e_c, e_d, m0, width: int, lam: float, lam_d: float, thr_c: float
     h = row_sums.shape[0]
     inputs = [to_warp(t) for t in (e_c, e_d, m0)] + [width, float(lam), float(lam_d), float(thr_c), float(thr_d), 0,
                                                      to_warp(row_sums), to_warp(mask)]
-    launch(_masked_sums, h, inputs, 8, device, work=h * width // 16)
+    kernel = _pick(_masked_sums, _cpu.masked_sums, device, e_c, e_d, m0, mask)
+    launch(kernel, h, inputs, 8, device, work=h * width // 16)
 
 
 def grads(r_c, color, r_d, depth, mask, s: float, lam: float, lam_d: float, g_c, g_d, device: str) -> None:
     h, w = depth.shape
-    inputs = [to_warp(t.reshape(-1)) for t in (r_c, color, r_d, depth)] + [to_warp(mask), w, float(s), float(lam),
-                                                                           float(lam_d), 0, to_warp(g_c), to_warp(g_d)]
-    launch(_grads, h, inputs, 9, device, work=h * w // 16)
+    ins = [t.reshape(-1) for t in (r_c, color, r_d, depth)]
+    inputs = [to_warp(t) for t in ins] + [to_warp(mask), w, float(s), float(lam), float(lam_d), 0, to_warp(g_c),
+                                          to_warp(g_d)]
+    kernel = _pick(_grads, _cpu.grads, device, *ins, mask, g_c, g_d)
+    launch(kernel, h, inputs, 9, device, work=h * w // 16)
