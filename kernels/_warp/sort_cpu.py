@@ -6,7 +6,10 @@ Warp's CPU code generator indexes every array through its runtime strides and ke
 sums in memory-backed variables, which made the serial scan and radix sort ~1.3 ms and each part's tile counting
 and listing ~0.7-0.9 ms at 320x240 with 60k Gaussians (a tenth of a mapping iteration). Here the radix sort takes
 its three 11-bit histograms in one read of the keys and skips a pass whose digit is the same for every key; the
-per-part loops read the Gaussians' rectangles through prefetches as there. CPU only: on CUDA the Warp kernels run.
+per-part loops read the Gaussians' rectangles through prefetches as there. A rectangle of at most 2 x 2 tiles (nearly
+every Gaussian at 320x240) is counted and listed as four fixed slots, absent ones adding 0 or writing to a sink,
+instead of loops whose trip counts the branch predictor cannot guess: at 320x240 / 60k counting 0.78 -> 0.44 ms
+and listing 0.97 -> 0.77 ms (two parts). CPU only: on CUDA the Warp kernels run.
 """
 
 from __future__ import annotations
@@ -128,8 +131,18 @@ _COUNTS = _PART + r"""
         prefetch(i + 8);
         const int g = ord[i * so];
         const int x0 = R4(g, 0), y0 = R4(g, 1), x1 = R4(g, 2), y1 = R4(g, 3);
-        for (int ty = y0; ty < y1; ++ty)
-            for (int tx = x0; tx < x1; ++tx) cnt[(ty * tiles_x + tx) * sc] += 1;
+        const int w = x1 - x0, h = y1 - y0;
+        if (w <= 2 && h <= 2) {  // most Gaussians: up to 2 x 2 tiles, without data-dependent branches
+            const int t0 = y0 * tiles_x + x0;
+            const int wx = w > 1, hy = h > 1;
+            cnt[t0 * sc] += 1;
+            cnt[(t0 + wx) * sc] += wx;
+            cnt[(t0 + hy * tiles_x) * sc] += hy;
+            cnt[(t0 + hy * tiles_x + wx) * sc] += wx & hy;
+        } else {
+            for (int ty = y0; ty < y1; ++ty)
+                for (int tx = x0; tx < x1; ++tx) cnt[(ty * tiles_x + tx) * sc] += 1;
+        }
     }
 """
 
@@ -159,20 +172,38 @@ _LISTS = _PART + r"""
     const size_t se = entries.strides[0] / sizeof(int);
     int* ep = (int*)emit_pos.data;
     const size_t sep = emit_pos.strides[0] / sizeof(int);
+    int sink = 0;  // where the absent slots of a small rectangle write
     for (int i = begin; i < end; ++i) {
         prefetch(i + 8);
         const int g = ord[i * so];
         int k = es[g * ses];
         const int x0 = R4(g, 0), y0 = R4(g, 1), x1 = R4(g, 2), y1 = R4(g, 3);
-        for (int ty = y0; ty < y1; ++ty)
-            for (int tx = x0; tx < x1; ++tx) {
-                int* c = cur + (ty * tiles_x + tx) * scu;
+        const int w = x1 - x0, h = y1 - y0;
+        if (w <= 2 && h <= 2) {  // as in the counts: four slots in the loop's order, absent ones write to a sink
+            const int wx = w > 1, hy = h > 1;
+            const int t0 = y0 * tiles_x + x0;
+            const int ts[4] = {t0, t0 + wx, t0 + hy * tiles_x, t0 + hy * tiles_x + wx};
+            const int on[4] = {1, wx, hy, wx & hy};
+            for (int j = 0; j < 4; ++j) {
+                int* c = cur + ts[j] * scu;
                 const int pos = *c;
-                *c = pos + 1;
-                ent[pos * se] = g;
-                ep[k * sep] = pos;
-                k += 1;
+                *c = pos + on[j];
+                const size_t use = (size_t)0 - (size_t)on[j];  // all ones or zero: no branch
+                *(int*)(((size_t)(ent + pos * se) & use) | ((size_t)&sink & ~use)) = g;
+                *(int*)(((size_t)(ep + k * sep) & use) | ((size_t)&sink & ~use)) = pos;
+                k += on[j];
             }
+        } else {
+            for (int ty = y0; ty < y1; ++ty)
+                for (int tx = x0; tx < x1; ++tx) {
+                    int* c = cur + (ty * tiles_x + tx) * scu;
+                    const int pos = *c;
+                    *c = pos + 1;
+                    ent[pos * se] = g;
+                    ep[k * sep] = pos;
+                    k += 1;
+                }
+        }
     }
 """
 
