@@ -192,13 +192,18 @@ def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, statu
     (`cursor` [n_tiles] is the Taichi kernel's; here the per-tile lists are built in parts, one per CPU thread.)"""
     keys, vals, keys2, vals2, hist = (scratch[k] for k in range(5))
     native = device == "cpu" and CPU_SORT == "native"
-    k_bin, k_counts, k_lists = (_cpu.bin_sort, _cpu.tile_counts, _cpu.tile_lists) if native else \
-        (_bin, _tile_counts, _tile_lists)
-    run(k_bin, 1, [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), _w(keys), _w(vals),
-                  _w(keys2), _w(vals2), _w(hist)], device)
     parts = _launch._cpu_threads() if device == "cpu" and n >= _launch.MIN_SPLIT else 1
     tmp = torch.empty((2, parts, n_tiles), dtype=torch.int32, device=scratch.device)
     counts, cursors = _w(tmp[0]), _w(tmp[1])
+    sort_args = [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), _w(keys), _w(vals),
+                 _w(keys2), _w(vals2), _w(hist)]
+    if native and parts == 1:  # the three steps in one launch
+        run(_cpu.bin_whole, 1, sort_args + [_w(rect), tiles_x, n_tiles, counts, cursors, _w(tile_start),
+                                            _w(entries), _w(emit_pos)], device)
+        return
+    k_bin, k_counts, k_lists = (_cpu.bin_sort, _cpu.tile_counts, _cpu.tile_lists) if native else \
+        (_bin, _tile_counts, _tile_lists)
+    run(k_bin, 1, sort_args, device)
     common = [_w(vals2), _w(rect), _w(emit_start), _w(status), entries.shape[0], tiles_x, n_tiles, parts, 0, counts]
     launch(k_counts, parts, common, 8, device, work=n)
     launch(k_lists, parts, common + [cursors, _w(tile_start), _w(entries), _w(emit_pos)], 8, device, work=n)
