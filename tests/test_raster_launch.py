@@ -41,6 +41,33 @@ def test_direct_calls_equal_wp_launch(warp_cpu, monkeypatch, size):
         assert torch.equal(a, b)
 
 
+def test_packed_arguments_equal_the_ctypes_struct(warp_cpu):
+    """run's one-struct.pack argument packing (Flats and scalars) writes the bytes that filling the kernel's ctypes
+    argument struct field by field writes; a mistyped argument still gets ctypes' error."""
+    from kernels._warp import loss_cpu
+    from kernels._warp.arrays import to_warp
+
+    h, w = 6, 10
+    img = [torch.rand(h * w * 3), torch.rand(h * w * 3), torch.rand(h * w), torch.rand(h * w), torch.rand(h * w)]
+    outs = [torch.empty(h * w) for _ in range(3)]
+    inputs = [to_warp(t) for t in img] + [w, 4.0, 0] + [to_warp(t) for t in outs]
+    warp_cpu.run(loss_cpu.errors, h, inputs, "cpu")  # loads the module
+    warp_cpu.run(loss_cpu.errors, h, inputs, "cpu")  # described: direct calls from here on
+    hook, struct, _kdim, _bounds, _cmd, packer = warp_cpu._DIRECT[loss_cpu.errors]
+    assert packer is not None
+    packed = warp_cpu._args(struct, packer, inputs)
+    filled = warp_cpu._args(struct, None, inputs)
+    assert bytes(packed) == bytes(filled)
+    bad = list(inputs)
+    bad[5], bad[6] = bad[6], bad[5]  # width (int) and power (float) swapped
+    with pytest.raises(TypeError):
+        warp_cpu._args(struct, packer, bad)
+    bad = list(inputs)
+    bad[0], bad[5] = bad[5], bad[0]  # an array and a scalar swapped: not packed into the wrong fields
+    with pytest.raises(TypeError):
+        warp_cpu._args(struct, packer, bad)
+
+
 @pytest.mark.parametrize("threads", [2, 3])
 def test_split_equal_single_launch(warp_cpu, monkeypatch, threads):
     scene = make_scene(20_000, 320, 240, seed=4)

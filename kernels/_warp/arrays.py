@@ -1,12 +1,15 @@
 """torch tensor -> Warp kernel argument.
 
-On the CPU a float32 / int32 tensor becomes Warp's bare array descriptor (`array_t`: data pointer, shape, byte
-strides), which wp.launch takes as it is and kernels/_warp/launch.py `run` copies into the argument struct. It is
-built fresh per launch (~2 us): a wp.array costs ~24 us to create, and a cache of them by (address, layout) missed
-~7 of a rasteriser call's ~75 arrays (torch's allocator does not hand every address back in the same order), while
-its growing population of long-lived objects made Python's full garbage collections (~0.2 s each) come round.
-A descriptor does not own or keep its memory alive: it is only valid while the caller holds the tensor, i.e. for
-the launch it is made for. CUDA tensors and other dtypes go through wp.from_torch.
+On the CPU a float32 / int32 tensor becomes a `Flat`: the twelve values of Warp's bare array descriptor (`array_t`:
+data pointer, grad pointer, shape[4], byte strides[4], ndim, flags) as a tuple. kernels/_warp/launch.py `run` packs
+a launch's Flats and scalars into the kernel's argument struct with one struct.pack (~12 us for a 16-array
+launch; building a ctypes descriptor per array and then the struct from them took ~20 us), and turns them into
+`array_t`s for wp.launch. A Flat is built fresh per launch: a wp.array costs ~24 us to create, and a cache of them
+by (address, layout) missed ~7 of a rasteriser call's ~75 arrays (torch's allocator does not hand every address
+back in the same order), while its growing population of long-lived objects made Python's full garbage
+collections (~0.2 s each) come round. A Flat does not own or keep its memory alive: it is only valid while the
+caller holds the tensor, i.e. for the launch it is made for. CUDA tensors and other dtypes go through
+wp.from_torch.
 """
 
 from __future__ import annotations
@@ -18,13 +21,24 @@ import torch
 import warp as wp
 
 _TYPES = (torch.float32, torch.int32)
-_LAYOUT = struct.Struct("<QQ4i4iHH4x")  # array_t: data, grad, shape[4], strides[4] (bytes), ndim, flags, padding
+LAYOUT = struct.Struct("<QQ4i4iHH4x")  # array_t: data, grad, shape[4], strides[4] (bytes), ndim, flags, padding
 try:  # the descriptor type Warp's launches pass (Warp 1.19's layout); another Warp: wp.from_torch for everything
     from warp._src.types import array_t
 
-    _from = array_t.from_buffer_copy if _LAYOUT.size == ctypes.sizeof(array_t) else None
+    _from = array_t.from_buffer_copy if LAYOUT.size == ctypes.sizeof(array_t) else None
 except ImportError:
     _from = None
+
+
+class Flat(tuple):
+    """The twelve values of an `array_t` in LAYOUT's order (see the module docstring)."""
+
+    __slots__ = ()
+
+
+def as_array_t(f: Flat):
+    """The ctypes `array_t` of a Flat (what wp.launch takes)."""
+    return _from(LAYOUT.pack(*f))
 
 
 def to_warp(t: torch.Tensor, dtype=None):
@@ -34,11 +48,11 @@ def to_warp(t: torch.Tensor, dtype=None):
         sh, st = t.shape, t.stride()
         nd = len(sh)
         if nd == 1:
-            return _from(_LAYOUT.pack(t.data_ptr(), 0, sh[0], 0, 0, 0, 4 * st[0], 0, 0, 0, 1, 0))
+            return Flat((t.data_ptr(), 0, sh[0], 0, 0, 0, 4 * st[0], 0, 0, 0, 1, 0))
         if nd == 2:
-            return _from(_LAYOUT.pack(t.data_ptr(), 0, sh[0], sh[1], 0, 0, 4 * st[0], 4 * st[1], 0, 0, 2, 0))
+            return Flat((t.data_ptr(), 0, sh[0], sh[1], 0, 0, 4 * st[0], 4 * st[1], 0, 0, 2, 0))
         if 0 < nd <= 4:
             shape = tuple(sh) + (0,) * (4 - nd)
             strides = tuple(4 * s for s in st) + (0,) * (4 - nd)
-            return _from(_LAYOUT.pack(t.data_ptr(), 0, *shape, *strides, nd, 0))
+            return Flat((t.data_ptr(), 0, *shape, *strides, nd, 0))
     return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)

@@ -7,10 +7,13 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+import struct as _struct
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
+
+from .arrays import LAYOUT, Flat, as_array_t
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_PID = -1
@@ -48,15 +51,46 @@ DIRECT = True  # False: every launch through wp.launch (A/B measurements, tests)
 _BOUNDS: dict = {}  # (launch shape, kernel dims) -> Warp's launch-bounds struct (~3 us to build per launch)
 
 
+def _launchable(inputs: list) -> list:
+    """inputs as wp.launch takes them: Flats (kernels/_warp/arrays.py) as Warp's array descriptors."""
+    return [as_array_t(a) if type(a) is Flat else a for a in inputs]
+
+
+def _packer(struct) -> tuple | None:
+    """(struct.Struct that packs a launch's flattened Flats and scalars into `struct`'s bytes, which fields are
+    arrays), or None where a field is of a type this does not know (the launch then fills the ctypes struct)."""
+    try:
+        from warp._src.types import array_t
+    except ImportError:
+        return None
+    codes = {ctypes.c_int32: ("i", 4), ctypes.c_float: ("f", 4)}
+    fmt, pos, is_array = "<", 0, []
+    for name, ty in struct._fields_:
+        off = getattr(struct, name).offset
+        if ty is array_t and ctypes.sizeof(array_t) == LAYOUT.size:
+            code, size = LAYOUT.format.lstrip("<@=!>"), LAYOUT.size
+        elif ty in codes:
+            code, size = codes[ty]
+        else:
+            return None
+        fmt += f"{off - pos}x{code}" if off > pos else code
+        pos = off + size
+        is_array.append(ty is array_t)
+    tail = ctypes.sizeof(struct) - pos
+    packer = _struct.Struct(fmt + (f"{tail}x" if tail else ""))
+    return (packer, tuple(is_array)) if packer.size == ctypes.sizeof(struct) else None
+
+
 def _describe(kernel, dim, inputs: list):
-    """(hook, ArgsStruct, kernel_dim, bounds maker, recorded launch) for direct calls of `kernel` on the CPU, or
-    None; launches nothing."""
+    """(hook, ArgsStruct, kernel_dim, bounds maker, recorded launch, packer) for direct calls of `kernel` on the
+    CPU, or None; launches nothing."""
     try:
         from warp._src import context as _ctx  # Warp's own launch machinery (1.19): the layout it passes
 
         if kernel.is_generic:
             return None
-        cmd = wp.launch(kernel, dim=dim, inputs=inputs, device="cpu", record_tape=False, record_cmd=True)
+        cmd = wp.launch(kernel, dim=dim, inputs=_launchable(inputs), device="cpu", record_tape=False,
+                        record_cmd=True)
         if not isinstance(cmd, _ctx.Launch) or cmd.block_dim > 1 or cmd.hooks.forward is None:
             return None
         fields = [(a.label, type(p)) for a, p in zip(kernel.adj.args, cmd.params[1:])]
@@ -66,9 +100,32 @@ def _describe(kernel, dim, inputs: list):
         struct(*cmd.params[1:])  # every field takes its packed value
         # cmd holds the module executable: were the module rebuilt (a kernel added to it later), the loaded
         # code this hook points into stays loaded
-        return cmd.hooks.forward, struct, kernel.adj.kernel_dim, _ctx._build_launch_bounds_from_tuple, cmd
+        return (cmd.hooks.forward, struct, kernel.adj.kernel_dim, _ctx._build_launch_bounds_from_tuple, cmd,
+                _packer(struct))
     except Exception:  # noqa: BLE001 - any surprise: keep wp.launch for this kernel
         return None
+
+
+def _args(struct, packer, inputs: list):
+    """The kernel's argument struct filled from `inputs` (Flats, scalars, Warp arrays)."""
+    if packer is not None:
+        pack, is_array = packer
+        vals: list = []
+        ok = len(inputs) == len(is_array)
+        for a, arr in zip(inputs, is_array):
+            if type(a) is Flat:
+                ok = ok and arr
+                vals.extend(a)
+            else:
+                ok = ok and not arr
+                vals.append(a)
+        if ok:
+            try:
+                return struct.from_buffer_copy(pack.pack(*vals))
+            except _struct.error:
+                pass  # e.g. a float where an int is expected: ctypes below says so
+    return struct(*[as_array_t(a) if type(a) is Flat else a.__ctype__() if isinstance(a, wp.array) else a
+                    for a in inputs])
 
 
 def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
@@ -80,11 +137,8 @@ def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
             return  # wp.launch does nothing either
         d = _DIRECT.get(kernel, False)
         if d:
-            hook, struct, kdim, bounds_of, _cmd = d
-            try:  # array descriptors (kernels/_warp/arrays.py) and scalars: ctypes checks and copies them
-                args = struct(*inputs)
-            except TypeError:  # wp.array arguments: their descriptors
-                args = struct(*[a.__ctype__() if isinstance(a, wp.array) else a for a in inputs])
+            hook, struct, kdim, bounds_of, _cmd, packer = d
+            args = _args(struct, packer, inputs)
             shape = dim if isinstance(dim, tuple) else (dim,)
             bounds = _BOUNDS.get((shape, kdim))
             if bounds is None:  # read-only for the kernel: one per launch shape serves every call and thread
@@ -99,7 +153,7 @@ def run(kernel, dim, inputs: list, device: str, gpu_block: int = 256) -> None:
                     _DIRECT[kernel] = _describe(kernel, dim, inputs)
             return run(kernel, dim, inputs, device)
     gpu = {} if device == "cpu" else {"block_dim": gpu_block}
-    wp.launch(kernel, dim=dim, inputs=inputs, device=device, record_tape=False, **gpu)
+    wp.launch(kernel, dim=dim, inputs=_launchable(inputs), device=device, record_tape=False, **gpu)
     _LOADED.add((kernel, device))
 
 
