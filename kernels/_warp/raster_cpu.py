@@ -3,13 +3,10 @@
 kernels/_warp/raster.py composites one pixel at a time: a Gaussian-pixel pair costs ~26 ns forward and ~36 ns
 backward there, because Warp's CPU code generator emits scalar code with strided array indexing that LLVM cannot
 vectorise. These kernels do the same work per 16x16 tile, with the same rules and the same outputs, but keep the
-tile's per-pixel state in local arrays and composite a Gaussian over the rows of its ellipse, in 8-pixel groups
-from the first pixel of its x extent (a tile row is 24 lanes in the local arrays, so a group started late stays in
-them; the padding never composites), with branch-free code (masks instead of branches, a polynomial exp), which the
-CPU compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction too) turns into 8-lane AVX2
+tile's per-pixel state in local arrays and composite a Gaussian over the rows of its ellipse, in the whole 8-pixel
+groups its x extent reaches, with branch-free code (masks instead of branches, a polynomial exp), which the CPU
+compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction too) turns into 8-lane AVX2
 (or 4-lane SSE / NEON) instructions. Lanes outside the ellipse fail the per-pixel test like any other pixel.
-Groups aligned to 8 lanes instead visited ~9 % more lanes at 320x240 / 60k (50 against 46 per tile entry) and
-~20 % more at 160x120 / 1k; starting at the first pixel was ~4 % faster there (A/B in alternating processes).
 The per-tile set-up and write-out loops read and write the images row by row through plain pointers (an image
 gradient is contiguous or a broadcast scalar, which reads from a row of its value), so they vectorise too (at
 160x120 with 1k Gaussians, scalar, they cost ~0.1 of the compositing's ~0.48 ms).
@@ -39,7 +36,6 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 0, "cpu_compiler_
 
 _COMMON = r"""
     const int TS = 16;
-    const int RS = 24;  // a tile row's stride in the tile's state arrays: lanes 16..23 pad a group started late
     const int PREFETCH = 8;  // entries ahead whose projected row is fetched into cache (random-access misses)
     const float ALPHA_MIN = 1.0f / 255.0f;
     auto fexp = [](float x) -> float {
@@ -87,32 +83,29 @@ _COMMON = r"""
         rlo = (int)a;
         rhi = (int)b;
     };
-    // lanes [jlo, jhi) of the tile row that the ellipse's x extent can reach: whole 8-lane groups from its first
-    // pixel (jhi <= 23: within the row's RS lanes)
+    // lanes [jlo, jhi) of the tile row, whole 8-lane groups, that the ellipse's x extent can reach
     auto lanes_of = [&](float mx, float cc, float det_q, float lgm, int& jlo, int& jhi) {
         float ex = sqrtf(2.0f * lgm * cc / det_q);
         float a = ceilf(mx - ex) - (float)x0, b = floorf(mx + ex) - (float)x0;
         a = a < 0.0f ? 0.0f : (a > (float)nw ? (float)nw : a);
         b = b < -1.0f ? -1.0f : (b > (float)(nw - 1) ? (float)(nw - 1) : b);
-        jlo = (int)a;
-        jhi = b < a ? jlo : jlo + ((((int)b - jlo) >> 3) + 1) * 8;
+        jlo = ((int)a) & ~7;
+        jhi = b < a ? jlo : (((int)b) | 7) + 1;
     };
 """
 
 _FORWARD = _COMMON + r"""
-    alignas(32) float T[16 * RS];
-    alignas(32) float CR[16 * RS];
-    alignas(32) float CG[16 * RS];
-    alignas(32) float CB[16 * RS];
-    alignas(32) float DD[16 * RS];
-    alignas(32) int LAST[16 * RS];
-    for (int r = 0; r < 16; ++r)
-        for (int j = 0; j < RS; ++j) {
-            // lanes outside the image (and the padding) start with T = 0: they never composite, are never written
-            const int i = r * RS + j;
-            T[i] = (j < nw && r < nh) ? 1.0f : 0.0f;
-            CR[i] = 0.0f; CG[i] = 0.0f; CB[i] = 0.0f; DD[i] = 0.0f; LAST[i] = 0;
-        }
+    alignas(32) float T[256];
+    alignas(32) float CR[256];
+    alignas(32) float CG[256];
+    alignas(32) float CB[256];
+    alignas(32) float DD[256];
+    alignas(32) int LAST[256];
+    for (int i = 0; i < 256; ++i) {
+        // lanes outside the image start with T = 0: they never composite and are never written
+        T[i] = ((i & 15) < nw && (i >> 4) < nh) ? 1.0f : 0.0f;
+        CR[i] = 0.0f; CG[i] = 0.0f; CB[i] = 0.0f; DD[i] = 0.0f; LAST[i] = 0;
+    }
     const int npix = nw * nh;
     int done = 0;
     int* hits_p = (int*)hits.data;
@@ -143,12 +136,12 @@ _FORWARD = _COMMON + r"""
                 const float cdy = -0.5f * cc * dy * dy;
                 const float bdy = cb * dy;
                 const float fx0 = (float)x0 - mx;
-                float* Tr = T + (py - y0) * RS;
-                float* CRr = CR + (py - y0) * RS;
-                float* CGr = CG + (py - y0) * RS;
-                float* CBr = CB + (py - y0) * RS;
-                float* DDr = DD + (py - y0) * RS;
-                int* Lr = LAST + (py - y0) * RS;
+                float* Tr = T + (py - y0) * TS;
+                float* CRr = CR + (py - y0) * TS;
+                float* CGr = CG + (py - y0) * TS;
+                float* CBr = CB + (py - y0) * TS;
+                float* DDr = DD + (py - y0) * TS;
+                int* Lr = LAST + (py - y0) * TS;
                 for (int h = jlo; h < jhi; h += 8)
                 for (int l = 0; l < 8; ++l) {
                     const int j = h + l;
@@ -188,12 +181,12 @@ _FORWARD = _COMMON + r"""
         float* __restrict__ alp = (float*)alpha.data + q0;
         float* __restrict__ tfi = (float*)t_final.data + q0;
         int* __restrict__ lst = (int*)last.data + q0;
-        const float* __restrict__ Tr = T + r * RS;
-        const float* __restrict__ CRr = CR + r * RS;
-        const float* __restrict__ CGr = CG + r * RS;
-        const float* __restrict__ CBr = CB + r * RS;
-        const float* __restrict__ DDr = DD + r * RS;
-        const int* __restrict__ Lr = LAST + r * RS;
+        const float* __restrict__ Tr = T + r * TS;
+        const float* __restrict__ CRr = CR + r * TS;
+        const float* __restrict__ CGr = CG + r * TS;
+        const float* __restrict__ CBr = CB + r * TS;
+        const float* __restrict__ DDr = DD + r * TS;
+        const int* __restrict__ Lr = LAST + r * TS;
         for (int j = 0; j < nw; ++j) {
             const float Tv = fabsf(Tr[j]);
             const float a = 1.0f - Tv;
@@ -210,16 +203,16 @@ _FORWARD = _COMMON + r"""
 """
 
 _BACKWARD = _COMMON + r"""
-    alignas(32) float TR[16 * RS];
-    alignas(32) float BH[16 * RS];
-    alignas(32) float GR[16 * RS];
-    alignas(32) float GG[16 * RS];
-    alignas(32) float GB[16 * RS];
-    alignas(32) float GD[16 * RS];
-    alignas(32) int LAST[16 * RS];  // 0 in the padding: its lanes fail every mask
+    alignas(32) float TR[256];
+    alignas(32) float BH[256];
+    alignas(32) float GR[256];
+    alignas(32) float GG[256];
+    alignas(32) float GB[256];
+    alignas(32) float GD[256];
+    alignas(32) int LAST[256];
     const float bg0 = F1(bg, 0), bg1 = F1(bg, 1), bg2 = F1(bg, 2);
     int n_live = 0;
-    for (int i = 0; i < 16 * RS; ++i) {
+    for (int i = 0; i < 256; ++i) {
         TR[i] = 1.0f; BH[i] = 0.0f; GR[i] = 0.0f; GG[i] = 0.0f; GB[i] = 0.0f; GD[i] = 0.0f; LAST[i] = 0;
     }
     // per-pixel inputs, row by row through plain pointers: an image gradient is either contiguous or a broadcast
@@ -243,13 +236,13 @@ _BACKWARD = _COMMON + r"""
         const float* __restrict__ gal = rowp(g_alpha, q0, 1, 1);
         const float* __restrict__ gdn = rowp(g_dnorm, q0, 1, 2);
         const float* __restrict__ gco = rowp(g_color, q0, 3, 3);
-        float* __restrict__ GRr = GR + r * RS;
-        float* __restrict__ GGr = GG + r * RS;
-        float* __restrict__ GBr = GB + r * RS;
-        float* __restrict__ GDr = GD + r * RS;
-        float* __restrict__ TRr = TR + r * RS;
-        float* __restrict__ BHr = BH + r * RS;
-        int* __restrict__ Lr = LAST + r * RS;
+        float* __restrict__ GRr = GR + r * TS;
+        float* __restrict__ GGr = GG + r * TS;
+        float* __restrict__ GBr = GB + r * TS;
+        float* __restrict__ GDr = GD + r * TS;
+        float* __restrict__ TRr = TR + r * TS;
+        float* __restrict__ BHr = BH + r * TS;
+        int* __restrict__ Lr = LAST + r * TS;
         int nl = 0;
         for (int j = 0; j < nw; ++j) {
             const float TN = tf[j];
@@ -299,7 +292,7 @@ _BACKWARD = _COMMON + r"""
                 const float dy = (float)py - my;
                 const float cdy = -0.5f * cc * dy * dy;
                 const float bdy = cb * dy;
-                const int row = (py - y0) * RS;
+                const int row = (py - y0) * TS;
                 for (int h = jlo; h < jhi; h += 8)
                 for (int l = 0; l < 8; ++l) {
                     const int i = row + h + l;
