@@ -108,18 +108,17 @@ def _describe(kernel, dim, inputs: list):
 
 def _args(struct, packer, inputs: list):
     """The kernel's argument struct filled from `inputs` (Flats, scalars, Warp arrays)."""
-    if packer is not None:
+    if packer is not None and len(inputs) == len(packer[1]):
         pack, is_array = packer
         vals: list = []
-        ok = len(inputs) == len(is_array)
         for a, arr in zip(inputs, is_array):
-            if type(a) is Flat:
-                ok = ok and arr
+            if (type(a) is Flat) is not arr:
+                break  # a Warp array (e.g. the ICP's vec3 descriptors), or a misplaced argument: ctypes below
+            if arr:
                 vals.extend(a)
             else:
-                ok = ok and not arr
                 vals.append(a)
-        if ok:
+        else:
             try:
                 return struct.from_buffer_copy(pack.pack(*vals))
             except _struct.error:
