@@ -104,8 +104,8 @@ def with_scalar_peer(backends: list[str], device: str) -> list[str]:
 def use_backend(name: str, device: str) -> str:
     """kernels.use for a perf backend name; SCALAR_PEER is Warp with its scalar CPU kernels (the CUDA ones):
     kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = kernels._warp.activate.CPU_ACTIVATE =
-    "scalar", kernels._warp.sort.CPU_SORT = "warp", kernels._warp.loss.CPU_LOSS = "scalar"; TAICHI_SCALAR_PEER is Taichi with
-    kernels._taichi.raster.CPU_COMPOSITE = "scalar". Returns the kernels backend name."""
+    kernels._warp.loss.CPU_LOSS = "scalar", kernels._warp.sort.CPU_SORT = "warp"; TAICHI_SCALAR_PEER is Taichi
+    with kernels._taichi.raster.CPU_COMPOSITE = "scalar". Returns the kernels backend name."""
     import kernels
     from kernels._warp import activate as warp_activate
     from kernels._warp import loss as warp_loss

@@ -92,6 +92,18 @@ def _stage(proj: ti.template(), pthr: ti.template(), entries: ti.template(), row
 
 
 @ti.func
+def _stage_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.template(), entries: ti.template(), width,
+                height, tiles_x, t, rows: ti.template(), rec: ti.template()):
+    # tile t's first pixel, size and entry range [s0, s1), its entries staged (_stage)
+    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
+    s0 = tile_start[t]
+    s1 = tile_start[t + 1]
+    for e in range(s0, s1):
+        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
+    return x0, y0, nw, nh, s0, s1
+
+
+@ti.func
 def _in_row(code, r):
     # the entry's ellipse reaches tile row r
     return code >= 0 and (code & 255) <= r and r <= (code >> 8)
@@ -102,12 +114,9 @@ def _forward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.templ
                   bg: ti.template(), width, height, tiles_x, t, color: ti.template(), depth: ti.template(),
                   dnorm: ti.template(), alpha: ti.template(), t_final: ti.template(), last: ti.template(),
                   hits: ti.template(), rows: ti.template(), rec: ti.template(), count: ti.template()):
-    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
-    s0 = tile_start[t]
-    s1 = tile_start[t + 1]
-    for e in range(s0, s1):
-        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
-        if ti.static(count):
+    x0, y0, nw, nh, s0, s1 = _stage_tile(proj, pthr, tile_start, entries, width, height, tiles_x, t, rows, rec)
+    if ti.static(count):
+        for e in range(s0, s1):
             hits[e] = 0
     lane = ti.Vector([j for j in range(LANES)])
     for r in range(nh):
@@ -222,11 +231,8 @@ def _backward_tile(proj: ti.template(), pthr: ti.template(), tile_start: ti.temp
     # T_k = T_{k+1} / (1 - a_k) from the back, behind accumulates (dL/dC . colour + dL/dD depth) of everything
     # behind entry k. A row pair shares the entry's loads, its ten sums and its gradient write (one row at a time
     # was 1.3-1.4x slower).
-    x0, y0, nw, nh = _tile(t, tiles_x, width, height)
-    s0 = tile_start[t]
-    s1 = tile_start[t + 1]
+    x0, y0, nw, nh, s0, s1 = _stage_tile(proj, pthr, tile_start, entries, width, height, tiles_x, t, rows, rec)
     for e in range(s0, s1):
-        _stage(proj, pthr, entries, rows, rec, e, y0, nh)
         for j in ti.static(range(10)):
             g_entry[e, j] = 0.0
     lane = ti.Vector([j for j in range(LANES)])
