@@ -23,6 +23,7 @@ does the same contraction in closed form at xi = 0.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import NamedTuple
 
@@ -127,16 +128,18 @@ class _RenderFn(torch.autograd.Function):
         ctx.save_for_backward(*args[:3], args[5], proj, pthr, ntiles, tile_start, entries, emit_start, emit_pos, bg,
                               t_final, dnorm, last)
         ctx.dims = (intr, width, height, n_entries, impls, device)
-        radii = radius[:n]
+        ctx.set_materialize_grads(False)  # an image without a gradient arrives as None, not as a zero image
+        radii = radius if n == nb else radius[:n]
         ctx.mark_non_differentiable(radii, n_touched)
         return color, depth, dnorm, alpha, radii, n_touched
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_dnorm, g_alpha, _g_radii, _g_touched):
-        # detached: a saved output (dnorm) comes back requiring grad, and Taichi, handed a tensor that requires grad,
-        # allocates it a .grad (or warns, for a non-leaf) on every launch
         (means, quats, scales, viewmat, proj, pthr, ntiles, tile_start, entries, emit_start, emit_pos, bg, t_final,
-         dnorm, last) = (t.detach() for t in ctx.saved_tensors)
+         dnorm, last) = ctx.saved_tensors
+        # detached: the saved output comes back requiring grad, and Taichi, handed a tensor that requires grad,
+        # allocates it a .grad (or warns, for a non-leaf) on every launch; the rest were saved detached
+        dnorm = dnorm.detach()
         intr, width, height, n_entries, (project, _sort, raster), device = ctx.dims
         n, dev = means.shape[0], means.device
         g_bg = None
@@ -149,20 +152,19 @@ class _RenderFn(torch.autograd.Function):
                     torch.zeros(4, 4, dtype=_F32, device=dev), g_bg) + (None,) * 8
         img = (height, width)
         # image gradients may be strided (e.g. expanded from a sum); the backend makes them contiguous if it must
-        zero = torch.zeros((), dtype=_F32, device=dev)
+        zero = _black(dev)[0]  # a zero scalar, expanded to the images without a gradient
         g_color = zero.expand(*img, 3) if g_color is None else g_color
         g_depth, g_dnorm, g_alpha = (zero.expand(img) if g is None else g for g in (g_depth, g_dnorm, g_alpha))
         g_entry = _empty((n_entries, PACKED), _F32, dev)
-        t_run, behind, g_dep = (_empty(img, _F32, dev) for _ in range(3))  # per-pixel scratch of the reverse pass
         raster.render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color,
-                               g_depth, g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device)
+                               g_depth, g_dnorm, g_alpha, g_entry, device)
         g_means = _empty((n, 3), _F32, dev)
         g_quats = _empty((n, 4), _F32, dev)
         g_scales = _empty((n, 3), _F32, dev)
         g_opac = _empty((n,), _F32, dev)
         g_colors = _empty((n, 3), _F32, dev)
         g_parts = _empty((n, 12), _F32, dev)  # per-Gaussian viewmat gradient: R row-major, then t
-        g_view = _empty((4, 4), _F32, dev)
+        g_view = _empty((4, 4), _F32, dev) if ctx.needs_input_grad[5] else None  # None: parts not summed
         project.project_backward(means, quats, scales, viewmat, intr, width, height, proj, ntiles, emit_start,
                                  emit_pos, g_entry, g_means, g_quats, g_scales, g_opac, g_colors, g_parts, g_view,
                                  device)
@@ -221,16 +223,25 @@ def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, b
     if not (0.0 < float(near) < float(far)):
         raise InputError(f"arguments 'near', 'far': expected 0 < near < far, got near={near}, far={far}")
     viewmat32 = viewmat.to(_F32)
-    k = K.detach().reshape(-1).tolist()
-    for name, vals in (("viewmat", viewmat32.detach().reshape(-1).tolist()), ("K", k)):
-        if not all(math.isfinite(v) for v in vals):
+    k = K.tolist()  # nested lists (tolist is ~1.5 us cheaper per matrix than flattening a tensor first)
+    for name, rows in (("viewmat", viewmat32.tolist()), ("K", k)):
+        if not all(map(math.isfinite, itertools.chain(*rows))):
             raise InputError(f"argument '{name}': contains NaN or Inf")
-    if k[0] <= 0 or k[4] <= 0:
+    if k[0][0] <= 0 or k[1][1] <= 0:
         raise InputError("argument 'K': focal lengths K[0,0], K[1,1] must be positive")
-    return viewmat32, (k[0], k[4], k[2], k[5])
+    return viewmat32, (k[0][0], k[1][1], k[0][2], k[1][2])
 
 
 _IMPLS: dict = {}
+_BLACK: dict = {}  # device -> the default background, zeros [3] (read only, never handed out)
+
+
+def _black(dev) -> torch.Tensor:
+    b = _BLACK.get(dev)
+    if b is None:
+        b = _BLACK[dev] = torch.zeros(3, dtype=_F32, device=dev)
+    return b
+
 
 
 def _impls(b):
@@ -268,7 +279,7 @@ def rasterize(
     viewmat32, intr = _check(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near,
                              far, b.torch_device)
     dev = means.device
-    bg = torch.zeros(3, dtype=_F32, device=dev) if background is None else background.to(_F32)
+    bg = _black(dev) if background is None else background.to(_F32)
     color, depth, dnorm, alpha, radii, n_touched = _RenderFn.apply(
         means, quats, scales, opacities, colors, viewmat32, bg, intr, int(width), int(height), near, far, _impls(b),
         b.device, bool(count_touched))

@@ -128,3 +128,18 @@ def test_native_binning_equals_warp_kernels(warp_cpu, monkeypatch, threads):
         out[mode] = _run(scene)
     for a, b in zip(out["warp"], out["native"]):
         assert torch.equal(a, b)
+
+
+def test_view_free_descriptors_equal_those_of_the_views():
+    """to_warp_1d / to_warp_rows describe a tensor's flattening and rows as to_warp describes the torch views, and
+    refuse a layout they cannot describe without a copy."""
+    from kernels._warp.arrays import to_warp, to_warp_1d, to_warp_rows
+
+    for t in (torch.empty(5, 7), torch.empty(2, 3, 4, dtype=torch.int32), torch.empty(2, 2, 3, 5)):
+        assert to_warp_rows(t) == [to_warp(r) for r in t]
+    img = torch.rand(6, 4, 3)
+    assert to_warp_1d(img) == to_warp(img.view(-1))
+    flat = to_warp_1d(torch.zeros(()).expand(6, 4))  # a broadcast scalar: 24 values read at stride 0
+    assert flat[2] == 24 and flat[6] == 0
+    with pytest.raises(ValueError, match="contiguous or broadcast"):
+        to_warp_1d(img.transpose(0, 1))

@@ -280,13 +280,14 @@ def project_forward(means, quats, scales, opac, colors, view, intr, width, heigh
 
 def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
                      g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_view_out, device) -> None:
-    """g_view [N, 12] per-Gaussian viewmat parts (scratch), g_view_out [4, 4] their sum."""
+    """g_view [N, 12] per-Gaussian viewmat parts (scratch), g_view_out [4, 4] their sum (None: not wanted)."""
     n = means.shape[0]
     if n == 0:
         return
     fx, fy, cx, cy = intr
     _project_bwd(means, quats, scales, view, fx, fy, cx, cy, width, height, proj, ntiles, emit_start, emit_pos,
                  g_entry, g_means, g_quats, g_scales, g_opac, g_colors, g_view)
-    _view_grad(g_view, n, g_view_out)
+    if g_view_out is not None:
+        _view_grad(g_view, n, g_view_out)
     if device == "cuda":
         ti.sync()

@@ -288,7 +288,7 @@ def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, de
 
 
 def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color, g_depth,
-                    g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device) -> None:
+                    g_dnorm, g_alpha, g_entry, device) -> None:
     """Image gradients may be strided (expanded); Taichi takes contiguous arrays."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     g_color, g_depth, g_dnorm, g_alpha = (g.contiguous() for g in (g_color, g_depth, g_dnorm, g_alpha))
@@ -297,6 +297,7 @@ def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final,
         cpu.backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm,
                       last, g_color, g_depth, g_dnorm, g_alpha, g_entry, *_staging(tile_start))
         return
+    t_run, behind, g_dep = (torch.empty_like(t_final) for _ in range(3))  # the per-pixel scratch of the reverse pass
     _backward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, t_final, dnorm, last,
               g_color, g_depth, g_dnorm, g_alpha, t_run, behind, g_dep, g_entry)
     _sync(device)

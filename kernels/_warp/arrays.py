@@ -15,6 +15,7 @@ wp.from_torch.
 from __future__ import annotations
 
 import ctypes
+import math
 import struct
 
 import torch
@@ -56,3 +57,25 @@ def to_warp(t: torch.Tensor, dtype=None):
             strides = tuple(4 * s for s in st) + (0,) * (4 - nd)
             return Flat((t.data_ptr(), 0, *shape, *strides, nd, 0))
     return wp.from_torch(t.detach(), dtype=dtype, requires_grad=False)
+
+
+def to_warp_1d(t: torch.Tensor):
+    """to_warp of `t` flattened, for a contiguous `t` or a broadcast one (every stride 0: one value read for all),
+    without making the torch view (~1 us each). Other layouts: ValueError (make them contiguous first)."""
+    broadcast = all(st == 0 for st in t.stride())
+    if not (broadcast or t.is_contiguous()):
+        raise ValueError(f"to_warp_1d: expected a contiguous or broadcast tensor, got strides {t.stride()}")
+    if _from is not None and t.is_cpu and t.dtype in _TYPES:
+        return Flat((t.data_ptr(), 0, t.numel(), 0, 0, 0, 0 if broadcast else 4, 0, 0, 0, 1, 0))
+    return to_warp(t.as_strided((t.numel(),), (0,)) if broadcast else t.view(-1))
+
+
+def to_warp_rows(t: torch.Tensor) -> list:
+    """[to_warp(t[k]) for each k along the first dim] of a 2- to 4-D tensor, without making the torch views for a
+    contiguous one."""
+    if _from is not None and t.is_cpu and t.dtype in _TYPES and 2 <= t.dim() <= 4 and t.is_contiguous():
+        p, sh = t.data_ptr(), tuple(t.shape[1:])
+        nd, row = len(sh), 4 * math.prod(sh)
+        tail = sh + (0,) * (4 - nd) + tuple(4 * s for s in t.stride()[1:]) + (0,) * (4 - nd) + (nd, 0)
+        return [Flat((p + row * k, 0) + tail) for k in range(t.shape[0])]
+    return [to_warp(r) for r in t]

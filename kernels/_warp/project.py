@@ -407,7 +407,7 @@ def project_forward(means, quats, scales, opac, colors, view, intr, width, heigh
 def project_backward(means, quats, scales, view, intr, width, height, proj, ntiles, emit_start, emit_pos, g_entry,
                      g_means, g_quats, g_scales, g_opac, g_colors, g_view, g_view_out, device) -> None:
     """g_view [N, 12] scratch for the viewmat parts (per Gaussian, or per BLOCK on the CPU), g_view_out [4, 4]
-    their sum."""
+    their sum (None: not wanted, not summed)."""
     n = means.shape[0]
     if n == 0:
         return
@@ -420,4 +420,5 @@ def project_backward(means, quats, scales, view, intr, width, height, proj, ntil
               to_warp(g_view)]
     launch(_cpu.backward_blocks if device == "cpu" and CPU_PROJECT == "vector" else _project_bwd, rows, inputs, 10,
            device, work=n)
-    run(_view_grad, 16, [to_warp(g_view), rows, 256 // count, to_warp(g_view_out)], device)
+    if g_view_out is not None:
+        run(_view_grad, 16, [to_warp(g_view), rows, 256 // count, to_warp(g_view_out)], device)

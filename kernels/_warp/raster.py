@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import itertools
 
+import torch
 import warp as wp
 
 from . import launch as _launch
 from . import raster_cpu as _cpu
-from .arrays import to_warp
+from .arrays import to_warp, to_warp_1d
 
 # backward is hand-written (no Warp adjoints); no unrolling of the 16x16 pixel loops (256 copies compile for minutes)
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
@@ -302,11 +303,7 @@ def launch_tiles(kernel, n_tiles: int, inputs: list, work: int, device: str) -> 
 
 def _flat(g):
     # image gradients may be expanded (stride 0) or otherwise strided; the kernels index them flat
-    if g.is_contiguous():
-        return g.view(-1)
-    if all(st == 0 for st in g.stride()):
-        return g.as_strided((g.numel(),), (0,))
-    return g.contiguous().view(-1)
+    return g if g.is_contiguous() or all(st == 0 for st in g.stride()) else g.contiguous()
 
 
 _OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
@@ -315,11 +312,9 @@ _OFFSET_POS = 8  # index of `tile_offset` in both tile kernels' argument lists
 def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
                    hits, device, count_hits: bool = True) -> None:
     """count_hits is accepted for the backends' common signature; these kernels always write hits."""
-    color, depth, dnorm, alpha, t_final, last = (t.view(-1) for t in (color, depth, dnorm, alpha, t_final, last))
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
-              tiles_x, 0, to_warp(color), to_warp(depth), to_warp(dnorm), to_warp(alpha), to_warp(t_final),
-              to_warp(last), to_warp(hits)]
+              tiles_x, 0, *(to_warp_1d(t) for t in (color, depth, dnorm, alpha, t_final, last)), to_warp(hits)]
     kernel = _cpu.forward if device == "cpu" and CPU_COMPOSITE == "vector" else _forward
     launch_tiles(kernel, tiles_x * tiles_y, inputs, 2 * entries.shape[0], device)
     if device == "cuda":
@@ -327,17 +322,16 @@ def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, de
 
 
 def render_backward(proj, pthr, tile_start, entries, bg, width, height, t_final, dnorm, last, g_color, g_depth,
-                    g_dnorm, g_alpha, t_run, behind, g_dep, g_entry, device) -> None:
-    t_final, dnorm, last, t_run, behind, g_dep = (t.view(-1) for t in (t_final, dnorm, last, t_run, behind, g_dep))
-    g_color, g_depth, g_dnorm, g_alpha = (_flat(g) for g in (g_color, g_depth, g_dnorm, g_alpha))
+                    g_dnorm, g_alpha, g_entry, device) -> None:
+    g_color, g_depth, g_dnorm, g_alpha = (_flat(g) for g in (g_color, g_depth, g_dnorm, g_alpha))  # held: launched
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     inputs = [to_warp(proj), to_warp(pthr), to_warp(tile_start), to_warp(entries), to_warp(bg), width, height,
-              tiles_x, 0, to_warp(t_final), to_warp(dnorm), to_warp(last), to_warp(g_color), to_warp(g_depth),
-              to_warp(g_dnorm), to_warp(g_alpha)]
+              tiles_x, 0, *(to_warp_1d(t) for t in (t_final, dnorm, last, g_color, g_depth, g_dnorm, g_alpha))]
     if device == "cpu" and CPU_COMPOSITE == "vector":  # its per-pixel scratch lives in the tile's local arrays
         launch_tiles(_cpu.backward, tiles_x * tiles_y, inputs + [to_warp(g_entry)], 2 * g_entry.shape[0], device)
         return
-    inputs += [to_warp(t_run), to_warp(behind), to_warp(g_dep), to_warp(g_entry)]
+    t_run, behind, g_dep = (torch.empty_like(t_final) for _ in range(3))  # the per-pixel scratch of the reverse pass
+    inputs += [to_warp_1d(t_run), to_warp_1d(behind), to_warp_1d(g_dep), to_warp(g_entry)]
     launch_tiles(_backward, tiles_x * tiles_y, inputs, 2 * g_entry.shape[0], device)
     if device == "cuda":
         wp.synchronize_device(device)

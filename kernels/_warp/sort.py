@@ -22,6 +22,7 @@ import warp as wp
 from . import launch as _launch
 from . import sort_cpu as _cpu
 from .arrays import to_warp as _w
+from .arrays import to_warp_rows
 from .launch import launch, run
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
@@ -190,13 +191,13 @@ def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, statu
               entries, emit_pos, device: str) -> None:
     """proj_bits [>=n, 10] int32 view of the projected rows; scratch [5, >= max(n, RADIX)] int32; see the module doc.
     (`cursor` [n_tiles] is the Taichi kernel's; here the per-tile lists are built in parts, one per CPU thread.)"""
-    keys, vals, keys2, vals2, hist = (scratch[k] for k in range(5))
+    keys, vals, keys2, vals2, hist = to_warp_rows(scratch)
     native = device == "cpu" and CPU_SORT == "native"
     parts = _launch._cpu_threads() if device == "cpu" and n >= _launch.MIN_SPLIT else 1
     tmp = torch.empty((2, parts, n_tiles), dtype=torch.int32, device=scratch.device)
-    counts, cursors = _w(tmp[0]), _w(tmp[1])
-    sort_args = [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), _w(keys), _w(vals),
-                 _w(keys2), _w(vals2), _w(hist)]
+    counts, cursors = to_warp_rows(tmp)
+    sort_args = [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), keys, vals, keys2,
+                 vals2, hist]
     if native and parts == 1:  # the three steps in one launch
         run(_cpu.bin_whole, 1, sort_args + [_w(rect), tiles_x, n_tiles, counts, cursors, _w(tile_start),
                                             _w(entries), _w(emit_pos)], device)
@@ -204,7 +205,7 @@ def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, statu
     k_bin, k_counts, k_lists = (_cpu.bin_sort, _cpu.tile_counts, _cpu.tile_lists) if native else \
         (_bin, _tile_counts, _tile_lists)
     run(k_bin, 1, sort_args, device)
-    common = [_w(vals2), _w(rect), _w(emit_start), _w(status), entries.shape[0], tiles_x, n_tiles, parts, 0, counts]
+    common = [vals2, _w(rect), _w(emit_start), _w(status), entries.shape[0], tiles_x, n_tiles, parts, 0, counts]
     launch(k_counts, parts, common, 8, device, work=n)
     launch(k_lists, parts, common + [cursors, _w(tile_start), _w(entries), _w(emit_pos)], 8, device, work=n)
 
