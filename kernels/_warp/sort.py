@@ -194,7 +194,7 @@ def bin_tiles(proj_bits, ntiles, rect, n: int, tiles_x: int, n_tiles: int, statu
     keys, vals, keys2, vals2, hist = to_warp_rows(scratch)
     native = device == "cpu" and CPU_SORT == "native"
     parts = _launch._cpu_threads() if device == "cpu" and n >= _launch.MIN_SPLIT else 1
-    tmp = torch.empty((2, parts, n_tiles), dtype=torch.int32, device=scratch.device)
+    tmp = torch.empty(2, parts, n_tiles, dtype=torch.int32, device=scratch.device)
     counts, cursors = to_warp_rows(tmp)
     sort_args = [_w(proj_bits), _w(ntiles), n, entries.shape[0], _w(status), _w(emit_start), keys, vals, keys2,
                  vals2, hist]
