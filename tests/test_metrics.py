@@ -284,6 +284,28 @@ def test_ssim_matches_independent_formulation():
     assert ssim(x, np.clip(x + rng.normal(0, 0.3, x.shape), 0, 1)) < ssim(x, y)
 
 
+def test_ssim_cpu_filter_equals_the_torch_convolutions():
+    """The CPU path (OpenCV's separable float64 filter, cropped to the valid region) against the torch convolutions
+    that GPU tensors take: the same maps to rounding, for odd and even windows, one and three channels."""
+    from slam.metrics.image import _gaussian_window, _ssim_map_cpu, _ssim_map_torch
+
+    g = torch.Generator().manual_seed(3)
+    for c, h, w, window in ((3, 37, 45, 11), (1, 24, 30, 11), (3, 20, 26, 8), (1, 11, 12, 11)):
+        x = torch.rand(c, h, w, generator=g, dtype=torch.float64)
+        y = (x + 0.1 * torch.randn(c, h, w, generator=g, dtype=torch.float64)).clamp(0, 1)
+        k = _gaussian_window(window, 1.5, "cpu")
+        a = _ssim_map_cpu(x, y, k)
+        b = _ssim_map_torch(x, y, k).permute(1, 2, 0).numpy()
+        assert a.shape == b.shape == (h - window + 1, w - window + 1, c)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)
+        m = torch.rand(h, w, generator=g) > 0.4  # masked: the map's mean over the window centres on masked pixels
+        r = window // 2
+        m[r, r] = True
+        mc = m[r : r + h - window + 1, r : r + w - window + 1].numpy()
+        assert ssim(x, y, mask=m, window=window) == pytest.approx(float(b[mc].mean()), abs=1e-13)
+        assert ssim(x, y, window=window) == pytest.approx(float(b.mean()), abs=1e-13)
+
+
 def test_psnr_values_dtypes_and_mask():
     x = np.full((20, 30, 3), 0.5)
     assert psnr(x + 0.1, x) == pytest.approx(20.0, abs=1e-9)  # MSE 0.01
