@@ -7,6 +7,11 @@ tile's per-pixel state in local arrays and composite a Gaussian over the rows of
 groups its x extent reaches, with branch-free code (masks instead of branches, a polynomial exp), which the CPU
 compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction too) turns into 8-lane AVX2
 (or 4-lane SSE / NEON) instructions. Lanes outside the ellipse fail the per-pixel test like any other pixel.
+The forward walks an ellipse two rows per step: a group's chain (exp, alpha, transmittance) is long and the two
+rows' chains are independent, so the core overlaps them (forward 8.6 -> 8.1 ms at 320x240 / 60k in a mapping
+iteration; the same outputs bit for bit). The backward stays one row per step: paired rows were 5-7 % slower
+there (its ten per-lane sums and the second row's state do not fit the registers) and changed the gradients'
+rounding.
 The per-tile set-up and write-out loops read and write the images row by row through plain pointers (an image
 gradient is contiguous or a broadcast scalar, which reads from a row of its value), so they vectorise too (at
 160x120 with 1k Gaussians, scalar, they cost ~0.1 of the compositing's ~0.48 ms).
@@ -131,18 +136,15 @@ _FORWARD = _COMMON + r"""
             int rlo, rhi, jlo, jhi;
             rows_of(my, ca, det_q, lgm, rlo, rhi);
             lanes_of(mx, cc, det_q, lgm, jlo, jhi);
-            for (int py = rlo; py <= rhi; ++py) {
-                const float dy = (float)py - my;
-                const float cdy = -0.5f * cc * dy * dy;
-                const float bdy = cb * dy;
-                const float fx0 = (float)x0 - mx;
-                float* Tr = T + (py - y0) * TS;
-                float* CRr = CR + (py - y0) * TS;
-                float* CGr = CG + (py - y0) * TS;
-                float* CBr = CB + (py - y0) * TS;
-                float* DDr = DD + (py - y0) * TS;
-                int* Lr = LAST + (py - y0) * TS;
-                for (int h = jlo; h < jhi; h += 8)
+            const float fx0 = (float)x0 - mx;
+            // one 8-lane group of tile row r (py = y0 + r); cdy, bdy: the row's dy terms
+            auto group = [&](int r, float cdy, float bdy, int h) {
+                float* Tr = T + r * TS;
+                float* CRr = CR + r * TS;
+                float* CGr = CG + r * TS;
+                float* CBr = CB + r * TS;
+                float* DDr = DD + r * TS;
+                int* Lr = LAST + r * TS;
                 for (int l = 0; l < 8; ++l) {
                     const int j = h + l;
                     const float Tj = Tr[j];
@@ -164,6 +166,24 @@ _FORWARD = _COMMON + r"""
                     cntv[l] += comp ? 1 : 0;
                     finv[l] += stop ? 1 : 0;
                 }
+            };
+            // two rows at a time: their pixels are distinct, so the two groups' dependency chains (exp, alpha,
+            // transmittance) are independent and the core overlaps them
+            int py = rlo;
+            for (; py < rhi; py += 2) {
+                const float dy0 = (float)py - my, dy1 = (float)(py + 1) - my;
+                const float cdy0 = -0.5f * cc * dy0 * dy0, cdy1 = -0.5f * cc * dy1 * dy1;
+                const float bdy0 = cb * dy0, bdy1 = cb * dy1;
+                for (int h = jlo; h < jhi; h += 8) {
+                    group(py - y0, cdy0, bdy0, h);
+                    group(py + 1 - y0, cdy1, bdy1, h);
+                }
+            }
+            if (py == rhi) {
+                const float dy = (float)py - my;
+                const float cdy = -0.5f * cc * dy * dy;
+                const float bdy = cb * dy;
+                for (int h = jlo; h < jhi; h += 8) group(py - y0, cdy, bdy, h);
             }
         }
         int count = 0, fin = 0;
