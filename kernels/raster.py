@@ -243,7 +243,6 @@ def _black(dev) -> torch.Tensor:
     return b
 
 
-
 def _impls(b):
     """(project, sort, raster) modules of the active backend, cached."""
     if b.name not in _IMPLS:
