@@ -9,8 +9,12 @@ peer's numbers in the same row or its own row, ratios computed from medians in t
 
 from __future__ import annotations
 
+import contextlib
+import os
 import platform
 import statistics
+import subprocess
+import tempfile
 import time
 from typing import Callable
 
@@ -124,3 +128,22 @@ def use_backend(name: str, device: str) -> str:
 
         taichi_raster.CPU_COMPOSITE = "scalar" if name == TAICHI_SCALAR_PEER else "vector"
     return base
+
+
+@contextlib.contextmanager
+def checkout(against: str, tool: str):
+    """(this repository's root, a temporary git worktree of commit `against`), removed on exit; `tool` names the
+    caller in the error a missing commit gets."""
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory(prefix="swarmsplat-ab-") as tmp:
+        old = os.path.join(tmp, "tree")
+        r = subprocess.run(["git", "-C", here, "worktree", "add", "--detach", old, against], capture_output=True,
+                           text=True, check=False)
+        if r.returncode:
+            raise SystemExit(f"{tool}: cannot check out --against {against!r} from {here} (a shallow clone "
+                             f"lacks older commits; `git fetch --unshallow`): {r.stderr.strip()}")
+        try:
+            yield here, old
+        finally:
+            subprocess.run(["git", "-C", here, "worktree", "remove", "--force", old], check=False,
+                           capture_output=True)

@@ -18,7 +18,6 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 
 ISSUE_13_COMMIT = "143517d"
 CASES = [(640, 480, 50_000), (320, 240, 60_000), (320, 240, 10_000), (160, 120, 1_000)]
@@ -57,26 +56,18 @@ def _time_tree(tree: str, backend: str) -> list[dict]:
 
 
 def run(against: str, rounds: int, backend: str) -> dict:
+    from perf.common import checkout
+
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     head = subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                           check=True).stdout.strip()
     dirty = bool(subprocess.run(["git", "-C", here, "status", "--porcelain", "--untracked-files=no"],
                                 capture_output=True, text=True, check=True).stdout.strip())
-    with tempfile.TemporaryDirectory(prefix="swarmsplat-ab-") as tmp:
-        old = os.path.join(tmp, "tree")
-        r = subprocess.run(["git", "-C", here, "worktree", "add", "--detach", old, against], capture_output=True,
-                           text=True, check=False)
-        if r.returncode:
-            raise SystemExit(f"perf.raster_ab: cannot check out --against {against!r} from {here} (a shallow clone "
-                             f"lacks older commits; `git fetch --unshallow`): {r.stderr.strip()}")
-        try:
-            runs: dict[str, list] = {"current": [], "against": []}
-            for _ in range(rounds):
-                runs["against"].append(_time_tree(old, backend))
-                runs["current"].append(_time_tree(here, backend))
-        finally:
-            subprocess.run(["git", "-C", here, "worktree", "remove", "--force", old], check=False,
-                           capture_output=True)
+    with checkout(against, "perf.raster_ab") as (_, old):
+        runs: dict[str, list] = {"current": [], "against": []}
+        for _ in range(rounds):
+            runs["against"].append(_time_tree(old, backend))
+            runs["current"].append(_time_tree(here, backend))
     rows = []
     for i, (w, h, n) in enumerate(CASES):
         row = {"backend": backend, "image": f"{w}x{h}", "N": n}
