@@ -63,6 +63,16 @@ def _span(mx, dy, cb, inv_ca, det_q, lgm2ca, x0, x1):
     return out
 
 
+@ti.func
+def _tile_box(t, tiles_x, width, height):
+    # Pixels [x0, x1) x [y0, y1) of tile t (row-major over tiles_x tiles per row), clipped to the image.
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * TILE
+    y0 = ty * TILE
+    return ti.math.ivec4(x0, y0, ti.min(x0 + TILE, width), ti.min(y0 + TILE, height))
+
+
 @ti.kernel
 def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width: ti.i32, height: ti.i32,
              tiles_x: ti.i32, n_tiles: ti.i32, color: _f3, depth: _f2, dnorm: _f2, alpha: _f2, t_final: _f2,
@@ -73,12 +83,8 @@ def _forward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, width
         if it % sp != 0:
             continue
         t = it // sp
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * TILE
-        y0 = ty * TILE
-        x1 = ti.min(x0 + TILE, width)
-        y1 = ti.min(y0 + TILE, height)
+        box = _tile_box(t, tiles_x, width, height)
+        x0, y0, x1, y1 = box[0], box[1], box[2], box[3]
         for py in range(y0, y1):
             for px in range(x0, x1):
                 t_final[py, px] = 1.0
@@ -168,12 +174,8 @@ def _backward(proj: _f2, pthr: _f1, tile_start: _i1, entries: _i1, bg: _f1, widt
         if it % sp != 0:
             continue
         t = it // sp
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * TILE
-        y0 = ty * TILE
-        x1 = ti.min(x0 + TILE, width)
-        y1 = ti.min(y0 + TILE, height)
+        box = _tile_box(t, tiles_x, width, height)
+        x0, y0, x1, y1 = box[0], box[1], box[2], box[3]
         n_live = 0
         for py in range(y0, y1):
             for px in range(x0, x1):
