@@ -197,11 +197,26 @@ def test_submap_transform_moves_its_renders_exactly(mapped):
         a = render(sm.params, viewmat_from_pose(T_view), cam)
         b = render(moved, viewmat_from_pose(D @ T_view), cam)
     assert float(a.alpha.mean()) > 0.5
-    # Equal up to float32 rounding of the moved means (metres away from the origin); a rounding flip at the
-    # 1/255 alpha cut-off may move a single pixel by ~1e-3.
-    for x, y in [(a.color, b.color), (a.depth, b.depth), (a.alpha, b.alpha)]:
-        d = (x - y).abs()
-        assert float(d.max()) < 5e-3 and float((d > 1e-4).float().mean()) < 0.01, (float(d.max()), float(d.mean()))
+    # The two renders are equal up to float32 rounding of the moved means and view matrix (~1e-6 relative), except
+    # at isolated pixels where the rounding crosses one of the rasteriser's discontinuities:
+    #  - an alpha crossing the 1/255 cut-off (ALPHA_MIN) changes colour, alpha and depth by at most ALPHA_MIN
+    #    times the value (colour <= 1, alpha <= 1, depth <= the farthest depth);
+    #  - two Gaussians whose view depths lie within one float32 step (~1e-7 m at 2 m) swap places in the depth
+    #    order: alpha is a product and does not change, depth changes by ~|z_i - z_j|, but colour changes by
+    #    T a_i a_j |c_i - c_j|, which no small bound covers. Which pairs swap depends on the CPU's rounding (FMA
+    #    contraction, the vector width of torch's and Warp's code): 0.0051 on one Zen 4 pixel, none on a Xeon.
+    # So: alpha and depth within the cut-off bound everywhere; colour beyond it only where alpha is unchanged (a
+    # swap, not a wrong transform); and a wrong transform would move far more than 1 % of the pixels.
+    alpha_min = 1.0 / 255.0
+    d_alpha = (a.alpha - b.alpha).abs()
+    d_depth = (a.depth - b.depth).abs()
+    d_color = (a.color - b.color).abs().amax(dim=-1)
+    assert float(d_alpha.max()) <= 2 * alpha_min, float(d_alpha.max())
+    assert float(d_depth.max()) <= 2 * alpha_min * float(a.depth.max()), float(d_depth.max())
+    swapped = d_color > 2 * alpha_min
+    assert bool((d_alpha[swapped] < 1e-4).all()), (float(d_color.max()), float(d_alpha[swapped].max()))
+    for d in (d_alpha, d_depth, d_color):
+        assert float((d > 1e-4).float().mean()) < 0.01 and float(d.mean()) < 1e-4, (float(d.max()), float(d.mean()))
 
 
 def test_contributions_see_hidden_gaussians(warp_cpu):
