@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 R_THR_DEFAULT = 0.3  # the paper's correspondence-ratio threshold
 K_DEFAULT = 5.0  # logistic steepness; the paper leaves k to tuning. p(r=1) = 0.5, p(r=0.3) = 0.03 with k = 5

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 from .information import diagonal_weights, se_sync_information, se_sync_weights
 from .pose_graph import PoseGraph, key_index, key_robot

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels import se3
-from kernels.errors import InputError
-from kernels.fileio import atomic_path
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import atomic_path
 
 from .information import POLICIES, apply_policy, is_positive_definite
 from .pose_graph import LOOP, ODOMETRY, Edge, PoseGraph, check_information, is_odometry_pair, key_robot

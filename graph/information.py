@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 POLICIES = ("repair", "isotropic", "strict")
 REPAIR_FLOOR = 1e-6  # smallest eigenvalue after `repair`, relative to the largest

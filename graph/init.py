@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from kernels.errors import GraphError, InputError
+from swarmsplat.kernels.errors import GraphError, InputError
 
 from .information import isotropic_weights, se_sync_weights  # noqa: F401 (isotropic_weights re-exported)
 from .pose_graph import PoseGraph

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.se3 import hat, inverse  # already batched over leading dimensions
+from swarmsplat.kernels.se3 import hat, inverse  # already batched over leading dimensions
 
 _SMALL = 1e-4  # below this angle (rad) the closed forms lose digits; Taylor series are exact to ~1e-16 there
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from kernels.se3 import hat
+from swarmsplat.kernels.se3 import hat
 
 from .formulations import Problem
 from .information import diagonal_weights, se_sync_weights

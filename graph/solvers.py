@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from kernels.errors import GraphError, InputError
+from swarmsplat.kernels.errors import GraphError, InputError
 
 from .formulations import Problem, between_factor
 from .scale_factors import is_loop_factor, is_residuals, is_residuals_network

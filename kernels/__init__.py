@@ -9,13 +9,11 @@ initialises Warp or Taichi at import time; backend modules load on first use. GP
 from __future__ import annotations
 
 import importlib
-
-import torch
+from typing import TYPE_CHECKING
 
 from . import se3
 from .backend import Backend, active, cuda_available, devices, use
 from .camera import PinholeCamera
-from .checks import check_tensor
 from .errors import BackendError, GraphError, InputError, RegistrationError, SwarmsplatError
 
 __all__ = [
@@ -31,7 +29,11 @@ __all__ = [
 _LAZY = {
     "rasterize": "raster",
     "RenderOutput": "raster",
+    "check_tensor": "checks",  # imports torch: not loaded by `import swarmsplat.kernels` (graph/ runs without it)
 }
+
+if TYPE_CHECKING:
+    import torch
 
 
 def __getattr__(name: str):
@@ -46,11 +48,15 @@ def backend_module(name: str):
     return importlib.import_module(f"{__name__}._{b.name}.{name}")
 
 
-def axpy(a: float, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def axpy(a: float, x: "torch.Tensor", y: "torch.Tensor") -> "torch.Tensor":
     """y <- a * x + y in place on the active backend; the probe that proves the backend plumbing works.
 
     x, y: float32 [N] on the active device.
     """
+    import torch
+
+    from .checks import check_tensor
+
     b = active()
     check_tensor("x", x, (None,), dtypes=(torch.float32,), device=b.torch_device)
     check_tensor("y", y, (x.shape[0],), dtypes=(torch.float32,), device=b.torch_device)

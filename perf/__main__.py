@@ -13,31 +13,31 @@ import json
 import sys
 import time
 
-from perf.common import machine_info, markdown_table
+from .common import machine_info, markdown_table
 
 # subject name -> module; modules that do not exist (yet) are skipped by `all` and reported by name.
 SUBJECTS = {
-    "generator": "perf.generator",
-    "raster": "perf.raster",
-    "mapping": "perf.mapping",
-    "icp": "perf.icp",
-    "graph": "perf.graph",
-    "graph-benchmarks": "perf.graph_benchmarks",
-    "frontend": "perf.frontend",
-    "slam": "perf.slam",
-    "tracking-refine": "perf.tracking_refine",
-    "fig5": "perf.flocc_fig5",
-    "loops-real": "perf.loops_real",
-    "realpairs": "perf.real_pairs",
-    "placerec": "perf.place_recognition",
+    "generator": ".generator",
+    "raster": ".raster",
+    "mapping": ".mapping",
+    "icp": ".icp",
+    "graph": ".graph",
+    "graph-benchmarks": ".graph_benchmarks",
+    "frontend": ".frontend",
+    "slam": ".slam",
+    "tracking-refine": ".tracking_refine",
+    "fig5": ".flocc_fig5",
+    "loops-real": ".loops_real",
+    "realpairs": ".real_pairs",
+    "placerec": ".place_recognition",
 }
 
 
 def _load(name: str):
     try:
-        return importlib.import_module(SUBJECTS[name])
+        return importlib.import_module(SUBJECTS[name], __package__)
     except ModuleNotFoundError as e:
-        if e.name == SUBJECTS[name]:
+        if e.name == __package__ + SUBJECTS[name]:
             return None
         raise
 
@@ -45,7 +45,7 @@ def _load(name: str):
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["device-check"]:
-        from perf.device_check import main as device_check
+        from .device_check import main as device_check
 
         return device_check(argv[1:])
     p = argparse.ArgumentParser(prog="python -m perf", description=__doc__.splitlines()[0])
@@ -57,8 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--md", dest="md_out", help="write the Markdown tables here")
     args = p.parse_args(argv)
 
-    from kernels.errors import SwarmsplatError
-    from kernels.fileio import atomic_write_text
+    from swarmsplat.kernels.errors import SwarmsplatError
+    from swarmsplat.kernels.fileio import atomic_write_text
 
     names = sorted(SUBJECTS) if args.subject == "all" else [args.subject]
     backends = ["warp", "taichi"] if args.kernels == "both" else [args.kernels]

@@ -24,8 +24,8 @@ BACKENDS = ("warp", "taichi")
 def run(rounds: int) -> dict:
     import torch
 
-    from perf.common import use_backend
-    from perf.raster import _ours, make_scene
+    from .common import use_backend
+    from .raster import _ours, make_scene
 
     torch.set_num_threads(1)
     rows = []
@@ -62,7 +62,7 @@ def run(rounds: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from perf.common import print_and_save
+    from .common import print_and_save
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds per case (default 15)")

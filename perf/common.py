@@ -110,12 +110,12 @@ def use_backend(name: str, device: str) -> str:
     kernels._warp.raster.CPU_COMPOSITE = kernels._warp.project.CPU_PROJECT = kernels._warp.activate.CPU_ACTIVATE =
     kernels._warp.loss.CPU_LOSS = "scalar", kernels._warp.sort.CPU_SORT = "warp"; TAICHI_SCALAR_PEER is Taichi
     with kernels._taichi.raster.CPU_COMPOSITE = "scalar". Returns the kernels backend name."""
-    import kernels
-    from kernels._warp import activate as warp_activate
-    from kernels._warp import loss as warp_loss
-    from kernels._warp import project as warp_project
-    from kernels._warp import raster as warp_raster
-    from kernels._warp import sort as warp_sort
+    from swarmsplat import kernels
+    from swarmsplat.kernels._warp import activate as warp_activate
+    from swarmsplat.kernels._warp import loss as warp_loss
+    from swarmsplat.kernels._warp import project as warp_project
+    from swarmsplat.kernels._warp import raster as warp_raster
+    from swarmsplat.kernels._warp import sort as warp_sort
 
     base = {SCALAR_PEER: "warp", TAICHI_SCALAR_PEER: "taichi"}.get(name, name)
     kernels.use(base, device)
@@ -124,7 +124,7 @@ def use_backend(name: str, device: str) -> str:
     warp_sort.CPU_SORT = "warp" if peer else "native"
     warp_loss.CPU_LOSS = "scalar" if peer else "native"
     if base == "taichi":  # imported only here: a Warp-only install (e.g. a Jetson without Taichi) has no taichi
-        from kernels._taichi import raster as taichi_raster
+        from swarmsplat.kernels._taichi import raster as taichi_raster
 
         taichi_raster.CPU_COMPOSITE = "scalar" if name == TAICHI_SCALAR_PEER else "vector"
     return base
@@ -147,3 +147,31 @@ def checkout(against: str, tool: str):
         finally:
             subprocess.run(["git", "-C", here, "worktree", "remove", "--force", old], check=False,
                            capture_output=True)
+
+
+FOLDERS = ("kernels", "registration", "graph", "slam", "perf")
+
+# The start of a child that imports the package from a checkout (tree_env): `kernels` and `perf` bound to that
+# tree's, under the one import name (this layout) or as the top-level folders of older commits.
+CHILD_IMPORTS = r"""
+import os
+if os.environ.get("SWARMSPLAT_TREE_LAYOUT") == "namespace":
+    from swarmsplat import kernels, perf
+else:
+    import kernels, perf
+"""
+
+
+def tree_env(tree: str, scratch: str) -> dict:
+    """The environment of a child process that imports the package from `tree`, a checkout of any commit. The
+    `swarmsplat.*` names resolve to the tree's folders through a namespace folder of links in `scratch`; older
+    commits, whose folders were top-level packages, find them on the path (the tree itself)."""
+    ns = os.path.join(scratch, "namespace")
+    os.makedirs(os.path.join(ns, "swarmsplat"), exist_ok=True)
+    for top in FOLDERS:
+        link = os.path.join(ns, "swarmsplat", top)
+        if not os.path.lexists(link):
+            os.symlink(os.path.join(tree, top), link)
+    layout = "namespace" if os.path.exists(os.path.join(tree, "setup.py")) else "folders"
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([ns, tree]), SWARMSPLAT_TREE_LAYOUT=layout)
+

@@ -122,7 +122,7 @@ def _env() -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from perf.__main__ import SUBJECTS
+    from .__main__ import SUBJECTS
 
     p = argparse.ArgumentParser(prog="python -m perf device-check", description=__doc__.splitlines()[0])
     p.add_argument("--device", choices=["cuda", "vulkan", "cpu"], default="cuda")
@@ -134,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="JSON report (default: perf/results/device-check-<device>.json)")
     args = p.parse_args(argv)
 
-    import kernels
-    from kernels.fileio import atomic_write_text
-    from perf.common import machine_info
+    from swarmsplat import kernels
+    from swarmsplat.kernels.fileio import atomic_write_text
+    from .common import machine_info
 
     out = Path(args.out or REPO / "perf" / "results" / f"device-check-{args.device}.json")
     report = {"device": args.device, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info(),

@@ -32,7 +32,7 @@ BACKBONES = {
 
 
 def team_config(backbone: str, quick: bool, seed: int = 0):
-    from graph.synthetic import TeamConfig
+    from swarmsplat.graph.synthetic import TeamConfig
 
     kw = dict(BACKBONES[backbone], seed=seed)
     if quick:
@@ -42,7 +42,7 @@ def team_config(backbone: str, quick: bool, seed: int = 0):
 
 def scaled_initial_poses(graph, scales: dict[int, float]):
     """Chordal initialisation of `graph` with each up-to-scale loop's translation multiplied by its scale."""
-    from graph.init import chordal_initialization
+    from swarmsplat.graph.init import chordal_initialization
 
     g = graph.with_poses(graph.poses)
     g.edges = [copy.copy(e) for e in graph.edges]
@@ -54,10 +54,10 @@ def scaled_initial_poses(graph, scales: dict[int, float]):
 
 def run_backbone(backbone: str, quick: bool, gnc: bool = True, seed: int = 0, log=print, config=None) -> dict:
     """All rows x scale initialisations for one odometry backbone; `config` (a TeamConfig) overrides the team."""
-    from graph.formulations import build_problem, initial_scales
-    from graph.metrics import ate
-    from graph.solvers import solve
-    from graph.synthetic import make_team
+    from swarmsplat.graph.formulations import build_problem, initial_scales
+    from swarmsplat.graph.metrics import ate
+    from swarmsplat.graph.solvers import solve
+    from swarmsplat.graph.synthetic import make_team
 
     team = make_team(config or team_config(backbone, quick, seed))
     g = team.graph
@@ -129,8 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
 
-    from kernels.fileio import atomic_write_text
-    from perf.common import machine_info
+    from swarmsplat.kernels.fileio import atomic_write_text
+    from .common import machine_info
 
     t0 = time.perf_counter()
     report = {"machine": machine_info(), "quick": args.quick, "seed": args.seed, "backbones": {}}

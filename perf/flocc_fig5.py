@@ -13,8 +13,8 @@ For each keyframe spacing d, a robot takes a keyframe whenever its *odometry* pa
 d (spacings that double are nested: every keyframe at 2d is one at d). Then, as `swarmsplat pairs` does:
 BoW descriptors (vocabulary trained once, seed 0, on the finest keyframes) -> nearest neighbour in every other
 robot above cosine 0.1 (the paper's value) -> pair registration and the query robot's odometry pair
-(`slam.frontend.LoopFrontend`) -> ratio (eq. 1), gate R_thr and p (eq. 2, `graph.confidence`) -> the swarm's own
-graph build and solve (`slam.swarm.optimiser.solve_group`: odometry + unit-translation loops, eq. 6 initial
+(`slam.flocc.frontend.LoopFrontend`) -> ratio (eq. 1), gate R_thr and p (eq. 2, `graph.confidence`) -> the swarm's own
+graph build and solve (`slam.flocc.swarm.optimiser.solve_group`: odometry + unit-translation loops, eq. 6 initial
 scale) with base-LM, IS-LM and base-GNC.
 
 Per spacing and backend: keyframes, candidates, accepted loops, how many are correct by the paper's criterion
@@ -37,15 +37,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perf.flocc_fig5_data import (DEFAULT_ROWS, CachedRegistrar, FrameCache, Scene, keyframes,  # noqa: F401
-                                   registrars)  # (re-exported)
+from .flocc_fig5_data import DEFAULT_ROWS, CachedRegistrar, FrameCache, Scene, keyframes, registrars  # (re-exported)
 
 DESCRIPTION = "FLOCC Fig. 5: loops and ATE vs keyframe spacing per registration backend; R_thr sweep"
 OUTLIER_M = 2.0  # the paper's criterion (Fig. 3 / §IV-B)
 STRICT_ROT_DEG, STRICT_T_M = 5.0, 0.3  # room-scale criterion
 FORMULATIONS = (("base-LM", "base", "lm"), ("IS-LM", "is", "lm"), ("base-GNC", "base", "gnc"))
 R_THR_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4)
-R_THR_STUDY = {"classical": 0.15, "xfeat": 0.25}  # R_thr of the Fig. 5 rows per backend (slam.frontend.default_r_thr)
+R_THR_STUDY = {"classical": 0.15, "xfeat": 0.25}  # R_thr of the Fig. 5 rows per backend (slam.flocc.frontend.default_r_thr)
 
 
 @dataclass(frozen=True)
@@ -109,10 +108,10 @@ def run_spacing(scene: Scene, cache: FrameCache, recognizer, spacing: float, cfg
                 registrar_cls=None) -> SpacingRun:
     """Place recognition + registration + ratio for every candidate at one spacing (no gate: ratios kept).
     `registrar_cls` (default CachedRegistrar) lets a test wrap the registrations (e.g. inject wrong poses)."""
-    from graph.confidence import correspondence_ratio
-    from registration.place_recognition import PlaceDatabase
-    from slam.frontend import LoopFrontend
-    from slam.pairs import gt_errors
+    from swarmsplat.graph.confidence import correspondence_ratio
+    from swarmsplat.registration.place_recognition import PlaceDatabase
+    from swarmsplat.slam.flocc.frontend import LoopFrontend
+    from swarmsplat.slam.run.pairs import gt_errors
 
     kf = {c: keyframes(scene.odometry[c], spacing) for c in scene.robots}
     frame_of = {}
@@ -168,7 +167,7 @@ def run_spacing(scene: Scene, cache: FrameCache, recognizer, spacing: float, cfg
 
 def accepted(cands: list[Candidate], r_thr: float, k: float | None = None) -> list[tuple[Candidate, float]]:
     """Candidates passing eq. 1's gate at `r_thr`, each with its eq. 2 confidence p (graph.confidence)."""
-    from graph.confidence import K_DEFAULT, loop_confidence
+    from swarmsplat.graph.confidence import K_DEFAULT, loop_confidence
 
     out = []
     for c in cands:
@@ -182,9 +181,9 @@ def accepted(cands: list[Candidate], r_thr: float, k: float | None = None) -> li
 def solve(scene: Scene, run: SpacingRun, loops: list[tuple[Candidate, float]], formulation: str, solver: str) -> dict:
     """Pose graph of all robots (the swarm optimiser's build and solve); ATE over every frame of the robots in
     the component that joins the most robots."""
-    from graph.pose_graph import key_robot
-    from slam.swarm.messages import GraphSubmission
-    from slam.swarm.optimiser import SolveConfig, solve_group
+    from swarmsplat.graph.pose_graph import key_robot
+    from swarmsplat.slam.flocc.swarm.messages import GraphSubmission
+    from swarmsplat.slam.flocc.swarm.optimiser import SolveConfig, solve_group
 
     rid = {c: r for r, c in enumerate(scene.robots)}
     subs = {}
@@ -212,7 +211,7 @@ def solve(scene: Scene, run: SpacingRun, loops: list[tuple[Candidate, float]], f
 def dense_ate_rmse(scene: Scene, kf: dict[str, list[int]], est: dict[str, np.ndarray]) -> float:
     """ATE RMSE (m) over every frame of the robots in `est` (robot -> [K, 4, 4] keyframe estimates): each frame is
     its last keyframe's estimate composed with odometry since; one rigid alignment for all (evo's APE --align)."""
-    from graph.metrics import ate
+    from swarmsplat.graph.metrics import ate
 
     P, G = {}, {}
     for r, c in enumerate(sorted(est)):
@@ -234,7 +233,7 @@ def odometry_reference_ate(scene: Scene, robots: str) -> float:
 
 def train_recognizer(scene: Scene, cfg: StudyConfig):
     """BoW vocabulary from ~60 of the finest spacing's keyframes spread over all robots (seed 0), as `pairs`."""
-    from registration.place_recognition.vlad import BoWRecognizer
+    from swarmsplat.registration.place_recognition.vlad import BoWRecognizer
 
     d = min(cfg.spacings)
     every = [(c, f) for c in scene.robots for f in keyframes(scene.odometry[c], d)]
@@ -368,10 +367,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-gnc", action="store_true")
     args = p.parse_args(argv)
 
-    from kernels.errors import InputError
-    from kernels.fileio import atomic_write_text
-    from perf.common import machine_info
-    from perf.flocc_fig5_report import header, markdown
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import atomic_write_text
+    from .common import machine_info
+    from .flocc_fig5_report import header, markdown
 
     if args.from_json:
         with open(args.from_json) as f:

@@ -16,9 +16,9 @@ class Scene:
     """Ground truth, odometry and lazily rendered noisy images of a generated monocular team (robots 'a', 'b', ..)."""
 
     def __init__(self, cfg, seed: int):  # cfg: perf.flocc_fig5.StudyConfig
-        from slam.synthetic import GeneratorConfig, agent_poses, dataset_camera, generate_world
-        from slam.synthetic.config import MotionConfig
-        from slam.synthetic.mono import drifting_odometry
+        from swarmsplat.slam.synthetic import GeneratorConfig, agent_poses, dataset_camera, generate_world
+        from swarmsplat.slam.synthetic.config import MotionConfig
+        from swarmsplat.slam.synthetic.mono import drifting_odometry
 
         self.gen = GeneratorConfig.build(name="fig5", seed=seed, agents=cfg.agents, frames=cfg.frames,
                                          width=cfg.width, height=cfg.height, mono=True,
@@ -35,8 +35,8 @@ class Scene:
 
     def render(self, robot: str, frames) -> None:
         """Render (and keep) the images of `frames` of `robot` not rendered yet, in batches."""
-        from slam.synthetic.noise import frame_rng, noisy_color
-        from slam.synthetic.render import cast
+        from swarmsplat.slam.synthetic.noise import frame_rng, noisy_color
+        from swarmsplat.slam.synthetic.render import cast
 
         todo = [f for f in frames if (robot, f) not in self._images]
         t0 = time.perf_counter()
@@ -58,7 +58,7 @@ class Scene:
 def keyframes(odometry: np.ndarray, spacing: float) -> list[int]:
     """Frame indices where the odometry path length first reaches 0, d, 2d, ... (frame 0 always)."""
     if spacing <= 0:
-        from kernels.errors import InputError
+        from swarmsplat.kernels.errors import InputError
 
         raise InputError(f"keyframe spacing must be > 0 m, got {spacing}")
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odometry[:, :3, 3], axis=0), axis=1))]
@@ -111,8 +111,8 @@ class CachedRegistrar:
 def registrars(names=DEFAULT_ROWS) -> list[tuple[str, object | None, str]]:
     """(row name, registrar or None, why not available) for the backends `names` of the study: classical rows
     ('classical', 'classical-orb') first, then the learned ones asked for."""
-    from kernels.errors import InputError, SwarmsplatError
-    from registration.pair import make_registrar
+    from swarmsplat.kernels.errors import InputError, SwarmsplatError
+    from swarmsplat.registration.pair import make_registrar
 
     learned = (("xfeat", "xfeat", {}), ("lightglue-disk", "lightglue", dict(features="disk", max_keypoints=1024)),
                ("mast3r", "mast3r", dict(checkpoint=os.environ.get("SWARMSPLAT_MAST3R_CHECKPOINT"))))

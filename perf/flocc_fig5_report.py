@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from perf.flocc_fig5 import FORMULATIONS, OUTLIER_M, STRICT_ROT_DEG, STRICT_T_M
+from .flocc_fig5 import FORMULATIONS, OUTLIER_M, STRICT_ROT_DEG, STRICT_T_M
 
 
 def _f(v, nd=3) -> str:

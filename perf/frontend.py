@@ -19,13 +19,13 @@ import os
 
 import numpy as np
 
-from perf.common import time_fn
+from .common import time_fn
 
 DESCRIPTION = "loop front-end: encode ms/image, register ms/pair, bytes/keyframe per backend (peer: classical SIFT)"
 
 
 def _pair(width: int, height: int):
-    from registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
+    from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
 
     cam = default_camera(width, height)
     room = TexturedRoom(seed=0)
@@ -51,7 +51,7 @@ def _timed(fn, opts: dict) -> dict:
 
 
 def _registrars(quick: bool):
-    from registration.pair import lightglue, make_registrar, xfeat
+    from swarmsplat.registration.pair import lightglue, make_registrar, xfeat
 
     regs = [("classical-sift", make_registrar("classical", feature="sift")),
             ("classical-orb", make_registrar("classical", feature="orb"))]
@@ -76,8 +76,8 @@ def _random_full_mast3r():
     and PnP then run on meaningless matches, so only encode and decode times are representative)."""
     import torch
 
-    from registration.pair.mast3r.model import Mast3rConfig, Mast3rNet
-    from registration.pair.mast3r.registrar import Mast3rRegistrar
+    from swarmsplat.registration.pair.mast3r.model import Mast3rConfig, Mast3rNet
+    from swarmsplat.registration.pair.mast3r.registrar import Mast3rRegistrar
 
     with torch.device("meta"):
         net = Mast3rNet(Mast3rConfig())
@@ -91,7 +91,7 @@ def _random_full_mast3r():
 
 def _mast3r_encoding_bytes(width: int, height: int) -> int:
     """Exact bytes of a full-size MASt3R encoding for an image of this size (float16 tokens + header)."""
-    from registration.pair.base import Encoding
+    from swarmsplat.registration.pair.base import Encoding
 
     s = 512 / max(width, height)
     gw, gh = round(width * s) // 16, round(height * s) // 16
@@ -102,8 +102,8 @@ def _mast3r_encoding_bytes(width: int, height: int) -> int:
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import torch
 
-    from registration.pair.base import direction_error_deg, rotation_error_deg
-    from registration.place_recognition.vlad import BoWRecognizer, VLADRecognizer
+    from swarmsplat.registration.pair.base import direction_error_deg, rotation_error_deg
+    from swarmsplat.registration.place_recognition.vlad import BoWRecognizer, VLADRecognizer
 
     width, height = (320, 240) if quick else (640, 480)
     repeat = 3 if quick else 7

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from perf.common import time_fn
+from .common import time_fn
 
 DESCRIPTION = "synthetic RGB-D generator, frames/s at 320x240 (peer: Open3D RaycastingScene ray cast alone)"
 
@@ -26,10 +26,10 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import cv2
     import open3d as o3d
 
-    from kernels import se3
-    from slam.synthetic import GeneratorConfig, agent_poses, cast, dataset_camera, generate, generate_world
-    from slam.synthetic.noise import depth_to_uint16, frame_rng, noisy_color, noisy_depth
-    from slam.synthetic.writer import PNG_PARAMS
+    from swarmsplat.kernels import se3
+    from swarmsplat.slam.synthetic import GeneratorConfig, agent_poses, cast, dataset_camera, generate, generate_world
+    from swarmsplat.slam.synthetic.noise import depth_to_uint16, frame_rng, noisy_color, noisy_depth
+    from swarmsplat.slam.synthetic.writer import PNG_PARAMS
 
     cfg = GeneratorConfig.preset("default", agents=1, frames=16 if quick else 48)
     world = generate_world(cfg.seed, cfg.world)

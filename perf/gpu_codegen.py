@@ -40,7 +40,7 @@ def warp_modules() -> dict:
     Factory-made modules get the label their file gives them in `aot_kernels()` (kept in LABELS)."""
     import warp as wp
 
-    import kernels._warp as pkg
+    import swarmsplat.kernels._warp as pkg
 
     wp.config.log_level = getattr(wp, "LOG_WARNING", 30)
     wp.init()
@@ -176,7 +176,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", dest="json_out", help="write the table as JSON here")
     p.add_argument("--md", dest="md_out", help="write the Markdown table here")
     args = p.parse_args(argv)
-    from kernels.fileio import atomic_write_text
+    from swarmsplat.kernels.fileio import atomic_write_text
 
     res = run(args.arch)
     md = markdown(res)

@@ -13,11 +13,11 @@ DESCRIPTION = ("solve time of the FLOCC team graph (6 robots, ~3,500 poses, 2,00
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import gtsam
 
-    from graph.formulations import build_problem, initial_scales
-    from graph.synthetic import TeamConfig, make_team
-    from graph.solvers import custom_loop_factors, gnc, levenberg_marquardt
-    from perf.common import time_fn
-    from perf.flocc_experiment import scaled_initial_poses
+    from swarmsplat.graph.formulations import build_problem, initial_scales
+    from swarmsplat.graph.synthetic import TeamConfig, make_team
+    from swarmsplat.graph.solvers import custom_loop_factors, gnc, levenberg_marquardt
+    from .common import time_fn
+    from .flocc_experiment import scaled_initial_poses
 
     cfg = TeamConfig(length_m=250.0, target_loops=600, grid_nodes=3) if quick else TeamConfig()
     team = make_team(cfg)

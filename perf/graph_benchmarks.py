@@ -43,8 +43,8 @@ def gtsam_pipeline(path: Path, graph):
     import gtsam
     import numpy as np
 
-    from graph.formulations import pose_values
-    from graph.g2o import se2_matrix
+    from swarmsplat.graph.formulations import pose_values
+    from swarmsplat.graph.g2o import se2_matrix
 
     is_2d = graph.is_2d
     nfg, initial = gtsam.readG2o(str(path), not is_2d)
@@ -77,9 +77,9 @@ def gtsam_pipeline(path: Path, graph):
 
 
 def our_pipeline(graph, objective: str):
-    from graph.formulations import build_problem
-    from graph.init import initialize
-    from graph.solvers import levenberg_marquardt
+    from swarmsplat.graph.formulations import build_problem
+    from swarmsplat.graph.init import initialize
+    from swarmsplat.graph.solvers import levenberg_marquardt
 
     c0, t0 = time.process_time(), time.perf_counter()
     poses, rep = initialize(graph, "best", objective)
@@ -93,8 +93,8 @@ def our_pipeline(graph, objective: str):
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from graph.g2o import read_g2o
-    from graph.metrics import se_sync_cost
+    from swarmsplat.graph.g2o import read_g2o
+    from swarmsplat.graph.metrics import se_sync_cost
 
     root = _data_root()
     repeat = 1 if quick else 3

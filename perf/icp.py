@@ -10,14 +10,14 @@ import os
 
 import numpy as np
 
-from perf.common import time_fn
+from .common import time_fn
 
 DESCRIPTION = ("point-to-plane ICP per iteration and per registration on a 640x480 RGB-D pair (307k points) and on "
                "voxelised clouds, plus the coarse RGB-D stage; ours (Warp, Taichi) vs Open3D legacy / tensor")
 
 
 def _err(T, T_true):
-    from kernels import se3
+    from swarmsplat.kernels import se3
 
     D = se3.inverse(T_true) @ T
     return float(np.linalg.norm(D[:3, 3]) * 1e3), float(np.rad2deg(se3.rotation_angle(D[:3, :3])))
@@ -110,9 +110,9 @@ def _row(case: str, impl: str, seconds: float, peer: dict | None = None, err=Non
 
 def _coarse_rows(cam, cs, ds, ct, dt, T_true, backend, repeat):
     """The coarse RGB-D stage from identity: ours (hybrid, geometric) and Open3D's odometry variants."""
-    import kernels
+    from swarmsplat import kernels
     import open3d as o3d
-    from registration.rgbd import rgbd_odometry
+    from swarmsplat.registration.rgbd import rgbd_odometry
 
     kernels.use(backend, "cpu")
     rows = []
@@ -145,12 +145,12 @@ def _coarse_rows(cam, cs, ds, ct, dt, T_true, backend, repeat):
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import torch
 
-    import kernels
-    from kernels import icp as K
-    from kernels import se3
-    from registration import synthetic
-    from registration.icp import icp_clouds, icp_rgbd
-    from registration.pointcloud import depth_to_points, voxel_downsample
+    from swarmsplat import kernels
+    from swarmsplat.kernels import icp as K
+    from swarmsplat.kernels import se3
+    from swarmsplat.registration import synthetic
+    from swarmsplat.registration.icp import icp_clouds, icp_rgbd
+    from swarmsplat.registration.pointcloud import depth_to_points, voxel_downsample
 
     # Torch's intra-op threads spin against each other on a busy 2-core machine (small reductions 100x slower);
     # the kernels do the heavy work, so keep torch on one thread for the measurement and restore it after.

@@ -20,8 +20,8 @@ REVISITS = [(175, 10), (180, 15), (185, 5), (190, 10), (195, 15), (200, 15), (20
 
 
 def _run_agent(seq, overrides: dict, n: int | None = None):
-    from slam.agent import Agent
-    from slam.config import SlamConfig
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.config import SlamConfig
 
     cfg = SlamConfig().override({"mapping": {"iterations": 0, "first_iterations": 0},
                                  "tracking": {"refine": False, "refine_on_coarse_failure": False}, **overrides})
@@ -34,7 +34,7 @@ def _run_agent(seq, overrides: dict, n: int | None = None):
 
 
 def _row(name: str, seq, agent, seconds: float) -> dict:
-    from slam.metrics import ate
+    from swarmsplat.slam.metrics import ate
 
     stamps, T = agent.trajectory()
     _, T0 = agent.trajectory_no_lc()
@@ -56,8 +56,8 @@ def _row(name: str, seq, agent, seconds: float) -> dict:
 def _reference_check(seq, agent) -> list[dict]:
     """Point-to-plane fit (Open3D fitness / inlier RMSE at 5 cm) of each revisit pair under the pseudo ground
     truth and under our trajectory: the pose that explains the depth better has the lower RMSE."""
-    from registration.icp import evaluate_rgbd
-    from slam.frames import make_rgbd
+    from swarmsplat.registration.icp import evaluate_rgbd
+    from swarmsplat.slam.dense.frames import make_rgbd
 
     _, T = agent.trajectory()
     gt = seq.gt_poses
@@ -78,8 +78,8 @@ def _reference_check(seq, agent) -> list[dict]:
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
     import torch
 
-    import kernels
-    from slam.datasets import load_sequence
+    from swarmsplat import kernels
+    from swarmsplat.slam.io.datasets import load_sequence
 
     kernels.use(backends[0], device)
     torch.set_num_threads(1)
@@ -98,7 +98,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         notes.append(f"{REDWOOD} not present: Redwood rows skipped")
     import tempfile
 
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     with tempfile.TemporaryDirectory() as tmp:
         frames = 60 if quick else 120
@@ -106,7 +106,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         seq = load_sequence(next(p for p in sorted(Path(ds).iterdir()) if p.is_dir()))
         agent, sec = _run_agent(seq, {})
         rows.append({"config": "default", **_row(f"generated seed 3 ({frames} frames)", seq, agent, sec)})
-    notes.append("ate_no_lc_cm is the same run's tracking-only trajectory (slam.agent.Agent.trajectory_no_lc).")
+    notes.append("ate_no_lc_cm is the same run's tracking-only trajectory (slam.dense.agent.Agent.trajectory_no_lc).")
     if ref:
         notes.append("Reference check (revisit pairs, point-to-plane at 5 cm, 320x240): " + "; ".join(
             f"{r['pair']}: pseudo-GT {r['pseudo_gt_rmse_mm']:.1f} mm / ours {r['ours_rmse_mm']:.1f} mm" for r in ref))

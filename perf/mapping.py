@@ -4,13 +4,13 @@
 Scene: perf.raster.make_scene's Gaussians (spread through the frustum at 1.5-6 m, 1-3.5 px on screen at 640 px
 scaled to the width) render the target colour and depth of three keyframes (the camera shifted by a few cm);
 the map to optimise is the same Gaussians with noise on means, colours and opacities, in the mapper's
-parametrisation. "ours" is `slam.mapper.Mapper.optimise`, the mapping loop the agent runs (iteration cost =
+parametrisation. "ours" is `slam.dense.mapping.mapper.Mapper.optimise`, the mapping loop the agent runs (iteration cost =
 the time difference between a long and a short run, divided by the extra iterations, so Adam's and the targets'
 set-up are not counted); the peer is the same step written with torch's default Adam and the eq.-3 loss from
-slam.render.rgbd_loss, as the mapper did before. The split (render / loss / backward / Adam) is timed on ours.
+slam.dense.render.rgbd_loss, as the mapper did before. The split (render / loss / backward / Adam) is timed on ours.
 
 Torch runs with the pipeline's intra-op thread count (`slam.config.KernelsConfig.torch_threads`, default 1, which
-`slam.run` sets): with torch's default (one thread per core) every 60k-element torch operation of the step (the
+`slam.run.sequence` sets): with torch's default (one thread per core) every 60k-element torch operation of the step (the
 parameter activations, their backward, the medians, Adam) is a thread hand-off, and on this 2-core machine the
 step measured that way was 2-3x slower than with one thread at a load of 4 (both back to back), and it is
 not what the agent runs.
@@ -33,9 +33,9 @@ WIDTH, HEIGHT, N = 320, 240, 60_000
 
 @contextlib.contextmanager
 def pipeline_torch_threads():
-    """torch.set_num_threads as `slam.run` sets it (KernelsConfig.torch_threads; 0 = torch's default), restored
+    """torch.set_num_threads as `slam.run.sequence` sets it (KernelsConfig.torch_threads; 0 = torch's default), restored
     afterwards. Yields the thread count in effect."""
-    from slam.config import KernelsConfig
+    from swarmsplat.slam.config import KernelsConfig
 
     before = torch.get_num_threads()
     want = KernelsConfig().torch_threads
@@ -49,14 +49,14 @@ def pipeline_torch_threads():
 
 def _setup(n: int, width: int, height: int, seed: int = 0):
     """(submap, keyframes, cfg) of the scene described in the module docstring."""
-    from kernels import se3
-    from kernels.camera import PinholeCamera
-    from perf.raster import make_scene
-    from slam.config import MappingConfig
-    from slam.frames import RGBD
-    from slam.gaussian_map import GaussianParams, Submap
-    from slam.mapper import MapKeyframe
-    from slam.render import render
+    from swarmsplat.kernels import se3
+    from swarmsplat.kernels.camera import PinholeCamera
+    from .raster import make_scene
+    from swarmsplat.slam.config import MappingConfig
+    from swarmsplat.slam.dense.frames import RGBD
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams, Submap
+    from swarmsplat.slam.dense.mapping.mapper import MapKeyframe
+    from swarmsplat.slam.dense.render import render
 
     s = make_scene(n, width, height, seed=seed)
     K = s["K"].numpy().astype(np.float64)
@@ -80,7 +80,7 @@ def _setup(n: int, width: int, height: int, seed: int = 0):
 
 
 def _optimise_s(submap, keyframes, cfg, iterations: int) -> float:
-    from slam.mapper import Mapper
+    from swarmsplat.slam.dense.mapping.mapper import Mapper
 
     start = submap.params
     t0 = time.perf_counter()
@@ -91,10 +91,10 @@ def _optimise_s(submap, keyframes, cfg, iterations: int) -> float:
 
 
 def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
-    """The plain loop: torch's default Adam, torch's activations, slam.render.rgbd_loss + the isotropic penalty, one
+    """The plain loop: torch's default Adam, torch's activations, slam.dense.render.rgbd_loss + the isotropic penalty, one
     keyframe a step."""
-    from slam.param_ops import activate
-    from slam.render import render, rgbd_loss, viewmat_from_pose
+    from swarmsplat.slam.dense.param_ops import activate
+    from swarmsplat.slam.dense.render import render, rgbd_loss, viewmat_from_pose
 
     p = submap.params.detached().requires_grad_(True)
     opt = torch.optim.Adam([{"params": [p.means], "lr": cfg.lr_means}, {"params": [p.log_scales], "lr": cfg.lr_log_scales},
@@ -120,9 +120,9 @@ def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
 
 def _split_ms(submap, keyframes, cfg, iterations: int) -> dict:
     """Median per-stage wall times of `iterations` steps of the mapper's own pieces."""
-    from slam.mapper import make_optimizer, mapping_loss
-    from slam.param_ops import activate
-    from slam.render import render, viewmat_from_pose
+    from swarmsplat.slam.dense.mapping.mapper import make_optimizer, mapping_loss
+    from swarmsplat.slam.dense.param_ops import activate
+    from swarmsplat.slam.dense.render import render, viewmat_from_pose
 
     p = submap.params.detached().requires_grad_(True)
     opt = make_optimizer(p, cfg)
@@ -152,7 +152,7 @@ def run_with_pipeline_threads(fn, **kwargs) -> dict:
     """A subject's run(**kwargs) under pipeline_torch_threads, with a note saying the thread count."""
     with pipeline_torch_threads() as threads:
         out = fn(**kwargs)
-    out["notes"].append(f"torch intra-op threads: {threads} (slam.config.KernelsConfig.torch_threads, as slam.run "
+    out["notes"].append(f"torch intra-op threads: {threads} (slam.config.KernelsConfig.torch_threads, as slam.run.sequence "
                         "sets it; the torch operations around the kernels run on it)")
     return out
 
@@ -162,10 +162,10 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
 
 
 def _run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from perf.common import SCALAR_PEER, use_backend, with_scalar_peer
+    from .common import SCALAR_PEER, use_backend, with_scalar_peer
 
     if device != "cpu":
-        from kernels.errors import BackendError
+        from swarmsplat.kernels.errors import BackendError
 
         raise BackendError("perf mapping runs on the CPU (the mapper keeps its maps on the CPU)")
     n = 20_000 if quick else N
@@ -197,7 +197,7 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         "iteration including set-up, less sensitive to other users than wall time",
         f"iteration_ms: (time of Mapper.optimise with {long_} iterations - with {short}) / {long_ - short}, median "
         f"of {repeat}; the split columns are medians of single steps of the same pieces (not additive to it exactly)",
-        "peer: the same step with torch.optim.Adam defaults and slam.render.rgbd_loss, keyframes in turn, same "
+        "peer: the same step with torch.optim.Adam defaults and slam.dense.render.rgbd_loss, keyframes in turn, same "
         "process and scene",
     ]
     scalar = {r["N"]: r for r in rows if r["backend"] == SCALAR_PEER}

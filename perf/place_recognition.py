@@ -51,7 +51,7 @@ def recall(sim: np.ndarray, truth: np.ndarray, allowed: np.ndarray, ks=(1, 5)) -
 
 def _describe_all(name: str, images: list[np.ndarray]) -> tuple[np.ndarray, float, int]:
     """Build recogniser `name`, train it on `images` if it has a vocabulary, describe them all."""
-    from registration.place_recognition import VOCABULARY_BACKENDS, make_recognizer
+    from swarmsplat.registration.place_recognition import VOCABULARY_BACKENDS, make_recognizer
 
     rec = make_recognizer(name)
     if name in VOCABULARY_BACKENDS:
@@ -62,7 +62,7 @@ def _describe_all(name: str, images: list[np.ndarray]) -> tuple[np.ndarray, floa
 
 
 def real_rows(path, quick: bool) -> list[dict]:
-    from perf.redwood_pairs import load_sequence
+    from .redwood_pairs import load_sequence
 
     seq = load_sequence(path)
     frames = np.arange(0, len(seq), 3)
@@ -79,8 +79,8 @@ def real_rows(path, quick: bool) -> list[dict]:
 
 
 def generated_rows(quick: bool) -> list[dict]:
-    from perf.flocc_fig5 import StudyConfig
-    from perf.flocc_fig5_data import Scene, keyframes
+    from .flocc_fig5 import StudyConfig
+    from .flocc_fig5_data import Scene, keyframes
 
     cfg = StudyConfig.quick() if quick else StudyConfig()
     scene = Scene(cfg, seed=1)
@@ -101,7 +101,7 @@ def generated_rows(quick: bool) -> list[dict]:
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from perf.real_pairs import DATA
+    from .real_pairs import DATA
 
     load = os.getloadavg()[0]
     rows = real_rows(DATA, quick) if DATA.is_dir() else []

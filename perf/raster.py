@@ -25,7 +25,7 @@ import time
 
 import torch
 
-from perf.common import time_fn
+from .common import time_fn
 
 DESCRIPTION = "kernels.rasterize (colour+depth+alpha, 3DGS rules): forward and forward+backward vs a tile-based torch peer"
 
@@ -150,9 +150,9 @@ def _loss(color, depth, alpha):
 
 
 def _ours(scene, backward: bool, count: bool = False):
-    """One kernels.rasterize call as the pipeline makes it (count_touched=False, as slam.render does); count=True
+    """One kernels.rasterize call as the pipeline makes it (count_touched=False, as slam.dense.render does); count=True
     also counts each Gaussian's pixels (n_touched), for pairs_M."""
-    import kernels
+    from swarmsplat import kernels
 
     p = _params(scene, backward)
     o = kernels.rasterize(**p, count_touched=count)
@@ -177,7 +177,7 @@ def _log(msg: str) -> None:
 def _floor(scene, repeat: int) -> tuple[dict, dict]:
     """Per-call floor: kernels.rasterize forward, and forward + backward from fixed upstream gradients (no loss
     ops), median of `repeat` calls."""
-    import kernels
+    from swarmsplat import kernels
 
     p = _params(scene, True)
     o = kernels.rasterize(**p, count_touched=False)
@@ -203,14 +203,14 @@ def _floor(scene, repeat: int) -> tuple[dict, dict]:
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from perf.mapping import run_with_pipeline_threads
+    from .mapping import run_with_pipeline_threads
 
     return run_with_pipeline_threads(_run, backends=backends, device=device, quick=quick)
 
 
 def _run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from perf.common import SCALAR_PEER, TAICHI_SCALAR_PEER, use_backend, with_scalar_peer
-    from perf.roofline import fma_gflops
+    from .common import SCALAR_PEER, TAICHI_SCALAR_PEER, use_backend, with_scalar_peer
+    from .roofline import fma_gflops
 
     backends = with_scalar_peer(backends, device)
     if device == "cpu" and "taichi" in backends:  # Taichi's vector compositing against its scalar kernels

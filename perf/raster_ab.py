@@ -18,17 +18,20 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
+
+from .common import CHILD_IMPORTS, tree_env
 
 ISSUE_13_COMMIT = "143517d"
 CASES = [(640, 480, 50_000), (320, 240, 60_000), (320, 240, 10_000), (160, 120, 1_000)]
 
-_CHILD = r"""
+_CHILD = CHILD_IMPORTS + r"""
 import json, sys
 import torch
-import kernels
-from perf.common import time_fn
-import inspect
-from perf.raster import make_scene, _ours
+import importlib, inspect
+time_fn = importlib.import_module(perf.__name__ + ".common").time_fn
+raster = importlib.import_module(perf.__name__ + ".raster")
+make_scene, _ours = raster.make_scene, raster._ours
 # the same call in both trees: the issue-13 code always counted n_touched, so count here too where _ours can opt out
 count = {"count": True} if "count" in inspect.signature(_ours).parameters else {}
 torch.set_num_threads(1)
@@ -46,9 +49,9 @@ print("RESULT " + json.dumps(out))
 
 
 def _time_tree(tree: str, backend: str) -> list[dict]:
-    env = dict(os.environ, PYTHONPATH=tree)
-    p = subprocess.run([sys.executable, "-c", _CHILD, backend, json.dumps(CASES)], cwd=tree, env=env,
-                       capture_output=True, text=True, check=False)
+    with tempfile.TemporaryDirectory(prefix="swarmsplat-ab-env-") as scratch:
+        p = subprocess.run([sys.executable, "-c", _CHILD, backend, json.dumps(CASES)], cwd=tree,
+                           env=tree_env(tree, scratch), capture_output=True, text=True, check=False)
     lines = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
     if p.returncode or not lines:
         raise RuntimeError(f"timing {tree} failed (exit {p.returncode}):\n{p.stderr[-2000:]}")
@@ -56,7 +59,7 @@ def _time_tree(tree: str, backend: str) -> list[dict]:
 
 
 def run(against: str, rounds: int, backend: str) -> dict:
-    from perf.common import checkout
+    from .common import checkout
 
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     head = subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -92,7 +95,7 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     res = run(args.against, max(1, args.rounds), args.kernels)
     res["load_start"] = load0
-    from perf.common import print_and_save
+    from .common import print_and_save
 
     print_and_save(res, args.json_out)
     return 0

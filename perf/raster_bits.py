@@ -18,15 +18,18 @@ import subprocess
 import sys
 import tempfile
 
+from .common import CHILD_IMPORTS, tree_env
+
 CASES = [(160, 120, 1_000, 0), (320, 240, 20_000, 3), (320, 240, 60_000, 5), (640, 480, 10_000, 7)]
 NAMES = ["color", "depth", "depth_normalised", "alpha", "n_touched", "g_means", "g_quats", "g_scales",
          "g_opacities", "g_colors", "g_viewmat"]
 
-_CHILD = r"""
+_CHILD = CHILD_IMPORTS + r"""
 import json, sys
 import torch
-import kernels
-from perf.raster import _loss, _params, make_scene
+import importlib
+raster = importlib.import_module(perf.__name__ + ".raster")
+_loss, _params, make_scene = raster._loss, raster._params, raster.make_scene
 torch.set_num_threads(1)
 kernels.use(backend=sys.argv[1], device="cpu")
 out = []
@@ -47,7 +50,7 @@ def _outputs(tree: str, backend: str, path: str) -> list:
 
     import torch
 
-    env = dict(os.environ, PYTHONPATH=tree)
+    env = tree_env(tree, os.path.dirname(path) + "/" + os.path.basename(tree))
     p = subprocess.run([sys.executable, "-c", _CHILD, backend, json.dumps(CASES), path], cwd=tree, env=env,
                        capture_output=True, text=True, check=False)
     if p.returncode:
@@ -56,7 +59,7 @@ def _outputs(tree: str, backend: str, path: str) -> list:
 
 
 def run(against: str, backend: str) -> dict:
-    from perf.common import checkout
+    from .common import checkout
 
     with checkout(against, "perf.raster_bits") as (here, old), tempfile.TemporaryDirectory() as tmp:
         cur = _outputs(here, backend, os.path.join(tmp, "current.pt"))
@@ -77,7 +80,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", dest="json_out")
     args = p.parse_args(argv)
     res = run(args.against, args.kernels)
-    from perf.common import print_and_save
+    from .common import print_and_save
 
     print_and_save(res, args.json_out)
     print(f"[perf raster_bits] {'every output equal' if res['all_equal'] else 'OUTPUTS DIFFER'} "

@@ -30,8 +30,8 @@ COARSE_PER_BIN = 10  # the RGB-D rows run on the first pairs of each bin (FPFH +
 
 def evaluate(registrar, seq, pairs: list[dict]) -> dict:
     """Register every pair from scratch (both encodings timed) -> solved per bin, times per pair."""
-    from kernels import se3
-    from perf.redwood_pairs import is_solved
+    from swarmsplat.kernels import se3
+    from .redwood_pairs import is_solved
 
     cam = seq.camera
     solved, wall, cpu, corr = [], [], [], []
@@ -53,11 +53,11 @@ def evaluate(registrar, seq, pairs: list[dict]) -> dict:
 
 
 def evaluate_coarse(seq, pairs: list[dict], method: str) -> dict:
-    """Metric RGB-D coarse guess per pair: 'xfeat' (slam.learned_coarse) or 'fpfh' (FPFH + RANSAC, the global
+    """Metric RGB-D coarse guess per pair: 'xfeat' (slam.dense.loops.learned_coarse) or 'fpfh' (FPFH + RANSAC, the global
     fallback it replaces), both without an initial pose -> solved (rot < 5 deg, t < 0.1 m) and time per pair."""
-    from kernels import se3
-    from registration.rgbd import global_registration
-    from slam.learned_coarse import coarse_guess_from_pair
+    from swarmsplat.kernels import se3
+    from swarmsplat.registration.rgbd import global_registration
+    from swarmsplat.slam.dense.loops.learned_coarse import coarse_guess_from_pair
 
     cam = seq.camera
     frames: dict[int, object] = {}
@@ -85,8 +85,8 @@ def evaluate_coarse(seq, pairs: list[dict], method: str) -> dict:
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from perf.redwood_pairs import ROT_BINS, load_sequence, sample_pairs
-    from registration.pair import make_registrar
+    from .redwood_pairs import ROT_BINS, load_sequence, sample_pairs
+    from swarmsplat.registration.pair import make_registrar
 
     cols = ["backend", "pairs", "solved_pct"] + [f"solved_{lo:g}-{hi:g}" for lo, hi in ROT_BINS] + \
         ["pair_ms", "pair_cpu_ms", "median_corr", "time_vs_peer"]

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
 
 ROT_BINS = ((5.0, 15.0), (15.0, 30.0), (30.0, 60.0))  # degrees, the issue's bins
 SOLVED_ROT_DEG, SOLVED_DIR_DEG = 5.0, 15.0
@@ -48,9 +48,9 @@ def covisibility(depth_q: np.ndarray, depth_m: np.ndarray, T_query_match: np.nda
 
 
 def load_sequence(path):
-    """The Redwood sequence at `path` (slam.datasets loader), with its poses checked to be present."""
-    from kernels.errors import InputError
-    from slam.datasets import load_sequence as _load
+    """The Redwood sequence at `path` (slam.io.datasets loader), with its poses checked to be present."""
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.io.datasets import load_sequence as _load
 
     seq = _load(path)
     if seq.gt_poses is None or not np.isfinite(seq.gt_poses).all():
@@ -107,7 +107,7 @@ def sample_pairs(seq, *, per_bin: int = 30, bins=ROT_BINS, min_covis: float = 0.
 
 def is_solved(result, T_query_match: np.ndarray) -> bool:
     """Solved = registration succeeded, rotation error < 5 deg and translation direction error < 15 deg."""
-    from registration.pair.base import direction_error_deg, rotation_error_deg
+    from swarmsplat.registration.pair.base import direction_error_deg, rotation_error_deg
 
     if not result.success:
         return False

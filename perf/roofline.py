@@ -84,7 +84,7 @@ def fma_gflops(backend: str, device: str = "cpu", repeat: int = 5) -> float:
     if backend == "warp":
         import warp as wp
 
-        from kernels._warp.launch import launch
+        from swarmsplat.kernels._warp.launch import launch
 
         arr = wp.from_torch(out, requires_grad=False)
 

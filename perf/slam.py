@@ -16,8 +16,8 @@ DESCRIPTION = "GRAND-SLAM agent throughput (fps) at 320x240 and 640x480, time sp
 
 
 def _dataset(root: Path, width: int, frames: int) -> Path:
-    from slam.synthetic import GeneratorConfig, generate
-    from slam.synthetic.config import ColorNoiseConfig, DepthNoiseConfig
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic.config import ColorNoiseConfig, DepthNoiseConfig
 
     cfg = GeneratorConfig.build(name=f"perf_{width}", agents=1, frames=frames, width=width, height=width * 3 // 4,
                                 depth_noise=DepthNoiseConfig(enabled=False), color_noise=ColorNoiseConfig(enabled=False))
@@ -26,8 +26,8 @@ def _dataset(root: Path, width: int, frames: int) -> Path:
 
 
 def _run(seq: Path, out: Path, backend: str, device: str, width: int, refine: bool) -> dict:
-    from slam.config import SlamConfig
-    from slam.run import run_sequence
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.run.sequence import run_sequence
 
     cfg = SlamConfig().override({"image": {"max_width": width}, "tracking": {"refine": refine},
                                  "kernels": {"backend": backend, "device": device}})

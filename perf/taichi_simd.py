@@ -107,7 +107,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", dest="json_out")
     args = p.parse_args(argv)
     res = run()
-    from perf.common import print_and_save
+    from .common import print_and_save
 
     print_and_save(res, args.json_out)
     return 0

@@ -46,7 +46,7 @@ VARIANTS: dict[str, dict] = {
 
 def _rel_error(T_view: np.ndarray, T: np.ndarray, G_view: np.ndarray, G: np.ndarray) -> tuple[float, float]:
     """(mm, deg) between the estimated and the true pose of a frame relative to the view's pose."""
-    from kernels import se3
+    from swarmsplat.kernels import se3
 
     E = se3.inverse(se3.inverse(G_view) @ G) @ (se3.inverse(T_view) @ T)
     return 1e3 * float(np.linalg.norm(E[:3, 3])), float(np.degrees(se3.rotation_angle(E[:3, :3])))
@@ -56,8 +56,8 @@ def _loss(params, frame, T, alpha_min: float) -> tuple[float, float]:
     """(colour L1, depth L1 in m) of `frame` against the model rendered at T where alpha >= alpha_min."""
     import torch
 
-    from kernels import se3
-    from slam.render import render
+    from swarmsplat.kernels import se3
+    from swarmsplat.slam.dense.render import render
 
     with torch.no_grad():
         out = render(params, torch.as_tensor(se3.inverse(T), dtype=torch.float32), frame.camera)
@@ -75,7 +75,7 @@ def _refine_camera(agent, f, width: int):
 
 
 def _view_psnr(view, keyframe, alpha_min: float) -> float:
-    from slam.metrics.image import psnr
+    from swarmsplat.slam.metrics.image import psnr
 
     m = view.depth > 0
     if not m.any():
@@ -86,12 +86,12 @@ def _view_psnr(view, keyframe, alpha_min: float) -> float:
 def measure(seq, overrides: dict, frames: int, *, mapping: dict | None = None, shadow: bool = True,
             diagnostics: bool = True, poses: bool = False, stride: int = 1) -> dict:
     """Run one agent over the first `frames` frames of `seq` with tracking `overrides`; see the module doc."""
-    from slam.agent import Agent
-    from slam.config import SlamConfig
-    from slam.run import _trajectory_metrics
-    from slam.run_guard import read_frame
-    from slam.runtime import use_kernels
-    from slam.tracker import refine_against_view
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.run.sequence import _trajectory_metrics
+    from swarmsplat.slam.run.guard import read_frame
+    from swarmsplat.slam.run.runtime import use_kernels
+    from swarmsplat.slam.dense.tracking.tracker import refine_against_view
 
     upd = {"loop_closure": {"enabled": False}, "tracking": overrides}
     if mapping:
@@ -203,7 +203,7 @@ def summarise(rows: list[dict]) -> dict:
 
 def generated(root: Path, frames: int, width: int = 320, seed: int = 0) -> Path:
     """One agent of the demo's default preset (noise on) at width x 3/4 width, `frames` frames."""
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     cfg = GeneratorConfig.preset("default", agents=1, frames=frames, width=width, height=width * 3 // 4, seed=seed)
     return generate(root / f"gen_{width}_{frames}", cfg) / "agent_0"
@@ -237,7 +237,7 @@ COLUMNS = ["data", "variant", "frames", "ate_mm", "tracking_s", "tracking_cpu_s"
 
 
 def run(*, backends: list[str], device: str, quick: bool) -> dict:
-    from slam.datasets import load_sequence
+    from swarmsplat.slam.io.datasets import load_sequence
 
     frames = 20 if quick else 60
     rows = []
@@ -269,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if a.stride < 1 or a.frames < 1:
         p.error(f"--stride and --frames: expected positive integers, got {a.stride} and {a.frames}")
-    from slam.datasets import load_sequence
+    from swarmsplat.slam.io.datasets import load_sequence
 
     variants = {k: VARIANTS[k] for k in a.variants.split(",") if k}
     for s in a.set:
@@ -280,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = compare(seq, variants, a.frames, mapping=json.loads(a.mapping) if a.mapping else None,
                        shadow=not a.no_shadow, poses=a.poses, stride=a.stride)
     if a.json_out:
-        from kernels.fileio import atomic_write_text
+        from swarmsplat.kernels.fileio import atomic_write_text
 
         atomic_write_text(a.json_out, json.dumps({"rows": rows, "argv": argv or sys.argv[1:]}, indent=1, default=float))
     return 0

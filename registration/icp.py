@@ -14,11 +14,11 @@ from typing import Sequence
 import numpy as np
 import torch
 
-import kernels
-from kernels import icp as K
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat import kernels
+from swarmsplat.kernels import icp as K
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 from .pointcloud import (check_camera, check_color, check_depth, check_points, check_pose, gradient, intensity,
                          level_camera, select_rows, smooth_and_stride)

@@ -1,7 +1,7 @@
 """Checks and conversions for the images that enter place recognition and pair registration.
 
 Every backend calls `as_rgb8` first, so a wrong array fails here with one clear `InputError` instead of deep
-inside OpenCV or torch. Images are RGB uint8 [H, W, 3] (what `slam.datasets` returns); a single-channel uint8
+inside OpenCV or torch. Images are RGB uint8 [H, W, 3] (what `slam.io.datasets` returns); a single-channel uint8
 [H, W] or [H, W, 1] image is accepted and replicated to three channels.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 MIN_SIDE = 32  # below this no backend can find or describe structure reliably
 

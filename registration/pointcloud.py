@@ -7,8 +7,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 
 def check_camera(camera) -> PinholeCamera:

@@ -14,8 +14,8 @@ from typing import Sequence
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 from .icp import default_strides, evaluate_rgbd, icp_rgbd
 from .pointcloud import check_camera, check_color, check_depth, check_pose, depth_to_points

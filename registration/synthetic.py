@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
 
 ROOM = (np.array([-2.5, -1.5, -2.0]), np.array([2.5, 1.2, 3.5]))  # world frame, y down like the camera
 BOXES = (

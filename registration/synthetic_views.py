@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
 
 
 def _texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:

@@ -1,5 +1,5 @@
 import sys
 
-from slam.cli import main
+from swarmsplat.slam.cli import main
 
 sys.exit(main())

@@ -36,7 +36,7 @@ def backend(request):
     """Selects each backend on each device in turn; yields kernels.Backend. CUDA cases skip without a CUDA
     device, Vulkan cases where no Vulkan driver loads (Makefile: mesa-vulkan-drivers, libvulkan1), any case
     whose backend does not load here (kernels.devices())."""
-    import kernels
+    from swarmsplat import kernels
 
     name, device = request.param
     if device == "cuda" and not kernels.cuda_available():
@@ -50,7 +50,7 @@ def backend(request):
 
 @functools.lru_cache(maxsize=1)
 def _working_devices():
-    import kernels
+    from swarmsplat import kernels
 
     return tuple(kernels.devices())
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
 
 ROOM_LO, ROOM_HI = np.array([-2.0, -1.5, -1.0]), np.array([2.0, 1.5, 4.0])
 BOX_LO, BOX_HI = np.array([-0.4, 0.2, 1.6]), np.array([0.3, 1.5, 2.2])

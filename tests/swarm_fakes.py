@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
-from registration.pair.base import Encoding, PairRegistrar, PairResult
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.registration.pair.base import Encoding, PairRegistrar, PairResult
 
 N_PLACES = 12
 CAMERA = PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100)

@@ -14,10 +14,10 @@ sys.path.insert(0, str(Path(__file__).parent.parent))
 from swarm_fakes import CAMERA, FakeRecognizer, FakeRegistrar, scenario  # noqa: E402
 from test_swarm_runtime import N_KF, schedule  # noqa: E402
 
-from slam.swarm.clocked import TickClock, run_clocked  # noqa: E402
-from slam.swarm.node import NodeConfig, RobotNode  # noqa: E402
-from slam.swarm.optimiser import SolveConfig, warm_up  # noqa: E402
-from slam.swarm.zenoh_transport import ZenohTransport  # noqa: E402
+from swarmsplat.slam.flocc.swarm.clocked import TickClock, run_clocked  # noqa: E402
+from swarmsplat.slam.flocc.swarm.node import NodeConfig, RobotNode  # noqa: E402
+from swarmsplat.slam.flocc.swarm.optimiser import SolveConfig, warm_up  # noqa: E402
+from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport  # noqa: E402
 
 
 def main(robot: int, port_base: int, out: str, run: str) -> None:

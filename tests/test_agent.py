@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 
-import kernels
-from kernels import se3
-from slam.agent import Agent
-from slam.config import SlamConfig
-from slam.frames import make_rgbd
-from slam.gaussian_map import GaussianMap
-from slam.loop_closure import LoopCloser
-from slam.submaps import Keyframe, world_pose
+from swarmsplat import kernels
+from swarmsplat.kernels import se3
+from swarmsplat.slam.dense.agent import Agent
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.frames import make_rgbd
+from swarmsplat.slam.dense.gaussian_map import GaussianMap
+from swarmsplat.slam.dense.loops.loop_closure import LoopCloser
+from swarmsplat.slam.dense.submaps import Keyframe, world_pose
 
 import slam_scene
 
@@ -85,10 +85,10 @@ def test_loop_closure_corrects_injected_drift():
 
 
 def test_tiny_sequence_end_to_end(tmp_path, warp_cpu):
-    from slam.cli import main
-    from slam.ply import load_ply
-    from slam.synthetic import GeneratorConfig, generate
-    from slam.trajectory import read_tum
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.dense.ply import load_ply
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.io.trajectory import read_tum
 
     ds = generate(tmp_path / "ds", GeneratorConfig.preset("tiny", agents=1, frames=6, seed=1))
     seq = next(p for p in ds.iterdir() if p.is_dir())
@@ -121,9 +121,9 @@ def test_redwood_five_frames_within_a_centimetre(tmp_path, warp_cpu):
     """Real noisy depth (Augmented ICL-NUIM living room 1, 640x480): every frame's pose relative to frame 0 within
     1 cm of trajectory.log. Mapping is cut to a few iterations; it does not steer the default tracker."""
     from conftest import shared_data
-    from slam.datasets import load_sequence
-    from slam.run import run_sequence
-    from slam.trajectory import read_tum
+    from swarmsplat.slam.io.datasets import load_sequence
+    from swarmsplat.slam.run.sequence import run_sequence
+    from swarmsplat.slam.io.trajectory import read_tum
 
     path = shared_data("redwood_livingroom1_rgbd5")
     cfg = SlamConfig().override({"mapping": {"max_width": 80, "iterations": 3, "first_iterations": 5}})
@@ -140,8 +140,8 @@ def test_single_agent_run_refines_its_merged_map(tmp_path, warp_cpu):
     """map_refine.single_agent: after the last frame the agent's merged map is optimised over its keyframes at the
     mapping resolution; metrics.json records the steps and time, and the merged map's keyframe PSNR goes up
     against the same run without it; the own-submap scores (the mapping stage's, taken before) are unchanged."""
-    from slam.run import run_sequence
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.run.sequence import run_sequence
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     ds = generate(tmp_path / "ds", GeneratorConfig.preset("tiny", agents=1, frames=6, seed=1))
     seq = next(p for p in ds.iterdir() if p.is_dir())

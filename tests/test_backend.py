@@ -4,8 +4,8 @@ import sys
 import pytest
 import torch
 
-import kernels
-from kernels.errors import BackendError, InputError
+from swarmsplat import kernels
+from swarmsplat.kernels.errors import BackendError, InputError
 
 
 def test_axpy_runs_on_each_backend(backend):
@@ -41,8 +41,8 @@ def test_axpy_rejects_bad_arguments(backend):
 
 def test_import_initialises_nothing():
     code = (
-        "import sys, kernels, slam, registration, graph\n"
-        "import kernels.backend as b\n"
+        "import sys, swarmsplat.kernels, swarmsplat.slam, swarmsplat.registration, swarmsplat.graph\n"
+        "import swarmsplat.kernels.backend as b\n"
         "assert b._active is None and b._taichi_arch is None and not b._warp_ready\n"
         "assert 'taichi' not in sys.modules and 'warp' not in sys.modules, [m for m in sys.modules if m in ('taichi','warp')]\n"
     )

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import pytest
 
-from slam.cli import main
+from swarmsplat.slam.cli import main
 
 PRECIOUS = "a file the user already had\n"
 
 
 @pytest.fixture(scope="module")
 def paths(tmp_path_factory):
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     root = tmp_path_factory.mktemp("cli_errors")
     f = root / "afile"

@@ -14,10 +14,10 @@ import pytest
 import yaml
 
 from conftest import shared_data
-from kernels import se3
-from kernels.errors import InputError
-from slam.datasets import (MultiAgentDataset, detect_sequence_format, load_dataset, load_sequence)
-from slam.trajectory import (read_euroc_csv, read_kitti, read_redwood_log, read_trajectory, write_tum)
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.io.datasets import MultiAgentDataset, detect_sequence_format, load_dataset, load_sequence
+from swarmsplat.slam.io.trajectory import read_euroc_csv, read_kitti, read_redwood_log, read_trajectory, write_tum
 
 W, H = 8, 6
 

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
-from slam.datasets import detect_sequence_format, load_dataset, load_sequence
-from slam.datasets.sevenscenes import SEVENSCENES_CAMERA, SEVENSCENES_COLOR_CAMERA
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.io.datasets import detect_sequence_format, load_dataset, load_sequence
+from swarmsplat.slam.io.datasets.sevenscenes import SEVENSCENES_CAMERA, SEVENSCENES_COLOR_CAMERA
 
 from test_run_split import FAST_YAML
 
@@ -249,7 +249,7 @@ RUN_ATE_BOUND_M = 5e-4
 @pytest.fixture(scope="module")
 def world_path():
     """The synthetic world and the first frames (about 3 cm apart) of one agent's path through it, T_world_cam."""
-    from slam.synthetic import GeneratorConfig, agent_poses, generate_world
+    from swarmsplat.slam.synthetic import GeneratorConfig, agent_poses, generate_world
 
     cfg = GeneratorConfig.preset("default")
     world = generate_world(cfg.seed, cfg.world)
@@ -257,7 +257,7 @@ def world_path():
 
 
 def _run(tmp_path, data, capsys):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     cfg = tmp_path / "fast.yaml"
     cfg.write_text(RUN_YAML)
@@ -269,7 +269,7 @@ def _run(tmp_path, data, capsys):
 
 
 def test_run_on_a_scannet_export(tmp_path, world_path, capsys):
-    from slam.synthetic import render
+    from swarmsplat.slam.synthetic import render
 
     world, T = world_path
     depth_cam = PinholeCamera(140.0, 140.0, 79.5, 59.5, 160, 120)
@@ -287,7 +287,7 @@ def test_run_on_a_scannet_export(tmp_path, world_path, capsys):
 
 
 def test_run_on_a_sevenscenes_sequence(tmp_path, world_path, capsys):
-    from slam.synthetic import render
+    from swarmsplat.slam.synthetic import render
 
     world, T = world_path
     seq = tmp_path / "seq-01"

@@ -6,8 +6,8 @@ import json
 
 
 def test_demo_tiny_end_to_end(tmp_path):
-    from slam.cli import main
-    from slam.demo import ensure_dataset
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.run.demo import ensure_dataset
 
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--preset", "tiny", "--quiet"]) == 0
@@ -31,7 +31,7 @@ def test_demo_tiny_end_to_end(tmp_path):
 def test_tiny_team_with_pose_refinement_reports_the_trajectory_before_and_after(tmp_path):
     """map_refine.refine_poses (opt-in): the server refines the keyframe poses with the map; metrics.json reports the
     ATE at the refined poses and before them, and how far the poses moved (a few millimetres, not metres)."""
-    from slam import demo
+    from swarmsplat.slam.run import demo
 
     cfg = demo.demo_config("tiny").override({"map_refine": {"refine_poses": True}})
     m = demo.run_demo(tmp_path, preset="tiny", config=cfg, progress=False)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO, shared_data
-from kernels import se3
-from slam.cli import main
-from slam.trajectory import write_tum
+from swarmsplat.kernels import se3
+from swarmsplat.slam.cli import main
+from swarmsplat.slam.io.trajectory import write_tum
 
 EVO = "tum_trajectories_evo"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -121,12 +121,12 @@ def test_eval_bad_inputs_one_line_nonzero(tmp_path, capsys):
 
 def test_eval_subprocess_console_entry(tmp_path):
     gt, est = shared_data(EVO, "fr2_desk_groundtruth.txt"), shared_data(EVO, "fr2_desk_ORB.txt")
-    r = subprocess.run([sys.executable, "-m", "slam", "eval", "--gt", str(gt), "--est", str(est),
+    r = subprocess.run([sys.executable, "-m", "swarmsplat.slam", "eval", "--gt", str(gt), "--est", str(est),
                         "--json", str(tmp_path / "o.json")], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0, r.stderr
     assert float(_ate_row(r.stdout)[1]) == pytest.approx(0.008119, abs=1e-6)
     assert json.loads((tmp_path / "o.json").read_text())["ate_rmse"] == pytest.approx(0.008119, abs=1e-6)
-    r = subprocess.run([sys.executable, "-m", "slam", "eval", "--gt", str(tmp_path / "none.txt"), "--est", str(est)],
+    r = subprocess.run([sys.executable, "-m", "swarmsplat.slam", "eval", "--gt", str(tmp_path / "none.txt"), "--est", str(est)],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
@@ -171,8 +171,8 @@ def test_eval_team_needs_two_folders(tmp_path, capsys):
 
 def test_generated_dataset_loads_and_evaluates_end_to_end(tmp_path, capsys):
     """The generator's output (written by `swarmsplat generate`) read by our loaders and scored by eval."""
-    pytest.importorskip("slam.synthetic")
-    from slam.datasets import load_dataset
+    pytest.importorskip("swarmsplat.slam.synthetic")
+    from swarmsplat.slam.io.datasets import load_dataset
 
     data = tmp_path / "data"
     assert main(["generate", "--out", str(data), "--preset", "tiny", "--agents", "2", "--frames", "4", "--mono"]) == 0

@@ -1,4 +1,4 @@
-"""Rendering evaluation at the working and the input resolution (slam.evaluate_views) on the analytic scene."""
+"""Rendering evaluation at the working and the input resolution (slam.metrics.views) on the analytic scene."""
 
 from __future__ import annotations
 
@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from slam.config import SlamConfig
-from slam.evaluate_views import mean_scores, resolutions, score_frame, score_view
-from slam.frames import make_rgbd
-from slam.gaussian_map import GaussianMap
-from slam.mapper import MapKeyframe, Mapper
-from slam.metrics import psnr
+from swarmsplat import kernels
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.metrics.views import mean_scores, resolutions, score_frame, score_view
+from swarmsplat.slam.dense.frames import make_rgbd
+from swarmsplat.slam.dense.gaussian_map import GaussianMap
+from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper
+from swarmsplat.slam.metrics import psnr
 
 import slam_scene
 
@@ -56,7 +56,7 @@ def test_scores_at_both_resolutions(fitted):
     assert s["psnr"] > s["psnr_input_resolution"] > 15, s
     assert 0 < s["depth_l1_input_resolution"] < 0.1 and s["ssim"] > s["ssim_input_resolution"]
     # A wrong pose scores worse at both resolutions.
-    from kernels import se3
+    from swarmsplat.kernels import se3
 
     bad, _, _ = score_view(params, se3.exp(np.array([0.0, 0.05, 0.0, 0.05, 0.0, 0.0])), color, depth, cam, cfg)
     assert bad["psnr"] < s["psnr"] - 3 and bad["psnr_input_resolution"] < s["psnr_input_resolution"] - 3

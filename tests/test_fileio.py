@@ -3,7 +3,7 @@ import stat
 
 import pytest
 
-from kernels.fileio import atomic_path, atomic_write_text
+from swarmsplat.kernels.fileio import atomic_path, atomic_write_text
 
 
 def test_atomic_write_replaces_and_keeps_normal_permissions(tmp_path):

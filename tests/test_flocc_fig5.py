@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("cv2")
 pytest.importorskip("gtsam")
 
-from perf import flocc_fig5 as F  # noqa: E402
+from swarmsplat.perf import flocc_fig5 as F  # noqa: E402
 
 CFG = F.StudyConfig(seeds=(1,), agents=3, frames=80, loop_turns=1.5, width=160, height=120, spacings=(0.15, 0.6),
                     vocabulary=64, gnc=False)

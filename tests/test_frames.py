@@ -1,11 +1,11 @@
-"""slam.frames: resizing a frame's depth (block means that drop depth edges)."""
+"""slam.dense.frames: resizing a frame's depth (block means that drop depth edges)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
-from slam.frames import RGBD, _block_depth, _downsample_depth
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.slam.dense.frames import RGBD, _block_depth, _downsample_depth
 
 
 def test_halving_depth_equals_the_block_rule_bit_for_bit():

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from kernels import se3
-from kernels.errors import InputError
-from slam.config import SlamConfig
-from slam.gaussian_map import GaussianMap, GaussianParams, transform_params
-from slam.ply import load_ply, save_ply
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, transform_params
+from swarmsplat.slam.dense.ply import load_ply, save_ply
 
 
 def random_params(n: int, seed: int = 0) -> GaussianParams:
@@ -129,11 +129,11 @@ def _write(path, text):
 
 
 def test_frames_follow_their_keyframes_refined_pose():
-    """slam.submaps.frame_local_poses: after a keyframe whose pose the map refinement refined, a frame of the same
+    """slam.dense.submaps.frame_local_poses: after a keyframe whose pose the map refinement refined, a frame of the same
     submap keeps its tracked pose relative to that keyframe; frames before it, in another submap, or after an
     unrefined keyframe keep their tracked pose; Keyframe.T_local prefers the refined pose."""
-    from slam.agent import FramePose
-    from slam.submaps import Keyframe, frame_local_poses
+    from swarmsplat.slam.dense.agent import FramePose
+    from swarmsplat.slam.dense.submaps import Keyframe, frame_local_poses
 
     T = [se3.exp(np.array([0.0, 0.01 * i, 0.0, 0.1 * i, 0.0, 0.02 * i])) for i in range(7)]
     poses = [FramePose(i, float(i), 0 if i < 5 else 1, T[i]) for i in range(7)]

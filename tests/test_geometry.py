@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 rng = np.random.default_rng(0)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-gpu_codegen = pytest.importorskip("perf.gpu_codegen")
+gpu_codegen = pytest.importorskip("swarmsplat.perf.gpu_codegen")
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +27,7 @@ def test_every_kernel_file_contributes_a_module(modules):
     import pkgutil
     import re
 
-    import kernels._warp as pkg
+    import swarmsplat.kernels._warp as pkg
 
     with_kernels = 0
     for info in pkgutil.iter_modules(pkg.__path__):
@@ -79,7 +79,7 @@ def test_jetson_xavier_sm72_needs_a_cuda12_warp(modules, tmp_path):
     import warp._src.context as ctx
 
     toolkit = ctx.runtime.toolkit_version
-    module = modules["kernels._warp.axpy"]
+    module = modules["swarmsplat.kernels._warp.axpy"]
     if toolkit[0] >= 13:
         with pytest.raises(Exception, match="build failed"):
             gpu_codegen.build(module, 72, tmp_path)

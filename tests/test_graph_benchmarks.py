@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from graph.formulations import build_problem
-from graph.g2o import read_g2o
-from graph.init import chordal_initialization, initialize
-from graph.metrics import se_sync_cost
-from graph.newton import FrobeniusCurvature
-from graph.solvers import levenberg_marquardt
+from swarmsplat.graph.formulations import build_problem
+from swarmsplat.graph.g2o import read_g2o
+from swarmsplat.graph.init import chordal_initialization, initialize
+from swarmsplat.graph.metrics import se_sync_cost
+from swarmsplat.graph.newton import FrobeniusCurvature
+from swarmsplat.graph.solvers import levenberg_marquardt
 
 # dataset dir, file, published optimum (SE-Sync IJRR 2019, Tables 1-2: 4 digits), recomputed one (PROVENANCE)
 BENCHMARKS = [
@@ -97,7 +97,7 @@ def test_initialisation_keeps_the_better_per_component_and_falls_back(monkeypatc
 
 
 def test_cli_se_sync_objective_json(tmp_path, capsys):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     out = tmp_path / "csail.g2o"
     path = shared_data("se_sync_2d_small", "CSAIL.g2o")

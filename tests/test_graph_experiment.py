@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from graph.synthetic import TeamConfig
-from perf.flocc_experiment import INITS, ROWS, markdown, run_backbone
+from swarmsplat.graph.synthetic import TeamConfig
+from swarmsplat.perf.flocc_experiment import INITS, ROWS, markdown, run_backbone
 
 
 def test_flocc_experiment_tiny_team():

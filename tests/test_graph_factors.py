@@ -6,11 +6,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from graph import lie
-from graph.confidence import correspondence_ratio, loop_confidence, scale_information
-from graph.scale_factors import (is_loop_factor, is_residuals, scale_smoothing_custom_factor,
-                                 scale_smoothing_factor)
-from kernels.errors import InputError
+from swarmsplat.graph import lie
+from swarmsplat.graph.confidence import correspondence_ratio, loop_confidence, scale_information
+from swarmsplat.graph.scale_factors import (
+    is_loop_factor, is_residuals, scale_smoothing_custom_factor, scale_smoothing_factor)
+from swarmsplat.kernels.errors import InputError
 
 
 def _random_poses(rng, n, scale=1.0):
@@ -132,7 +132,7 @@ def test_confidence():
 
 
 def test_network_unit_residual_jacobians_match_numerical():
-    from graph.scale_factors import is_residuals_network
+    from swarmsplat.graph.scale_factors import is_residuals_network
 
     rng = np.random.default_rng(4)
     L = 5

@@ -8,15 +8,16 @@ import json
 import numpy as np
 import pytest
 
-from graph import lie
-from graph.formulations import build_problem
-from graph.g2o import read_g2o, repaired_edges, write_g2o
-from graph.information import (REPAIR_FLOOR, apply_policy, is_positive_definite, isotropic_information,
-                               isotropic_weights, nearest_pd, se_sync_weights)
-from graph.init import initialize
-from graph.pose_graph import LOOP, ODOMETRY, Edge, PoseGraph
-from graph.solvers import levenberg_marquardt
-from kernels.errors import InputError
+from swarmsplat.graph import lie
+from swarmsplat.graph.formulations import build_problem
+from swarmsplat.graph.g2o import read_g2o, repaired_edges, write_g2o
+from swarmsplat.graph.information import (
+    REPAIR_FLOOR, apply_policy, is_positive_definite, isotropic_information, isotropic_weights, nearest_pd,
+    se_sync_weights)
+from swarmsplat.graph.init import initialize
+from swarmsplat.graph.pose_graph import LOOP, ODOMETRY, Edge, PoseGraph
+from swarmsplat.graph.solvers import levenberg_marquardt
+from swarmsplat.kernels.errors import InputError
 
 N_POSES = 60
 GROSS, MILD = (3, 17, 30, 41, 62), (5, 22, 36, 50, 70)  # edges whose matrix the file gets badly / slightly wrong
@@ -149,7 +150,7 @@ def test_policies_replace_only_the_bad_edges_and_still_solve(synthetic, policy):
 
 
 def test_cli_information_policies(synthetic, tmp_path, capsys):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     _, _, _, bad = synthetic
     out = tmp_path / "out.g2o"

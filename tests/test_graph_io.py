@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from graph.formulations import build_problem
-from graph.g2o import read_g2o, write_g2o
-from graph.pose_graph import PoseGraph, key_index, key_robot, robot_key
-from graph.solvers import levenberg_marquardt
-from kernels.errors import InputError
+from swarmsplat.graph.formulations import build_problem
+from swarmsplat.graph.g2o import read_g2o, write_g2o
+from swarmsplat.graph.pose_graph import PoseGraph, key_index, key_robot, robot_key
+from swarmsplat.graph.solvers import levenberg_marquardt
+from swarmsplat.kernels.errors import InputError
 
 V0 = "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n"
 V1 = "VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
@@ -86,7 +86,7 @@ def test_dgs_multirobot_files_load_and_merge():
 
 
 def test_cli_graph_solve(tmp_path, capsys):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     a = shared_data("kimera_rpgo_two_robot", "robot_a.g2o")
     b = shared_data("kimera_rpgo_two_robot", "robot_b.g2o")

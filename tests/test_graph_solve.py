@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from graph import lie
-from graph.formulations import build_problem
-from graph.g2o import read_g2o
-from graph.init import chordal_initialization
-from graph.metrics import se_sync_cost
-from graph.pose_graph import robot_key
-from graph.solvers import custom_loop_factors, gnc, levenberg_marquardt
-from graph.synthetic import TeamConfig, make_team
+from swarmsplat.graph import lie
+from swarmsplat.graph.formulations import build_problem
+from swarmsplat.graph.g2o import read_g2o
+from swarmsplat.graph.init import chordal_initialization
+from swarmsplat.graph.metrics import se_sync_cost
+from swarmsplat.graph.pose_graph import robot_key
+from swarmsplat.graph.solvers import custom_loop_factors, gnc, levenberg_marquardt
+from swarmsplat.graph.synthetic import TeamConfig, make_team
 
 TIGHT = dict(relative_tol=1e-10, absolute_tol=1e-12, max_iterations=200)
 

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from kernels import reference as R
-from kernels import icp as K
-from kernels import se3
-from kernels.errors import InputError
-from registration import synthetic
+from swarmsplat import kernels
+from swarmsplat.kernels import reference as R
+from swarmsplat.kernels import icp as K
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration import synthetic
 
 W, H = 80, 60
 
@@ -79,7 +79,7 @@ def test_fused_step_with_photometric_term_matches_twin(backend, frames):
     _, src, sn, tv, tn, T = _setup(frames, dev)
     m = torch.from_numpy(ds.reshape(-1) > 0)
     src, sn = src[m.to(dev)].contiguous(), sn[m.to(dev)].contiguous()
-    from registration.pointcloud import gradient, intensity
+    from swarmsplat.registration.pointcloud import gradient, intensity
 
     Is = _t(intensity(cs).reshape(-1)[ds.reshape(-1) > 0], dev)
     It = _t(intensity(ct), dev)

@@ -5,16 +5,16 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from kernels import icp as K
-from kernels import se3
-from registration import synthetic
+from swarmsplat import kernels
+from swarmsplat.kernels import icp as K
+from swarmsplat.kernels import se3
+from swarmsplat.registration import synthetic
 
 
 @pytest.fixture
 def warp_cpu(monkeypatch):
     kernels.use("warp", "cpu")
-    from kernels._warp import launch as W
+    from swarmsplat.kernels._warp import launch as W
 
     def run_with(parts: int, fn):
         monkeypatch.setattr(W, "_cpu_threads", lambda: parts)

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernels import se3
-from kernels.errors import InputError
-from registration.pair import xfeat as xfeat_mod
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose
-from slam.learned_coarse import coarse_guess_from_pair, kabsch, ransac_rigid
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.pair import xfeat as xfeat_mod
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose
+from swarmsplat.slam.dense.loops.learned_coarse import coarse_guess_from_pair, kabsch, ransac_rigid
 
 from conftest import shared_data
 
@@ -57,7 +57,7 @@ def test_rendered_rgbd_views_give_the_metric_pose(pose):
 
 @needs_xfeat
 def test_redwood_frames_against_pseudo_ground_truth():
-    from perf.redwood_pairs import load_sequence
+    from swarmsplat.perf.redwood_pairs import load_sequence
 
     seq = load_sequence(shared_data("redwood_livingroom1_211"))
     for i, j in ((0, 30), (60, 120)):

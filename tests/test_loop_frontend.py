@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from graph.confidence import correspondence_ratio, loop_confidence
-from kernels import se3
-from kernels.errors import InputError
-from registration.pair.classical import ClassicalRegistrar
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose
-from slam.frontend import LoopFrontend
+from swarmsplat.graph.confidence import correspondence_ratio, loop_confidence
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.pair.classical import ClassicalRegistrar
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose
+from swarmsplat.slam.flocc.frontend import LoopFrontend
 
 CAM = default_camera(240, 180)
 
@@ -23,7 +23,7 @@ def _write_mono_dataset(root, agents: dict[str, list[np.ndarray]], room: Texture
     import cv2
     import yaml
 
-    from slam.trajectory import write_tum
+    from swarmsplat.slam.io.trajectory import write_tum
 
     root.mkdir(parents=True, exist_ok=True)
     (root / "dataset.yaml").write_text(yaml.safe_dump({"name": "rendered", "kind": "mono", "agents": list(agents)}))
@@ -89,8 +89,8 @@ def test_frontend_ratio_gate_and_confidence_use_graph_confidence():
 
 
 def test_r_thr_defaults_per_pair_backend():
-    from graph.confidence import R_THR_DEFAULT
-    from slam.frontend import default_r_thr
+    from swarmsplat.graph.confidence import R_THR_DEFAULT
+    from swarmsplat.slam.flocc.frontend import default_r_thr
 
     assert default_r_thr("classical") == 0.15  # measured: perf/results/flocc-fig5.md
     assert default_r_thr("xfeat") == 0.25  # measured with the same sweep (python -m perf.flocc_fig5 --quick)
@@ -110,13 +110,13 @@ def test_frontend_single_keyframe_agent_is_rejected_cleanly():
 
 
 def test_pairs_command_writes_every_candidate_with_ground_truth_errors(dataset, tmp_path):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     out = tmp_path / "pairs.csv"
     assert main(["pairs", str(dataset), "--out", str(out), "--quiet", "--save-vocabulary",
                  str(tmp_path / "voc.npz")]) == 0
     rows = list(csv.DictReader(out.open()))
-    from slam.pairs import COLUMNS
+    from swarmsplat.slam.run.pairs import COLUMNS
 
     assert rows and list(rows[0]) == COLUMNS
     keys = {frozenset([(r["query_agent"], r["query_index"]), (r["match_agent"], r["match_index"])]) for r in rows}
@@ -139,7 +139,7 @@ def test_pairs_command_writes_every_candidate_with_ground_truth_errors(dataset, 
 
 
 def test_pairs_command_errors_are_one_line(dataset, tmp_path, capsys):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     assert main(["pairs", str(dataset), "--out", str(tmp_path / "x.csv"), "--backend", "mast3r", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
@@ -147,14 +147,14 @@ def test_pairs_command_errors_are_one_line(dataset, tmp_path, capsys):
     assert main(["pairs", str(tmp_path / "missing"), "--out", str(tmp_path / "x.csv")]) == 2
     assert main(["pairs", str(dataset), "--out", str(tmp_path / "x.csv"), "--place", "dbow3"]) == 2
     assert not (tmp_path / "x.csv").exists()
-    from slam.pairs import run_pairs
+    from swarmsplat.slam.run.pairs import run_pairs
 
     with pytest.raises(InputError, match="stride"):
         run_pairs(dataset, tmp_path / "x.csv", stride=0)
 
 
 def test_inlier_precision_recall_ranks_detectors():
-    from slam.pairs import inlier_precision_recall
+    from swarmsplat.slam.run.pairs import inlier_precision_recall
 
     rows = [{"success": "1", "t_err_m_gt_scale": str(err), "ratio": str(r), "similarity": str(s)}
             for err, r, s in [(0.1, 0.9, 0.2), (0.5, 0.8, 0.9), (5.0, 0.2, 0.8), (0.3, 0.7, 0.1), (9.0, 0.1, 0.7)]]

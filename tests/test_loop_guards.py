@@ -7,13 +7,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernels import se3
-from slam.config import SlamConfig
-from slam.edge_information import InformationModel, OdometryChain, information, registration_covariance
-from slam.frames import make_rgbd
-from slam.gaussian_map import GaussianMap
-from slam.loop_closure import Edge, LoopCandidate, LoopCloser, view_overlap
-from slam.submaps import Keyframe, world_pose
+from swarmsplat.kernels import se3
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.loops.edge_information import (
+    InformationModel, OdometryChain, information, registration_covariance)
+from swarmsplat.slam.dense.frames import make_rgbd
+from swarmsplat.slam.dense.gaussian_map import GaussianMap
+from swarmsplat.slam.dense.loops.loop_closure import Edge, LoopCandidate, LoopCloser, view_overlap
+from swarmsplat.slam.dense.submaps import Keyframe, world_pose
 
 import slam_scene
 

@@ -1,11 +1,11 @@
-"""The map refinement's gradient scatter (`slam.map_refine._scatter_grads`) gives exactly the gradient autograd's
+"""The map refinement's gradient scatter (`slam.dense.mapping.refine_merged._scatter_grads`) gives exactly the gradient autograd's
 indexing gives (backward through tensor[idx]), which it replaces for speed, so torch's Adam takes the same step."""
 
 from __future__ import annotations
 
 import torch
 
-from slam.map_refine import _scatter_grads
+from swarmsplat.slam.dense.mapping.refine_merged import _scatter_grads
 
 
 def test_scatter_equals_backward_through_indexing():

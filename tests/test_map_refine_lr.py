@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-import slam.map_refine as mr
-from kernels.camera import PinholeCamera
-from slam.config import MappingConfig, MapRefineConfig
-from slam.gaussian_map import GaussianParams
-from slam.map_refine import RefineView, lr_factor, refine_map
-from slam.render import viewmat_from_pose
-from slam.selective_adam import SelectiveAdam
+import swarmsplat.slam.dense.mapping.refine_merged as mr
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.slam.config import MappingConfig, MapRefineConfig
+from swarmsplat.slam.dense.gaussian_map import GaussianParams
+from swarmsplat.slam.dense.mapping.refine_merged import RefineView, lr_factor, refine_map
+from swarmsplat.slam.dense.render import viewmat_from_pose
+from swarmsplat.slam.dense.mapping.selective_adam import SelectiveAdam
 
 
 def test_lr_factor_is_geometric_from_one_to_final():

@@ -1,4 +1,4 @@
-"""The kernel mapping loss (slam.render.rgbd_loss_fused) against its torch twin slam.render.rgbd_loss: value and
+"""The kernel mapping loss (slam.dense.render.rgbd_loss_fused) against its torch twin slam.dense.render.rgbd_loss: value and
 gradients to the rendered colour and depth, with and without the alpha and inlier masks, on each backend."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from kernels.raster import RenderOutput
-from slam.render import rgbd_loss, rgbd_loss_fused
+from swarmsplat.kernels.raster import RenderOutput
+from swarmsplat.slam.dense.render import rgbd_loss, rgbd_loss_fused
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -55,7 +55,7 @@ def test_fused_loss_equals_twin(backend, alpha_power, inlier_k):
 def test_masked_median_equals_torch_median(n):
     """masked_median (NumPy selection on the CPU) returns exactly torch.median of the selected values: the lower
     middle value for even counts, NaN when a NaN is selected, ties included."""
-    from slam.render import masked_median
+    from swarmsplat.slam.dense.render import masked_median
 
     g = torch.Generator().manual_seed(n)
     v = torch.rand(n, generator=g)
@@ -80,8 +80,8 @@ def test_masked_median_equals_torch_median(n):
 def test_warp_native_cpu_loss_equals_scalar_kernels(alpha_power, inlier_k, monkeypatch):
     """kernels/_warp/loss_cpu.py (the CPU's row loops) writes the same bits as kernels/_warp/loss.py's scalar
     kernels: loss value and both gradients, with NaN alphas, exact-zero errors and invalid depth in the frame."""
-    import kernels
-    from kernels._warp import loss as warp_loss
+    from swarmsplat import kernels
+    from swarmsplat.kernels._warp import loss as warp_loss
 
     kernels.use("warp", "cpu")
     results = []

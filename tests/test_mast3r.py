@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from kernels.errors import InputError
-from registration.pair import Encoding, make_registrar
-from registration.pair.mast3r.matching import fast_reciprocal_nns, pose_from_matches
-from registration.pair.mast3r.model import Mast3rConfig, Mast3rNet
-from registration.pair.mast3r.registrar import Mast3rRegistrar, load_mast3r_checkpoint
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.pair import Encoding, make_registrar
+from swarmsplat.registration.pair.mast3r.matching import fast_reciprocal_nns, pose_from_matches
+from swarmsplat.registration.pair.mast3r.model import Mast3rConfig, Mast3rNet
+from swarmsplat.registration.pair.mast3r.registrar import Mast3rRegistrar, load_mast3r_checkpoint
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
 
 TINY = dict(enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=24, dec_depth=4, dec_num_heads=2,
             local_feat_dim=8, feature_dim=16, layer_dims=(8, 8, 16, 16), img_size=64)

@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from conftest import shared_data
-from kernels import se3
-from kernels.errors import InputError
-from slam.datasets.associate import associate_unique, match_nearest
-from slam.metrics import ate, ate_multi, depth_l1, psnr, rpe, ssim, umeyama
-from slam.trajectory import read_tum
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.io.datasets.associate import associate_unique, match_nearest
+from swarmsplat.slam.metrics import ate, ate_multi, depth_l1, psnr, rpe, ssim, umeyama
+from swarmsplat.slam.io.trajectory import read_tum
 
 EVO = "tum_trajectories_evo"
 
@@ -287,7 +287,7 @@ def test_ssim_matches_independent_formulation():
 def test_ssim_cpu_filter_equals_the_torch_convolutions():
     """The CPU path (OpenCV's separable float64 filter, cropped to the valid region) against the torch convolutions
     that GPU tensors take: the same maps to rounding, for odd and even windows, one and three channels."""
-    from slam.metrics.image import _gaussian_window, _ssim_map_cpu, _ssim_map_torch
+    from swarmsplat.slam.metrics.image import _gaussian_window, _ssim_map_cpu, _ssim_map_torch
 
     g = torch.Generator().manual_seed(3)
     for c, h, w, window in ((3, 37, 45, 11), (1, 24, 30, 11), (3, 20, 26, 8), (1, 11, 12, 11)):

@@ -1,4 +1,4 @@
-"""slam.model_align: the tracker's frame-to-model Gauss-Newton against a prepared model view (exact ray-cast
+"""slam.dense.tracking.model_align: the tracker's frame-to-model Gauss-Newton against a prepared model view (exact ray-cast
 views of the analytic scene, so only the alignment is tested)."""
 
 from __future__ import annotations
@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import kernels
-from kernels import se3
-from slam.frames import RGBD, make_rgbd
-from slam.model_align import ModelTarget, align_to_model
+from swarmsplat import kernels
+from swarmsplat.kernels import se3
+from swarmsplat.slam.dense.frames import RGBD, make_rgbd
+from swarmsplat.slam.dense.tracking.model_align import ModelTarget, align_to_model
 
 import slam_scene
 
@@ -65,8 +65,8 @@ def test_align_to_model_fails_cleanly(pair):
 def test_tracker_drops_a_model_view_that_disagrees_with_its_keyframe(pair):
     """The self-check behind tracking.max_view_bias: a view rendered where its keyframe is passes; a view 1 cm
     off the keyframe (a map that does not fit its own keyframe) is refused."""
-    from slam.config import SlamConfig
-    from slam.tracker import Tracker
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.dense.tracking.tracker import Tracker
 
     cam, T_view, T_true, view, frame = pair
     tc = SlamConfig().tracking.model_copy(update={"refine_max_width": cam.width})
@@ -81,7 +81,7 @@ def test_tracker_drops_a_model_view_that_disagrees_with_its_keyframe(pair):
 def test_residual_score_is_lowest_at_the_true_pose(pair):
     """The acceptance test's measures: the mean robust hybrid cost per correspondence rises when the pose moves
     off the truth (1 cm, or 1 degree); a pose that pushes most points out of the gates loses its inliers."""
-    from slam.model_align import evaluate
+    from swarmsplat.slam.dense.tracking.model_align import evaluate
 
     cam, T_view, T_true, view, frame = pair
     target = ModelTarget(view, [1])
@@ -108,7 +108,7 @@ def test_align_to_model_reports_the_objective_before_and_after(pair):
 
 
 def _tc(cam, **kw):
-    from slam.config import SlamConfig
+    from swarmsplat.slam.config import SlamConfig
 
     return SlamConfig().tracking.model_copy(update={"refine_max_width": cam.width, **kw})
 
@@ -117,8 +117,8 @@ def test_acceptance_test_keeps_a_correct_refinement_and_rejects_a_wrong_one(pair
     """tracking.acceptance_test: a refinement that lowers the hybrid objective is kept; the same call made to
     return a pose 1.5 cm off the truth (a Gauss-Newton that slid away, with its real objective there) is
     refused and the coarse pose comes back; with the test off the wrong pose would have been taken."""
-    import slam.tracker as tracker_mod
-    from slam.model_align import evaluate
+    import swarmsplat.slam.dense.tracking.tracker as tracker_mod
+    from swarmsplat.slam.dense.tracking.model_align import evaluate
 
     cam, T_view, T_true, view, frame = pair
     T_coarse = T_true @ se3.exp(np.array([0.003, -0.002, 0.001, 0.004, -0.003, 0.002]))
@@ -149,7 +149,7 @@ def test_refinement_keeps_poses_rigid(pair):
     SE(3) came back as a scale error that refining against it tripled: on Redwood 211 |R^T R - I| went from 1e-14
     to 7e-2 in 80 frames. Refined poses are projected onto SE(3): chaining ten refinements from a pose 1e-4 off
     stays rigid."""
-    from slam.tracker import refine_detail
+    from swarmsplat.slam.dense.tracking.tracker import refine_detail
 
     cam, T_view, T_true, view, frame = pair
     off = T_view.copy()
@@ -167,7 +167,7 @@ def test_view_bias_is_the_views_offset_from_its_keyframe(pair):
     """Tracker._view_bias (the max_view_bias self-check, and debias_view): a view rendered 1 cm off its keyframe
     reports that offset; placing the view at keyframe @ inv(bias) lets a frame refine to its true pose, where
     the keyframe's own pose would pull it by the centimetre."""
-    from slam.tracker import Tracker, refine_detail
+    from swarmsplat.slam.dense.tracking.tracker import Tracker, refine_detail
 
     cam, T_view, T_true, view, frame = pair
     tr = Tracker(_tc(cam))

@@ -1,5 +1,5 @@
-"""slam.overlap_cull: one copy of each observed surface where submaps overlap, and its use before the merged-map
-refinement (slam.team_refine)."""
+"""slam.dense.mapping.overlap_cull: one copy of each observed surface where submaps overlap, and its use before the merged-map
+refinement (slam.dense.mapping.refine)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
-from slam.overlap_cull import OwnerView, owner_keep
+from swarmsplat import kernels
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.dense.mapping.overlap_cull import OwnerView, owner_keep
 
 CAM = PinholeCamera(60.0, 60.0, 31.5, 23.5, 64, 48)
 
@@ -106,11 +106,11 @@ def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
     """Two submaps holding the same plane, each seen by its own keyframe: with overlap_cull the farther
     keyframe's copy is dropped before refining (statistics say how many), the nearer submap keeps all its
     Gaussians; without it both copies are refined."""
-    from slam.config import MappingConfig, MapRefineConfig
-    from slam.gaussian_map import GaussianParams, Submap
-    from slam.map_refine import RefineView
-    from slam.submaps import Keyframe
-    from slam.team_refine import _refine_parts
+    from swarmsplat.slam.config import MappingConfig, MapRefineConfig
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams, Submap
+    from swarmsplat.slam.dense.mapping.refine_merged import RefineView
+    from swarmsplat.slam.dense.submaps import Keyframe
+    from swarmsplat.slam.dense.mapping.refine import _refine_parts
 
     kernels.use("warp", "cpu")
 

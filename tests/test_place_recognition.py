@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from kernels.errors import InputError
-from registration.place_recognition import PAPER_THRESHOLD, PlaceDatabase, make_recognizer
-from registration.place_recognition.vlad import VLADRecognizer
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.place_recognition import PAPER_THRESHOLD, PlaceDatabase, make_recognizer
+from swarmsplat.registration.place_recognition.vlad import VLADRecognizer
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose
 
 
 # Tiny tensors: torch's intra-op threads only add wake-up latency on a busy 2-core machine.
@@ -111,7 +111,7 @@ def test_zero_descriptor_never_matches():
 # ---- CosPlace / NetVLAD: the published architectures on tiny inputs, checkpoints from a path ---------------------
 
 def test_cosplace_keys_match_the_published_layout_and_checkpoint_loads(tmp_path):
-    from registration.place_recognition.cosplace import CosPlaceNet, CosPlaceRecognizer
+    from swarmsplat.registration.place_recognition.cosplace import CosPlaceNet, CosPlaceRecognizer
 
     torch.manual_seed(0)
     net = CosPlaceNet("ResNet18", 32)
@@ -147,7 +147,7 @@ def test_learned_recognizers_without_checkpoint_say_so_in_one_line(tmp_path):
 
 
 def test_netvlad_keys_and_wrapped_checkpoint(tmp_path):
-    from registration.place_recognition.netvlad import NetVLADNet, NetVLADRecognizer
+    from swarmsplat.registration.place_recognition.netvlad import NetVLADNet, NetVLADRecognizer
 
     torch.manual_seed(0)
     net = NetVLADNet(num_clusters=4)
@@ -165,7 +165,7 @@ def test_netvlad_keys_and_wrapped_checkpoint(tmp_path):
 
 
 def test_bow_scores_are_nonnegative_and_rank_revisits_first(views, tmp_path):
-    from registration.place_recognition.vlad import BoWRecognizer
+    from swarmsplat.registration.place_recognition.vlad import BoWRecognizer
 
     a, a2, b = views
     bow = BoWRecognizer(n_clusters=64).fit(a + b, seed=0)
@@ -183,7 +183,7 @@ def test_bow_scores_are_nonnegative_and_rank_revisits_first(views, tmp_path):
 
 
 def test_thumbnail_descriptor_needs_no_vocabulary_and_tells_revisits_apart():
-    from registration.place_recognition import make_recognizer
+    from swarmsplat.registration.place_recognition import make_recognizer
 
     rec = make_recognizer("thumbnail")
     rng = np.random.default_rng(5)

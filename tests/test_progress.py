@@ -1,4 +1,4 @@
-"""slam.progress: tqdm on a terminal, plain periodic lines (no carriage returns) elsewhere, silent when off; the
+"""slam.io.progress: tqdm on a terminal, plain periodic lines (no carriage returns) elsewhere, silent when off; the
 team's per-round callback; and a real run's stderr in a log (not a terminal) reads as lines."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import io
 
 import pytest
 
-from slam.progress import Bar, TeamRounds, bar, format_seconds, reporting
+from swarmsplat.slam.io.progress import Bar, TeamRounds, bar, format_seconds, reporting
 
 
 class Clock:
@@ -86,8 +86,8 @@ def test_team_rounds_callback_counts_rounds_and_feeds_the_observer():
 
 def test_a_run_in_a_log_prints_lines_not_carriage_returns(tmp_path, capsys, monkeypatch):
     """`swarmsplat run` with stderr captured (not a terminal): the frame progress is plain lines."""
-    from slam.cli import main
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     data = generate(tmp_path / "d", GeneratorConfig.preset("tiny", agents=1, frames=2))
     monkeypatch.setenv("SWARMSPLAT_PROGRESS_INTERVAL", "0")
@@ -100,7 +100,7 @@ def test_a_run_in_a_log_prints_lines_not_carriage_returns(tmp_path, capsys, monk
 
 
 def test_a_bad_interval_setting_is_named(monkeypatch):
-    from kernels.errors import InputError
+    from swarmsplat.kernels.errors import InputError
 
     monkeypatch.setenv("SWARMSPLAT_PROGRESS_INTERVAL", "soon")
     with pytest.raises(InputError, match="SWARMSPLAT_PROGRESS_INTERVAL must be a number of seconds >= 0, got 'soon'"):

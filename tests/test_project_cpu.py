@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from kernels import se3
-from kernels.errors import InputError
+from swarmsplat import kernels
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
 
 W, H = 70, 52
 K = torch.tensor([[58.0, 0.0, W / 2 - 0.6], [0.0, 57.0, H / 2 + 0.3], [0.0, 0.0, 1.0]])
@@ -36,7 +36,7 @@ def _viewmat() -> torch.Tensor:
 
 
 def _project(s: dict, vm: torch.Tensor):
-    from kernels._warp import project
+    from swarmsplat.kernels._warp import project
 
     n = s["means"].shape[0]
     proj, pthr = torch.zeros(n, 10), torch.zeros(n)
@@ -50,7 +50,7 @@ def _project(s: dict, vm: torch.Tensor):
 
 @pytest.fixture
 def modes(monkeypatch):
-    from kernels._warp import project
+    from swarmsplat.kernels._warp import project
 
     kernels.use("warp", "cpu")
 

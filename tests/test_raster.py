@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from kernels import raster, se3
-from kernels.errors import InputError
-from kernels.reference import rasterize_reference
+from swarmsplat import kernels
+from swarmsplat.kernels import raster, se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.reference import rasterize_reference
 
 W, H = 32, 24  # 2 x 2 tiles, the second column and row partly outside the image
 K = torch.tensor([[30.0, 0.0, 15.3], [0.0, 28.0, 11.6], [0.0, 0.0, 1.0]])
@@ -281,7 +281,7 @@ def test_cpu_vector_kernels_equal_scalar(monkeypatch, name, n_plain, w, h):
     cut by both image edges."""
     import importlib
 
-    backend_raster = importlib.import_module(f"kernels._{name}.raster")
+    backend_raster = importlib.import_module(f"swarmsplat.kernels._{name}.raster")
     s = scene(5, n_plain=n_plain, hard=True)
     Kr = torch.tensor([[36.0, 0.0, w / 2 - 0.7], [0.0, 35.0, h / 2 + 0.4], [0.0, 0.0, 1.0]])
     kernels.use(name, "cpu")

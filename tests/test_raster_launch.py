@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-import kernels
-from perf.raster import _loss, _params, make_scene
+from swarmsplat import kernels
+from swarmsplat.perf.raster import _loss, _params, make_scene
 
 
 def _run(scene):
@@ -23,7 +23,7 @@ def _run(scene):
 @pytest.fixture
 def warp_cpu():
     kernels.use("warp", "cpu")
-    from kernels._warp import launch
+    from swarmsplat.kernels._warp import launch
 
     return launch
 
@@ -44,8 +44,8 @@ def test_direct_calls_equal_wp_launch(warp_cpu, monkeypatch, size):
 def test_packed_arguments_equal_the_ctypes_struct(warp_cpu):
     """run's one-struct.pack argument packing (Flats and scalars) writes the bytes that filling the kernel's ctypes
     argument struct field by field writes; a mistyped argument still gets ctypes' error."""
-    from kernels._warp import loss_cpu
-    from kernels._warp.arrays import to_warp
+    from swarmsplat.kernels._warp import loss_cpu
+    from swarmsplat.kernels._warp.arrays import to_warp
 
     h, w = 6, 10
     img = [torch.rand(h * w * 3), torch.rand(h * w * 3), torch.rand(h * w), torch.rand(h * w), torch.rand(h * w)]
@@ -84,7 +84,7 @@ def test_cuda_shapes_on_the_cpu_equal(warp_cpu, monkeypatch):
     """The projection and hit counts one Gaussian per kernel thread (their CUDA shape, count 1: the per-Gaussian
     kernel, viewmat parts per Gaussian summed in blocks of 256 by _view_grad) against the CPU's blocks, both with
     the scalar projection kernels (the CUDA ones; tests/test_project_cpu.py checks the CPU's vector ones)."""
-    from kernels._warp import project, sort
+    from swarmsplat.kernels._warp import project, sort
 
     monkeypatch.setattr(project, "CPU_PROJECT", "scalar")
     scene = make_scene(20_000, 320, 240, seed=5)
@@ -101,7 +101,7 @@ def test_cuda_shapes_on_the_cpu_equal(warp_cpu, monkeypatch):
 def test_without_warp_descriptors_results_are_the_same(warp_cpu, monkeypatch):
     """A Warp whose array descriptor layout is not the one kernels/_warp/arrays.py knows gets wp.from_torch arrays
     (and wp.launch's own packing): the same bits, only slower."""
-    from kernels._warp import arrays
+    from swarmsplat.kernels._warp import arrays
 
     scene = make_scene(1_000, 160, 120, seed=6)
     _run(scene)
@@ -116,7 +116,7 @@ def test_without_warp_descriptors_results_are_the_same(warp_cpu, monkeypatch):
 def test_native_binning_equals_warp_kernels(warp_cpu, monkeypatch, threads):
     """kernels/_warp/sort_cpu.py's binning against kernels/_warp/sort.py's Warp kernels (the CUDA ones): the same
     lists, entry positions and so the same renders and gradients, bit for bit, in one part and in three."""
-    from kernels._warp import sort
+    from swarmsplat.kernels._warp import sort
 
     scene = make_scene(20_000, 320, 240, seed=7)
     scene["means"][::5, 2] = scene["means"][0, 2]  # many exact depth ties: the stable order decides
@@ -133,7 +133,7 @@ def test_native_binning_equals_warp_kernels(warp_cpu, monkeypatch, threads):
 def test_view_free_descriptors_equal_those_of_the_views():
     """to_warp_1d / to_warp_rows describe a tensor's flattening and rows as to_warp describes the torch views, and
     refuse a layout they cannot describe without a copy."""
-    from kernels._warp.arrays import to_warp, to_warp_1d, to_warp_rows
+    from swarmsplat.kernels._warp.arrays import to_warp, to_warp_1d, to_warp_rows
 
     for t in (torch.empty(5, 7), torch.empty(2, 3, 4, dtype=torch.int32), torch.empty(2, 2, 3, 5)):
         assert to_warp_rows(t) == [to_warp(r) for r in t]

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from perf.place_recognition import recall, revisit_truth
-from perf.redwood_pairs import covisibility, is_solved, rotation_angles, sample_pairs
-from registration.pair import PairResult
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose
+from swarmsplat.kernels import se3
+from swarmsplat.perf.place_recognition import recall, revisit_truth
+from swarmsplat.perf.redwood_pairs import covisibility, is_solved, rotation_angles, sample_pairs
+from swarmsplat.registration.pair import PairResult
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose
 
 from conftest import shared_data
 
@@ -59,7 +59,7 @@ def test_recall_at_k_on_a_hand_made_matrix():
 
 
 def test_redwood_pair_sampler_is_deterministic_and_in_bins():
-    from perf.redwood_pairs import load_sequence
+    from swarmsplat.perf.redwood_pairs import load_sequence
 
     seq = load_sequence(shared_data("redwood_livingroom1_211"))
     a = sample_pairs(seq, per_bin=2, seed=0)

@@ -11,18 +11,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernels import se3
+from swarmsplat.kernels import se3
 
 
 @pytest.fixture(scope="module")
 def redwood_run():
     import torch
 
-    import kernels
+    from swarmsplat import kernels
     from conftest import shared_data
-    from slam.agent import Agent
-    from slam.config import SlamConfig
-    from slam.datasets import load_sequence
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.io.datasets import load_sequence
 
     path = shared_data("redwood_livingroom1_211")
     kernels.use("warp", "cpu")
@@ -40,7 +40,7 @@ def redwood_run():
 
 
 def _ate(seq, stamps, T):
-    from slam.metrics import ate
+    from swarmsplat.slam.metrics import ate
 
     return ate(seq.timestamps, seq.gt_poses, stamps, T, align="se3", max_diff=1e-3).rmse
 
@@ -59,8 +59,8 @@ def test_loop_closure_does_not_wreck_the_trajectory(redwood_run):
 
 
 def test_the_revisit_is_closed_and_every_loop_fits_the_optimum(redwood_run):
-    from slam.loop_check import loop_residuals
-    from slam.submaps import world_pose
+    from swarmsplat.slam.dense.loops.loop_check import loop_residuals
+    from swarmsplat.slam.dense.submaps import world_pose
 
     seq, agent = redwood_run
     acc = [c for c in agent.loops.log if c.accepted]

@@ -4,12 +4,12 @@ otherwise; single agents always drop them."""
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
-from slam.config import SlamConfig
-from slam.frames import RGBD
-from slam.gaussian_map import GaussianMap
-from slam.submaps import Keyframe, start_submap
-from slam.team import Team
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.frames import RGBD
+from swarmsplat.slam.dense.gaussian_map import GaussianMap
+from swarmsplat.slam.dense.submaps import Keyframe, start_submap
+from swarmsplat.slam.run.team import Team
 
 
 def _keyframe(i: int, submap: int) -> Keyframe:

@@ -4,16 +4,16 @@ failure results (not exceptions, not garbage poses) for planes, few points and e
 import numpy as np
 import pytest
 
-import kernels
+from swarmsplat import kernels
 from conftest import shared_data
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
-from registration import result as R
-from registration import synthetic
-from registration.icp import icp_clouds, icp_rgbd
-from registration.pointcloud import depth_to_points, select_rows, voxel_downsample
-from registration.rgbd import register_rgbd, rgbd_odometry
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration import result as R
+from swarmsplat.registration import synthetic
+from swarmsplat.registration.icp import icp_clouds, icp_rgbd
+from swarmsplat.registration.pointcloud import depth_to_points, select_rows, voxel_downsample
+from swarmsplat.registration.rgbd import register_rgbd, rgbd_odometry
 
 
 def pose_error(T, T_true):

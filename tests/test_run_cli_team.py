@@ -2,8 +2,8 @@
 
 import json
 
-from slam.cli import main
-from slam.synthetic import GeneratorConfig, generate
+from swarmsplat.slam.cli import main
+from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
 
 def test_run_on_a_multi_agent_dataset_writes_team_outputs(tmp_path, capsys):

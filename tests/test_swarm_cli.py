@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from slam.cli import main
+from swarmsplat.slam.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import struct
 import numpy as np
 import pytest
 
-from slam.swarm import messages as M
+from swarmsplat.slam.flocc.swarm import messages as M
 
 
 def _samples():

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from swarm_fakes import CAMERA, FakeRecognizer, FakeRegistrar, scenario
 
-from kernels.errors import InputError
-from slam.swarm import messages as M
-from slam.swarm.election import elect, is_optimiser
-from slam.swarm.node import NodeConfig, RobotNode
-from slam.swarm.optimiser import SolveConfig, solve_group
-from slam.swarm.rendezvous import Schedule, Window
-from slam.swarm.transport import Faults, InProcessNetwork
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.flocc.swarm import messages as M
+from swarmsplat.slam.flocc.swarm.election import elect, is_optimiser
+from swarmsplat.slam.flocc.swarm.node import NodeConfig, RobotNode
+from swarmsplat.slam.flocc.swarm.optimiser import SolveConfig, solve_group
+from swarmsplat.slam.flocc.swarm.rendezvous import Schedule, Window
+from swarmsplat.slam.flocc.swarm.transport import Faults, InProcessNetwork
 
 N_KF = 12
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam.swarm import messages as M
-from slam.swarm.rendezvous import Schedule, Window
-from slam.swarm.zenoh_transport import zenoh_available
+from swarmsplat.slam.flocc.swarm import messages as M
+from swarmsplat.slam.flocc.swarm.rendezvous import Schedule, Window
+from swarmsplat.slam.flocc.swarm.zenoh_transport import zenoh_available
 
 pytestmark = pytest.mark.skipif(not zenoh_available(), reason="eclipse-zenoh is not installed")
 
@@ -44,7 +44,7 @@ def _drain(tx, want, timeout=5.0):
 
 
 def test_delivery_and_schedule_gating():
-    from slam.swarm.zenoh_transport import ZenohTransport
+    from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
 
     base = _free_port_base(2)
     sched = Schedule(10, 1, 0.1, [Window(2, 5, frozenset({0, 1}))])

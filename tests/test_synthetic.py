@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 import yaml
 
-from kernels import se3
-from kernels.errors import InputError
-from slam.synthetic import GeneratorConfig, agent_poses, cast, dataset_camera, generate, generate_world, render
-from slam.synthetic.config import ColorNoiseConfig, DepthNoiseConfig, MonoConfig
-from slam.synthetic.mono import drifting_odometry
-from slam.synthetic.noise import depth_sigma, noisy_color, noisy_depth
-from slam.synthetic.overlap import covisibility, view_angle_deg
-from slam.trajectory import read_tum
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.synthetic import (
+    GeneratorConfig, agent_poses, cast, dataset_camera, generate, generate_world, render)
+from swarmsplat.slam.synthetic.config import ColorNoiseConfig, DepthNoiseConfig, MonoConfig
+from swarmsplat.slam.synthetic.mono import drifting_odometry
+from swarmsplat.slam.synthetic.noise import depth_sigma, noisy_color, noisy_depth
+from swarmsplat.slam.synthetic.overlap import covisibility, view_angle_deg
+from swarmsplat.slam.io.trajectory import read_tum
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +73,7 @@ def test_tiny_dataset_format(tiny):
 
 
 def test_folder_reader_reads_it(tiny):
-    from slam.datasets.folder import load_folder_dataset
+    from swarmsplat.slam.io.datasets.folder import load_folder_dataset
 
     root, cfg = tiny
     ds = load_folder_dataset(root)
@@ -258,7 +259,7 @@ def test_old_layout_datasets_do_not_match_the_current_settings():
 
 @pytest.mark.parametrize("rooms", [(2, 1), (1, 2), (3, 2)])
 def test_every_grid_keeps_cameras_in_rooms_and_clear_of_furniture(rooms):
-    from slam.synthetic.config import WorldConfig
+    from swarmsplat.slam.synthetic.config import WorldConfig
 
     cfg = GeneratorConfig.preset("default", agents=6, seed=sum(rooms), world=WorldConfig(rooms_x=rooms[0],
                                                                                          rooms_y=rooms[1]))
@@ -315,7 +316,7 @@ def test_mono_dataset_files(tmp_path):
 def test_supersampled_pixels_average_their_area_and_keep_the_centre_depth(default_world, s):
     """Colour is the mean of the pixel's s x s rays, depth / incidence / material the one-ray image's, and the
     mean is closer to the pixel's area integral (an 8 x 8 grid) than one ray through the centre is."""
-    from slam.synthetic.render import shade, supersampled, trace
+    from swarmsplat.slam.synthetic.render import shade, supersampled, trace
 
     world, cfg, poses = default_world
     camera = dataset_camera(cfg).scaled(80, 60)
@@ -337,7 +338,7 @@ def test_supersampled_pixels_average_their_area_and_keep_the_centre_depth(defaul
 def test_texture_kernel_equals_its_numpy_twin(default_world):
     """The Warp texture kernel against TextureField.shade_numpy at the hits of a supersampled frame (every pattern
     of the world but one is in these views)."""
-    from slam.synthetic.render import _ray_lengths, supersampled, surface_coordinates, trace
+    from swarmsplat.slam.synthetic.render import _ray_lengths, supersampled, surface_coordinates, trace
 
     world, cfg, poses = default_world
     cam = supersampled(dataset_camera(cfg).scaled(160, 120), 2)
@@ -360,7 +361,7 @@ def test_texture_kernel_equals_its_numpy_twin(default_world):
 def test_ray_shading_kernel_equals_its_numpy_twin(default_world):
     """render.shade_color (surface coordinates, footprint and texture in one Warp kernel) against
     render.shade_color_numpy on a supersampled batch, with two rays made misses (black in both)."""
-    from slam.synthetic.render import Traced, shade_color, shade_color_numpy, supersampled, trace
+    from swarmsplat.slam.synthetic.render import Traced, shade_color, shade_color_numpy, supersampled, trace
 
     world, cfg, poses = default_world
     cam = supersampled(dataset_camera(cfg).scaled(80, 60), 2)
@@ -414,7 +415,7 @@ def test_refuses_foreign_folder_and_keeps_it(tmp_path):
 
 
 def test_cli_generate_and_preview(tmp_path, capsys):
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     out, png = tmp_path / "ds", tmp_path / "world.png"
     assert main(["generate", "--preset", "tiny", "--frames", "2", "--seed", "4", "--out", str(out),

@@ -10,11 +10,11 @@ import json
 import numpy as np
 import pytest
 
-from slam.config import SlamConfig
-from slam.datasets import MultiAgentDataset, load_dataset
-from slam.server import ServerConfig
-from slam.split import split_sequence, sub_sequence
-from slam.team import Team, run_team
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
+from swarmsplat.slam.dense.team.server import ServerConfig
+from swarmsplat.slam.io.datasets.split import split_sequence, sub_sequence
+from swarmsplat.slam.run.team import Team, run_team
 
 # Few iterations: these tests check the team's logic, not the map's quality.
 FAST = {
@@ -27,7 +27,7 @@ FAST = {
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     root = tmp_path_factory.mktemp("team")
     return {s: generate(root / f"seed{s}", GeneratorConfig.preset("tiny", seed=s, agents=1, frames=8)) for s in (0, 1)}
@@ -83,7 +83,7 @@ def test_two_agents_end_to_end(split_run):
 @pytest.fixture(scope="module")
 def disjoint_team(tiny):
     """Two agents in two different generated worlds (disjoint views); agent 1's sequence ends after 2 frames."""
-    import kernels
+    from swarmsplat import kernels
 
     seqs = [sub_sequence(load_dataset(tiny[s]).agents[0], 0, 4, f"agent_{s}") for s in (0, 1)]
     cfg = SlamConfig().override(FAST)
@@ -115,7 +115,7 @@ def test_disjoint_agents_never_merged(disjoint_team):
 
 def test_team_figures_say_who_joined(disjoint_team, tmp_path):
     """Agents that never joined: the team ATE names the agents it covers and the report says who is left out."""
-    from slam.team_results import write_team_results
+    from swarmsplat.slam.run.team_results import write_team_results
 
     team, seqs = disjoint_team
     ds = MultiAgentDataset(tmp_path, seqs, "disjoint")
@@ -138,8 +138,8 @@ def test_injected_false_inter_candidate_rejected_by_gates(disjoint_team):
 
 def test_join_moves_the_later_agent_into_the_lower_frame():
     """The frame algebra of a join, without SLAM: agent 1's keyframe q seen at T_m_q from agent 0's keyframe m."""
-    from kernels import se3
-    from slam.server import Server
+    from swarmsplat.kernels import se3
+    from swarmsplat.slam.dense.team.server import Server
 
     class _Stub:
         def __init__(self, name):
@@ -162,9 +162,9 @@ def test_trajectory_follows_each_keyframes_optimum_not_only_the_submap_move():
     the graph) keep the rigid submap move of eq. 14."""
     from types import SimpleNamespace as NS
 
-    from kernels import se3
-    from slam.agent import FramePose
-    from slam.server import Server
+    from swarmsplat.kernels import se3
+    from swarmsplat.slam.dense.agent import FramePose
+    from swarmsplat.slam.dense.team.server import Server
 
     rng = np.random.default_rng(3)
     T_wl = se3.exp(rng.normal(size=6) * 0.2)  # submap 0 in the agent's world

@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam.config import SlamConfig
-from slam.datasets import load_dataset
-from slam.metrics import ate
-from slam.server import ServerConfig
-from slam.split import split_sequence
-from slam.team import Team
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.io.datasets import load_dataset
+from swarmsplat.slam.metrics import ate
+from swarmsplat.slam.dense.team.server import ServerConfig
+from swarmsplat.slam.io.datasets.split import split_sequence
+from swarmsplat.slam.run.team import Team
 
 from conftest import shared_data
 
@@ -33,7 +33,7 @@ ATE_BOUND_M = 0.002
 
 @pytest.fixture(scope="module")
 def real_split():
-    import kernels
+    from swarmsplat import kernels
 
     seq = load_dataset(shared_data("redwood_livingroom1_rgbd5")).agents[0]
     ds = split_sequence(seq, [(0, 3), (3, 5)])

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-import kernels
-from kernels import se3
-from slam.config import SlamConfig
-from slam.frames import RGBD, make_rgbd
-from slam.gaussian_map import GaussianMap, transform_params
-from slam.mapper import MapKeyframe, Mapper
-from slam.render import render, viewmat_from_pose
-from slam.tracker import Tracker, model_view, refine_against_view, refine_pose
+from swarmsplat import kernels
+from swarmsplat.kernels import se3
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.frames import RGBD, make_rgbd
+from swarmsplat.slam.dense.gaussian_map import GaussianMap, transform_params
+from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper
+from swarmsplat.slam.dense.render import render, viewmat_from_pose
+from swarmsplat.slam.dense.tracking.tracker import Tracker, model_view, refine_against_view, refine_pose
 
 import slam_scene
 
@@ -115,7 +115,7 @@ def test_model_view_is_what_mapping_fits(mapped):
 
 
 def test_tracker_renders_the_model_once_per_map_update(mapped, monkeypatch):
-    import slam.tracker as tracker_mod
+    import swarmsplat.slam.dense.tracking.tracker as tracker_mod
 
     cam, cfg, _, sm, _ = mapped
     calls = []
@@ -157,7 +157,7 @@ def test_pixels_without_depth_are_seeded_behind_what_was_measured(warp_cpu):
     """seed_without_depth (default): a large region without valid depth (a window, the sky) is seeded at the
     farthest valid depth around it and renders its colour; thin invalid lines and small holes are not seeded; off,
     the region stays empty."""
-    from slam.mapper import fallback_depth
+    from swarmsplat.slam.dense.mapping.mapper import fallback_depth
 
     cam = slam_scene.camera(64, 48)
     full = _frame(np.eye(4), cam)
@@ -222,8 +222,8 @@ def test_submap_transform_moves_its_renders_exactly(mapped):
 def test_contributions_see_hidden_gaussians(warp_cpu):
     """A small Gaussian right behind an opaque larger one contributes (almost) nothing to the view; the front one
     a lot; one outside the view nothing."""
-    from slam.gaussian_map import GaussianParams
-    from slam.map_refine import RefineView, contributions
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams
+    from swarmsplat.slam.dense.mapping.refine_merged import RefineView, contributions
 
     cam = slam_scene.camera(64, 48)
     pts = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.2], [5.0, 0.0, 2.0]])  # front, hidden behind it, out of view
@@ -236,7 +236,7 @@ def test_contributions_see_hidden_gaussians(warp_cpu):
 def test_refine_map_refines_a_misplaced_keyframe_pose(mapped):
     """refine_poses: a keyframe handed over 3 cm / 1.1 deg off the pose its image was taken from is moved most of
     the way back while the map is refined; the first view holds the gauge; refine_poses off returns no poses."""
-    from slam.map_refine import RefineView, refine_map
+    from swarmsplat.slam.dense.mapping.refine_merged import RefineView, refine_map
 
     cam, cfg, gm, sm, _ = mapped
     T1 = se3.exp(np.array([0.0, 0.05, 0.0, 0.04, 0.0, 0.0]))
@@ -266,7 +266,7 @@ def test_refine_map_refines_a_misplaced_keyframe_pose(mapped):
 def test_refine_map_lowers_the_loss_and_keeps_order(mapped, optimizer):
     """Refining a submap over a second view it was never fitted to lowers the loss on that view; 0 steps is a
     no-op; the kept Gaussians come back in their input order. Both optimisers (selective Adam, torch's Adam)."""
-    from slam.map_refine import RefineView, iteration_budget, refine_map
+    from swarmsplat.slam.dense.mapping.refine_merged import RefineView, iteration_budget, refine_map
 
     cam, cfg, gm, sm, _ = mapped
     T2 = se3.exp(np.array([0.0, 0.08, 0.0, 0.06, 0.0, 0.0]))

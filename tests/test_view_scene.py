@@ -14,13 +14,13 @@ from view_runs import KF_FRAMES, N_GAUSSIANS, write_single_run, write_team_run
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     return generate(tmp_path_factory.mktemp("view_data") / "d", GeneratorConfig.preset("tiny", frames=4))
 
 
 def test_splat_covariance_is_rotated_scale_squared():
-    from slam.view.scene import splats_from_params
+    from swarmsplat.slam.view.scene import splats_from_params
     from view_runs import gaussians
 
     s = splats_from_params("m", gaussians(3))
@@ -32,9 +32,9 @@ def test_splat_covariance_is_rotated_scale_squared():
 
 
 def test_team_run_scene(tmp_path, dataset):
-    from slam.datasets import load_dataset
-    from slam.view import load_scene
-    from slam.view.scene import GLOBAL, LOOP_COLORS, agent_color
+    from swarmsplat.slam.io.datasets import load_dataset
+    from swarmsplat.slam.view import load_scene
+    from swarmsplat.slam.view.scene import GLOBAL, LOOP_COLORS, agent_color
 
     est = write_team_run(tmp_path, dataset)
     scene = load_scene(tmp_path)
@@ -71,8 +71,8 @@ def test_team_run_scene(tmp_path, dataset):
 
 
 def test_agent_outside_the_global_frame(tmp_path, dataset):
-    from slam.view import load_scene
-    from slam.view.scene import GLOBAL
+    from swarmsplat.slam.view import load_scene
+    from swarmsplat.slam.view.scene import GLOBAL
 
     est = write_team_run(tmp_path, dataset, joined=False)
     scene = load_scene(tmp_path)
@@ -86,7 +86,7 @@ def test_agent_outside_the_global_frame(tmp_path, dataset):
 
 
 def test_single_agent_run_and_demo_layout(tmp_path, dataset):
-    from slam.view import find_run, load_scene
+    from swarmsplat.slam.view import find_run, load_scene
 
     run = tmp_path / "demo" / "results"
     run.mkdir(parents=True)
@@ -102,7 +102,7 @@ def test_single_agent_run_and_demo_layout(tmp_path, dataset):
 def test_dataset_gone_means_no_ground_truth_but_a_note(tmp_path, dataset):
     import json
 
-    from slam.view import load_scene
+    from swarmsplat.slam.view import load_scene
 
     write_team_run(tmp_path, dataset)
     m = json.loads((tmp_path / "metrics.json").read_text())
@@ -117,7 +117,7 @@ def test_dataset_gone_means_no_ground_truth_but_a_note(tmp_path, dataset):
 
 
 def _view(args, capsys) -> tuple[int, str]:
-    from slam.cli import main
+    from swarmsplat.slam.cli import main
 
     code = main(["view", *map(str, args)])
     return code, capsys.readouterr().err.strip()

@@ -14,9 +14,9 @@ pytest.importorskip("viser")
 def test_screenshot_shows_the_splats(tmp_path, capsys):
     import cv2
 
-    from slam.cli import main
-    from slam.synthetic import GeneratorConfig, generate
-    from slam.view.screenshot import find_browser
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.view.screenshot import find_browser
 
     if find_browser() is None:
         pytest.skip("Chromium is not installed (Debian: apt-get install chromium)")

@@ -18,14 +18,14 @@ FAST = {"mapping": {"iterations": 4, "first_iterations": 8}, "tracking": {"refin
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from slam.synthetic import GeneratorConfig, generate
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     return generate(tmp_path_factory.mktemp("view_srv") / "d", GeneratorConfig.preset("tiny", frames=3))
 
 
 @pytest.fixture
 def viewer():
-    from slam.view.server import Viewer
+    from swarmsplat.slam.view.server import Viewer
 
     v = Viewer(port=0)
     yield v
@@ -33,7 +33,7 @@ def viewer():
 
 
 def test_scene_nodes_layers_and_redraw(tmp_path, dataset, viewer):
-    from slam.view import load_scene
+    from swarmsplat.slam.view import load_scene
 
     write_team_run(tmp_path, dataset)
     scene = load_scene(tmp_path)
@@ -56,7 +56,7 @@ def test_scene_nodes_layers_and_redraw(tmp_path, dataset, viewer):
 
 
 def test_other_frames_start_hidden(tmp_path, dataset, viewer):
-    from slam.view import load_scene
+    from swarmsplat.slam.view import load_scene
 
     write_team_run(tmp_path, dataset, joined=False)
     viewer.show(load_scene(tmp_path))
@@ -67,9 +67,9 @@ def test_other_frames_start_hidden(tmp_path, dataset, viewer):
 
 
 def test_live_view_of_one_agent_then_its_folder(tmp_path, dataset, viewer):
-    from slam.config import SlamConfig
-    from slam.run import run_sequence
-    from slam.view.live import LiveView
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.run.sequence import run_sequence
+    from swarmsplat.slam.view.live import LiveView
 
     live = LiveView(viewer, interval=0.0)
     sizes = []
@@ -84,13 +84,13 @@ def test_live_view_of_one_agent_then_its_folder(tmp_path, dataset, viewer):
 
 
 def test_live_view_of_a_team(dataset, viewer):
-    import kernels
-    from slam.config import SlamConfig
-    from slam.datasets import load_dataset
-    from slam.progress import TeamRounds
-    from slam.server import ServerConfig
-    from slam.team import Team
-    from slam.view.live import LiveView
+    from swarmsplat import kernels
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.io.datasets import load_dataset
+    from swarmsplat.slam.io.progress import TeamRounds
+    from swarmsplat.slam.dense.team.server import ServerConfig
+    from swarmsplat.slam.run.team import Team
+    from swarmsplat.slam.view.live import LiveView
 
     seqs = load_dataset(dataset).agents
     cfg = SlamConfig().override(FAST)

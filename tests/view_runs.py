@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from kernels import se3
+from swarmsplat.kernels import se3
 
 # The map frame's pose in the ground-truth frame (so estimate = inv(A_MAP) @ ground truth).
 A_MAP = se3.make(se3.so3_exp(np.array([0.1, -0.3, 0.2])), np.array([0.5, -0.2, 1.0]))
@@ -21,7 +21,7 @@ N_GAUSSIANS = 40  # in a team run's map.ply
 def gaussians(n: int = 3, color=RED, centre=(0.0, 0.0, 2.0)):
     """n Gaussians within 0.5 m of `centre`; the first has scales (0.1, 0.2, 0.3) turned 90° about z (so
     Σ = diag(0.04, 0.01, 0.09)), the others 0.15 m."""
-    from slam.gaussian_map import GaussianParams
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams
 
     rng = np.random.default_rng(0)
     means = rng.uniform(-0.5, 0.5, (n, 3)) + np.asarray(centre)
@@ -36,13 +36,13 @@ def gaussians(n: int = 3, color=RED, centre=(0.0, 0.0, 2.0)):
 def write_team_run(out, dataset, *, joined: bool = True, with_map: bool = True) -> dict:
     """A team run folder over `dataset` (a generated multi-agent dataset). joined=False: agent_1 in its own frame
     (its own component and map_agent_1.ply). Returns {agent: estimated poses [N, 4, 4]}."""
-    from graph.g2o import write_g2o
-    from graph.pose_graph import PoseGraph, robot_key
-    from slam.datasets import load_dataset
-    from slam.jsonio import write_json
-    from slam.loop_log import LoopRecord, write_loops_csv
-    from slam.ply import save_ply
-    from slam.trajectory import write_tum
+    from swarmsplat.graph.g2o import write_g2o
+    from swarmsplat.graph.pose_graph import PoseGraph, robot_key
+    from swarmsplat.slam.io.datasets import load_dataset
+    from swarmsplat.slam.io.jsonio import write_json
+    from swarmsplat.slam.dense.loops.loop_log import LoopRecord, write_loops_csv
+    from swarmsplat.slam.dense.ply import save_ply
+    from swarmsplat.slam.io.trajectory import write_tum
 
     ds = load_dataset(dataset)
     names = [s.name for s in ds.agents]
@@ -79,16 +79,16 @@ def write_team_run(out, dataset, *, joined: bool = True, with_map: bool = True) 
 
 def write_single_run(out, sequence) -> np.ndarray:
     """A one-agent run folder over `sequence` (a generated sequence folder). Returns the estimated poses."""
-    from slam.datasets import load_sequence
-    from slam.jsonio import write_json
-    from slam.ply import save_ply
-    from slam.trajectory import write_tum
+    from swarmsplat.slam.io.datasets import load_sequence
+    from swarmsplat.slam.io.jsonio import write_json
+    from swarmsplat.slam.dense.ply import save_ply
+    from swarmsplat.slam.io.trajectory import write_tum
 
     s = load_sequence(sequence)
     T = np.linalg.inv(A_MAP)[None] @ s.gt_poses
     write_tum(out / "trajectory.txt", s.timestamps, T)
     write_tum(out / "keyframes.txt", s.timestamps[list(KF_FRAMES)], T[list(KF_FRAMES)])
-    (out / "loops.csv").write_text(  # the columns slam.run writes
+    (out / "loops.csv").write_text(  # the columns slam.run.sequence writes
         "query_kf,match_kf,query_frame,match_frame,similarity,accepted,reason,fitness,inlier_rmse,correction_m\n"
         "1,0,2,0,0.9,True,accepted,0.8,0.01,0.001\n1,0,2,0,0.9,False,fitness 0.1 < 0.5,0.1,0.05,0.0\n")
     save_ply(out / "map.ply", gaussians(3))

@@ -1,4 +1,4 @@
-"""Warp kernels of a mapping step's per-Gaussian activations (slam/param_ops.py `activate`): one thread per
+"""Warp kernels of a mapping step's per-Gaussian activations (slam/dense/param_ops.py `activate`): one thread per
 Gaussian on CUDA (and as the CPU's scalar peer); the CPU runs kernels/_warp/activate_cpu.py's vector blocks.
 
 forward:  scales = exp(log_scales), opacities = sigmoid(logits), colors01 = clamp(colors, 0, 1), and per Gaussian

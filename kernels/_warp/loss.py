@@ -1,11 +1,11 @@
-"""Warp kernels of the mapping loss (GRAND-SLAM eq. 3, slam.render.rgbd_loss's rules) in two passes over pixel rows.
+"""Warp kernels of the mapping loss (GRAND-SLAM eq. 3, slam.dense.render.rgbd_loss's rules) in two passes over pixel rows.
 
 Pass 1 writes the per-pixel colour error e_c = mean_c |I^ - I|, depth error e_d = |D^ - D| [D > 0] and the alpha
 mask m0 = alpha^p (1 when p = 0). The caller takes the medians of e_c, e_d over the mask (the inlier rule), then
 pass 2 applies the inlier thresholds and writes the final mask m and each row's sums of m and
 m (lambda e_c + (1 - lambda) e_d). The backward writes dL/dI^ = ((s m) lambda) / 3 sign(I^ - I) and
 dL/dD^ = ((s m) (1 - lambda)) [D > 0] sign(D^ - D) for s = upstream / weight, in the order torch's autograd
-rounds them for slam.render.rgbd_loss (the optimiser downstream amplifies last-bit differences).
+rounds them for slam.dense.render.rgbd_loss (the optimiser downstream amplifies last-bit differences).
 One thread per image row, no atomics; flat [H * W (* 3)] arrays.
 """
 

@@ -7,7 +7,7 @@ the compiler vectorises (the colour and depth errors, the inlier mask, the gradi
 alpha mask's power stays a call of the same powf per pixel, and each row's two sums are added in pixel order as
 there. The arithmetic is the scalar kernels' expression for expression, compiled without multiply-add
 contraction, so every output is bitwise equal to theirs (tests/test_mapping_loss.py), which keeps the gradients
-rounded as torch's autograd rounds the twin slam.render.rgbd_loss. The flat arrays must be contiguous
+rounded as torch's autograd rounds the twin slam.dense.render.rgbd_loss. The flat arrays must be contiguous
 (loss.py falls back to the scalar kernels otherwise). CPU only: CUDA runs loss.py's kernels.
 """
 

@@ -11,7 +11,7 @@ BACKENDS = ("classical", "xfeat", "mast3r", "lightglue")
 
 def make_registrar(name: str, *, checkpoint: str | None = None, device: str = "cpu", **options) -> PairRegistrar:
     """Build a pair-registration backend by name. Learned backends import their dependencies lazily."""
-    from kernels.errors import InputError
+    from swarmsplat.kernels.errors import InputError
 
     if name == "classical":
         from .classical import ClassicalRegistrar

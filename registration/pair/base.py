@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 _MAGIC = b"SSENC1"
 
@@ -170,7 +170,7 @@ def import_optional(module: str, install_hint: str):
     """Import an optional package of a learned backend, or raise one BackendError line saying how to install it."""
     import importlib
 
-    from kernels.errors import BackendError
+    from swarmsplat.kernels.errors import BackendError
 
     try:
         return importlib.import_module(module)

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 from .base import Encoding, PairRegistrar, PairResult
 from .geometry import matched_pose
@@ -64,7 +64,7 @@ class ClassicalRegistrar(PairRegistrar):
         return cv2.AKAZE_create()
 
     def encode(self, image: np.ndarray) -> Encoding:
-        from registration.images import as_rgb8, resize_max_side, to_grey
+        from swarmsplat.registration.images import as_rgb8, resize_max_side, to_grey
 
         rgb = as_rgb8(image)
         h, w = rgb.shape[:2]

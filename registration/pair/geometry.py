@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
+from swarmsplat.kernels.camera import PinholeCamera
 
 from .base import PairResult, import_optional, pose_from_essential_inverse
 
@@ -95,7 +95,7 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, xq: np.ndarray, xm: np.nd
     """
     from scipy.optimize import least_squares
 
-    from kernels import se3
+    from swarmsplat.kernels import se3
 
     hq = np.c_[xq, np.ones(len(xq))]
     hm = np.c_[xm, np.ones(len(xm))]

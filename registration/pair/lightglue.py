@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
-from kernels.errors import BackendError, InputError
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import BackendError, InputError
 
 from .base import Encoding, PairRegistrar, PairResult, import_optional
 from .geometry import matched_pose
@@ -59,7 +59,7 @@ class LightGlueRegistrar(PairRegistrar):
         self.matcher = lg.LightGlue(features=features).eval().to(device)
 
     def encode(self, image: np.ndarray) -> Encoding:
-        from registration.images import as_rgb8
+        from swarmsplat.registration.images import as_rgb8
 
         rgb = as_rgb8(image)
         torch = self.torch

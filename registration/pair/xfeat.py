@@ -31,8 +31,8 @@ import functools
 
 import numpy as np
 
-from kernels.camera import PinholeCamera
-from kernels.errors import BackendError, InputError
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import BackendError, InputError
 
 from .base import Encoding, PairRegistrar, PairResult, import_optional
 from .geometry import matched_pose
@@ -200,7 +200,7 @@ class XFeatRegistrar(PairRegistrar):
         """RGB uint8 [H, W, 3] -> keypoints [N, 2] (original pixels) and float16 descriptors [N, 64]."""
         import torch.nn.functional as F
 
-        from registration.images import as_rgb8
+        from swarmsplat.registration.images import as_rgb8
 
         rgb = as_rgb8(image)
         h, w = rgb.shape[:2]

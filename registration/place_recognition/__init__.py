@@ -13,7 +13,7 @@ def make_recognizer(name: str, *, checkpoint: str | None = None, device: str = "
     """Build a recogniser by name. 'thumbnail' needs nothing; 'bow' / 'vlad' / 'xfeat-vlad' with a checkpoint load
     that vocabulary (.npz); without, they are untrained (call `.fit(images)`). 'cosplace' / 'netvlad' need their
     published checkpoint."""
-    from kernels.errors import InputError
+    from swarmsplat.kernels.errors import InputError
 
     if name == "thumbnail":
         from .thumbnail import ThumbnailRecognizer

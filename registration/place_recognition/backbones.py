@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 
 class BasicBlock(nn.Module):

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 PAPER_THRESHOLD = 0.1  # FLOCC-SLAM §IV: "a permissive value of 0.1"; registration filters the rest
 
@@ -35,7 +35,7 @@ class PlaceRecognizer(ABC):
         An image with no usable structure (blank) gives the zero vector, whose similarity to anything is 0, so it
         never becomes a candidate; a malformed image raises InputError.
         """
-        from registration.images import MIN_SIDE, as_rgb8
+        from swarmsplat.registration.images import MIN_SIDE, as_rgb8
 
         rgb = as_rgb8(image, min_side=self.min_side or MIN_SIDE)
         return l2_normalise(np.asarray(self._describe(rgb), dtype=np.float32).reshape(-1))

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 from .backbones import imagenet_tensor, load_into, load_state_dict_file, resnet_trunk, vgg16_trunk
 from .base import PlaceRecognizer

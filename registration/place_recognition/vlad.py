@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels.errors import InputError
-from kernels.fileio import atomic_path
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import atomic_path
 
 from .base import PlaceRecognizer
 
@@ -26,7 +26,7 @@ def rootsift(rgb: np.ndarray, n_features: int, max_side: int) -> np.ndarray:
     """RGB uint8 [H, W, 3] -> RootSIFT descriptors float32 [M, 128] (M may be 0 on a blank image)."""
     import cv2
 
-    from registration.images import resize_max_side, to_grey
+    from swarmsplat.registration.images import resize_max_side, to_grey
 
     small, _ = resize_max_side(rgb, max_side)
     grey = to_grey(small)
@@ -108,7 +108,7 @@ class _VocabularyRecognizer(PlaceRecognizer):
 
     def fit(self, images, *, seed: int = 0, max_descriptors: int = 50_000) -> "_VocabularyRecognizer":
         """Train the vocabulary from an iterable of RGB images (deterministic for a given seed and input)."""
-        from registration.images import as_rgb8
+        from swarmsplat.registration.images import as_rgb8
 
         parts = [self._local(as_rgb8(im, f"images[{i}]")) for i, im in enumerate(images)]
         return self.fit_local(parts, seed=seed, max_descriptors=max_descriptors)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 from .base import l2_normalise
 from .vlad import VLADRecognizer, vlad_aggregate
@@ -32,7 +32,7 @@ class XFeatVLADRecognizer(VLADRecognizer):
 
     def _local(self, rgb: np.ndarray) -> np.ndarray:
         if self._extractor is None:
-            from registration.pair.xfeat import XFeatRegistrar
+            from swarmsplat.registration.pair.xfeat import XFeatRegistrar
 
             self._extractor = XFeatRegistrar(top_k=self.n_features, max_side=self.max_side)
         return np.asarray(self._extractor.encode(rgb).arrays["desc"], np.float32)

@@ -78,12 +78,12 @@ def _end_now(code: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. Exit codes: 0 done, 2 bad input (one line on stderr), 130 interrupted (SIGINT / SIGTERM;
-    a second one exits at once), 1 failed; an interrupted or failed run has written what it had (slam.run_guard).
+    a second one exits at once), 1 failed; an interrupted or failed run has written what it had (slam.run.guard).
     argv None (the console script, `python -m slam`): after an interrupt or an unexpected failure the process
     ends at once (`_end_now`), whatever thread is still running."""
     import warnings
 
-    from kernels.errors import SwarmsplatError
+    from swarmsplat.kernels.errors import SwarmsplatError
 
     parser = build_parser()
     args = parser.parse_args(argv)

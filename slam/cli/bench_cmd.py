@@ -13,9 +13,9 @@ def run(args) -> int:
     import argparse
     from unittest import mock
 
-    from kernels.errors import InputError
-    from kernels.fileio import output_file
-    from perf.__main__ import main as perf_main
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import output_file
+    from swarmsplat.perf.__main__ import main as perf_main
 
     for flag in ("--json", "--md"):  # an unwritable output fails before the benchmarks run, not after
         for i, a in enumerate(args.rest):

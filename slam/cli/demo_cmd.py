@@ -3,8 +3,8 @@
 
 from __future__ import annotations
 
-from slam.cli import add_backend_flags
-from slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
+from swarmsplat.slam.cli import add_backend_flags
+from swarmsplat.slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
 
 
 def register(sub) -> None:
@@ -26,7 +26,7 @@ def register(sub) -> None:
 def run(args) -> int:
     import json
 
-    from slam.demo import run_demo
+    from swarmsplat.slam.run.demo import run_demo
 
     live = live_view(args)  # a taken port fails before the run starts
     m = run_demo(args.out, preset=args.preset, kernels=args.kernels, device=args.device, seed=args.seed,

@@ -33,8 +33,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kernels.errors import InputError
-    from kernels.fileio import atomic_write_text, output_file
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import atomic_write_text, output_file
 
     for flag, path in (("--json", args.json), ("--plot", args.plot)):
         if path:
@@ -57,8 +57,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _evaluate_one(args):
-    from slam.metrics.evaluate import evaluate_trajectories
-    from slam.trajectory import read_trajectory
+    from swarmsplat.slam.metrics.evaluate import evaluate_trajectories
+    from swarmsplat.slam.io.trajectory import read_trajectory
 
     gt = read_trajectory(args.gt, args.gt_format or args.format)
     est = read_trajectory(args.est, args.est_format or args.format)
@@ -66,7 +66,7 @@ def _evaluate_one(args):
 
 
 def _evaluate_team(args):
-    from slam.metrics.team import evaluate_team, find_team_trajectories
+    from swarmsplat.slam.metrics.team import evaluate_team, find_team_trajectories
 
     gt, est = find_team_trajectories(args.gt, args.est, args.est_format or args.format)
     return evaluate_team(gt, est, align=args.align, max_diff=args.max_diff, delta=args.delta)

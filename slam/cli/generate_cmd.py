@@ -29,10 +29,10 @@ def run(args) -> int:
 
     from tqdm import tqdm
 
-    from kernels.errors import InputError
-    from kernels.fileio import output_dir, output_file
-    from slam.synthetic import GeneratorConfig, agent_poses, generate, generate_world
-    from slam.synthetic.writer import check_output_dir
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import output_dir, output_file
+    from swarmsplat.slam.synthetic import GeneratorConfig, agent_poses, generate, generate_world
+    from swarmsplat.slam.synthetic.writer import check_output_dir
 
     if not args.out and not args.preview:
         raise InputError("give --out DIR (and/or --preview PNG)")
@@ -43,7 +43,7 @@ def run(args) -> int:
         output_dir(args.out, "--out", create=False)
     if args.preview:
         output_file(args.preview, "--preview", create=False)
-        from slam.synthetic.preview import plot_world
+        from swarmsplat.slam.synthetic.preview import plot_world
 
         world = generate_world(config.seed, config.world)
         plot_world(world, agent_poses(world, config), args.preview)

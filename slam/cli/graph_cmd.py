@@ -48,14 +48,14 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
-    from graph.formulations import build_problem
-    from graph.g2o import read_g2o, repaired_edges, write_g2o
-    from graph.init import initialize
-    from graph.metrics import se_sync_cost
-    from graph.pose_graph import key_str
-    from graph.solvers import gnc, levenberg_marquardt
-    from kernels.errors import InputError
-    from kernels.fileio import atomic_write_text
+    from swarmsplat.graph.formulations import build_problem
+    from swarmsplat.graph.g2o import read_g2o, repaired_edges, write_g2o
+    from swarmsplat.graph.init import initialize
+    from swarmsplat.graph.metrics import se_sync_cost
+    from swarmsplat.graph.pose_graph import key_str
+    from swarmsplat.graph.solvers import gnc, levenberg_marquardt
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import atomic_write_text
 
     if args.max_iterations < 1 or not (args.relative_tol > 0 and args.absolute_tol > 0):
         raise InputError("--max-iterations must be >= 1 and the tolerances > 0")

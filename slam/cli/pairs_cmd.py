@@ -42,7 +42,7 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from slam.pairs import run_pairs
+    from swarmsplat.slam.run.pairs import run_pairs
 
     summary = run_pairs(args.dataset, args.out, backend=args.backend, place=args.place, checkpoint=args.checkpoint,
                         place_checkpoint=args.place_checkpoint, threshold=args.threshold, top_k=args.top_k,

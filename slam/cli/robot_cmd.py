@@ -6,7 +6,7 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
-    from slam.cli.swarm_cmd import add_swarm_options
+    from swarmsplat.slam.cli.swarm_cmd import add_swarm_options
 
     p = sub.add_parser("robot", help="run one robot over Zenoh (see `swarm --processes`)")
     p.add_argument("--id", type=int, required=True, help="robot id: the dataset's K-th agent")
@@ -18,7 +18,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from slam.swarm.launch import run_robot
+    from swarmsplat.slam.run.swarm_processes import run_robot
 
     run_robot(args.dataset, args.id, args.out, start_time=args.start_time, port_base=args.port_base, run=args.run,
               stride=args.stride, schedule=args.schedule, place=args.place, place_checkpoint=args.place_checkpoint,

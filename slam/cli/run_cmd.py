@@ -4,8 +4,8 @@ config.yaml in DIR), or a team on a multi-agent dataset or on a single sequence 
 
 from __future__ import annotations
 
-from slam.cli import add_backend_flags
-from slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
+from swarmsplat.slam.cli import add_backend_flags
+from swarmsplat.slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
 
 
 def register(sub) -> None:
@@ -38,21 +38,21 @@ def register(sub) -> None:
 def run(args) -> int:
     import json
 
-    from kernels.errors import InputError
-    from kernels.fileio import output_dir
-    from slam.config import SlamConfig
-    from slam.run import run_sequence
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import output_dir
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.run.sequence import run_sequence
 
     ranges = None
     if args.split is not None:
-        from slam.split import parse_ranges
+        from swarmsplat.slam.io.datasets.split import parse_ranges
 
         ranges = parse_ranges(args.split)  # bad syntax fails before any loading
     if args.frames is not None and args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")
     output_dir(args.out, "--out", create=False)  # a file or an unwritable place fails before any loading
     cfg = SlamConfig.from_yaml(args.config, overrides={"kernels": {"backend": args.kernels, "device": args.device}})
-    from slam.datasets import load_dataset
+    from swarmsplat.slam.io.datasets import load_dataset
 
     ds = load_dataset(args.dataset)
     live = live_view(args)  # a taken port fails before the run starts
@@ -60,7 +60,7 @@ def run(args) -> int:
         if len(ds) != 1:
             raise InputError(f"--split cuts one sequence into agents, but {args.dataset} already holds {len(ds)} "
                              f"agents' sequences")
-        from slam.split import split_sequence
+        from swarmsplat.slam.io.datasets.split import split_sequence
 
         try:
             ds = split_sequence(ds.agents[0], ranges)
@@ -68,7 +68,7 @@ def run(args) -> int:
             raise InputError(f"--split: {e}") from None
     if len(ds) > 1:
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map (issue 7).
-        from slam.team import run_team
+        from swarmsplat.slam.run.team import run_team
 
         m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
                      strict=args.strict)

@@ -40,11 +40,11 @@ def run(args) -> int:
                 schedule=args.schedule, stride=args.stride, place=args.place, place_checkpoint=args.place_checkpoint,
                 backend=args.backend, r_thr=args.r_thr, k=args.k, strict=args.strict)
     if args.processes:
-        from slam.swarm.launch import launch
+        from swarmsplat.slam.run.swarm_processes import launch
 
         m = launch(args.dataset, args.out, port_base=args.port_base, **opts)
     else:
-        from slam.swarm.run import run_swarm
+        from swarmsplat.slam.run.swarm import run_swarm
 
         m = run_swarm(args.dataset, args.out, **opts)
     ate, odo = m.get("ate", {}), m.get("odometry_only_ate", {})

@@ -28,8 +28,8 @@ def live_view(args):
     """The live-view observer for `--view`, or None. Starts the viewer now, so a taken port fails first."""
     if not getattr(args, "view", False):
         return None
-    from slam.view.live import LiveView
-    from slam.view.server import Viewer
+    from swarmsplat.slam.view.live import LiveView
+    from swarmsplat.slam.view.server import Viewer
 
     viewer = Viewer(args.host, args.port)
     print(f"viewer: {viewer.url}  (live; Ctrl-C after the run to stop)", file=sys.stderr, flush=True)
@@ -62,12 +62,12 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from slam.view.run_folder import check_run, load_scene
-    from slam.view.server import Viewer
+    from swarmsplat.slam.view.run_folder import check_run, load_scene
+    from swarmsplat.slam.view.server import Viewer
 
     check_run(args.run)  # a folder that is not a run, or has no map, fails first
     if args.screenshot:
-        from slam.view.screenshot import require_browser, take_screenshot
+        from swarmsplat.slam.view.screenshot import require_browser, take_screenshot
 
         require_browser()  # before a server starts
         with Viewer(args.host, args.port if args.port is not None else 0) as viewer:

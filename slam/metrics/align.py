@@ -1,7 +1,7 @@
 """Umeyama alignment (SE(3) or Sim(3)) of an estimated trajectory to ground truth, and pose association.
 
 Both follow evo's definitions so the numbers match `evo_ape` / `evo_rpe`: association pairs stamps by
-`slam.datasets.associate.match_nearest` starting from the shorter trajectory; alignment is Umeyama's closed form
+`slam.io.datasets.associate.match_nearest` starting from the shorter trajectory; alignment is Umeyama's closed form
 on positions (Umeyama, PAMI 1991), y ~ s R x + t with x the estimate and y the ground truth.
 """
 
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 ALIGN_MODES = ("se3", "sim3", "none")
 
@@ -130,7 +130,7 @@ def associate_poses(t_gt: np.ndarray, T_gt: np.ndarray, t_est: np.ndarray, T_est
 
 
 def _match(t_short, t_long, max_diff, offset_long):
-    from slam.datasets.associate import match_nearest
+    from swarmsplat.slam.io.datasets.associate import match_nearest
 
     return match_nearest(t_short, t_long, max_diff, offset_long)
 

@@ -12,7 +12,7 @@ from typing import Mapping
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 from .align import PosePairs, Sim3, alignment, associate_poses
 

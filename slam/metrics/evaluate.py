@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels.errors import InputError
-from slam.trajectory import Trajectory
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.io.trajectory import Trajectory
 
 from .align import check_align_mode
 from .ate import AteResult, ate
@@ -45,7 +45,7 @@ class TrajectoryEvaluation:
 
     def plot(self, path) -> Path:
         """PNG of the aligned estimate over the ground truth, with the per-pose ATE."""
-        from slam.plots import plot_trajectories
+        from swarmsplat.slam.io.plots import plot_trajectories
 
         a = self.ate
         return plot_trajectories(path, {"agent": self.gt.T_world_cam[:, :3, 3]}, {"agent": a.T_est_aligned[:, :3, 3]},

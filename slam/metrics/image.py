@@ -13,7 +13,7 @@ import math
 import numpy as np
 import torch
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 
 def _as_chw(name: str, img) -> torch.Tensor:

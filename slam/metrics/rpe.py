@@ -12,8 +12,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from kernels import se3
-from kernels.errors import InputError
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
 
 from .align import PosePairs, alignment, associate_poses, check_align_mode
 from .ate import ErrorStats

@@ -13,8 +13,8 @@ from typing import Mapping
 
 import numpy as np
 
-from kernels.errors import InputError
-from slam.trajectory import Trajectory, read_trajectory
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.io.trajectory import Trajectory, read_trajectory
 
 from .align import PosePairs, check_align_mode
 from .ate import AteResult, ErrorStats, ate_from_pairs
@@ -48,7 +48,7 @@ class TeamEvaluation:
 
     def plot(self, path) -> Path:
         """PNG of every agent moved by the ONE team alignment over its ground truth, with per-pose errors."""
-        from slam.plots import plot_trajectories
+        from swarmsplat.slam.io.plots import plot_trajectories
 
         S = self.joint.transform
         est = {k: S.apply_to_poses(v.ate.pairs.T_est)[:, :3, 3] for k, v in self.per_agent.items()}

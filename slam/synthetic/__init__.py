@@ -1,7 +1,7 @@
 """Synthetic multi-agent RGB-D (and monocular) datasets: a procedural indoor world, agent paths that overlap,
 ray-cast colour and depth with sensor noise, written in our folder format.
 
-    from slam.synthetic import GeneratorConfig, generate, generate_world, render
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate, generate_world, render
     generate("data/synth", GeneratorConfig.preset("tiny", seed=3))
     world = generate_world(3)
     color, depth = render(world, T_world_cam, camera)   # any pose, noise-free

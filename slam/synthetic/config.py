@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 MAX_AGENTS = 6
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
+from swarmsplat.kernels import se3
 
 from .config import MonoConfig
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
 
 from .render import camera_for, cast
 from .world import World

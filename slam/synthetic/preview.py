@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels.fileio import atomic_write_bytes
+from swarmsplat.kernels.fileio import atomic_write_bytes
 
 from .world import World
 

@@ -18,9 +18,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from kernels import se3
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 from .config import MAX_SUPERSAMPLE
 from .world import World

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 import warp as wp
 
-from kernels._warp.arrays import to_warp
-from kernels._warp.launch import run
-from kernels.backend import _init_warp
+from swarmsplat.kernels._warp.arrays import to_warp
+from swarmsplat.kernels._warp.launch import run
+from swarmsplat.kernels.backend import _init_warp
 
 wp.set_module_options({"enable_backward": False})
 

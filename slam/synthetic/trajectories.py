@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels import se3
+from swarmsplat.kernels import se3
 
 from .config import MAX_AGENTS, MotionConfig
 

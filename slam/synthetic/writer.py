@@ -1,6 +1,6 @@
 """`generate(out_dir, config)`: render every agent and write a dataset in our folder format, atomically.
 
-Layout (read by slam.datasets.folder):
+Layout (read by slam.io.datasets.folder):
 
     out_dir/dataset.yaml        {name, kind: rgbd|mono, agents: [agent_0, ...], seed, generator: {settings}}
     out_dir/agent_k/rgb/000000.png      8-bit RGB
@@ -28,9 +28,9 @@ import cv2
 import numpy as np
 import yaml
 
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
-from slam.trajectory import write_tum
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.slam.io.trajectory import write_tum
 
 from .config import GeneratorConfig
 from .mono import drifting_odometry

@@ -1,4 +1,4 @@
-"""The viewer's metrics panel: a run's metrics.json (slam.run / slam.team_results keys) as Markdown."""
+"""The viewer's metrics panel: a run's metrics.json (slam.run.sequence / slam.run.team_results keys) as Markdown."""
 
 from __future__ import annotations
 

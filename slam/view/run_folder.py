@@ -1,6 +1,6 @@
 """Read a run folder (what `swarmsplat run` or `swarmsplat demo` wrote) into a slam.view.scene.Scene.
 
-Layouts (see slam.run and slam.team_results):
+Layouts (see slam.run.sequence and slam.run.team_results):
   one agent   metrics.json ("agent"), map.ply, trajectory.txt, keyframes.txt, loops.csv
   team        metrics.json ("agents"), map.ply (+ map_<agent>.ply per other component), trajectories/,
               trajectories_no_lc/, pose_graph_optimized.g2o (keyframe poses), loops.csv
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError
 
 from .panel import metrics_markdown
 from .scene import (GLOBAL, GT_COLOR, NOMINAL_FOV, Frusta, Scene, Track, agent_color, lighten, loop_edges,
@@ -73,7 +73,7 @@ def check_run(folder: str | Path) -> tuple[Path, dict, list[Path]]:
 
 def load_scene(folder: str | Path) -> Scene:
     """Everything the viewer shows for a run folder. Bad input raises InputError naming what is wrong."""
-    from slam.ply import load_ply
+    from swarmsplat.slam.dense.ply import load_ply
 
     run, m, maps = check_run(folder)
     scene = Scene(title=f"swarmsplat: {Path(folder).resolve().name}")
@@ -114,7 +114,7 @@ def load_scene(folder: str | Path) -> Scene:
 
 def _read_estimates(run: Path, names: list[str], team: bool) -> dict:
     """{agent: {"slam": (t, T), "no_lc": (t, T)}} for the files that exist."""
-    from slam.trajectory import read_tum
+    from swarmsplat.slam.io.trajectory import read_tum
 
     out = {}
     for n in names:
@@ -134,8 +134,8 @@ def _components(m: dict, names: list[str]) -> dict[str, list[str]]:
 def _alignment(gt: tuple, est: tuple) -> np.ndarray:
     """4x4 taking estimated poses onto ground truth (rigid, least squares over matched positions); with too few
     or collinear poses, the transform that puts the first matched estimate on its ground truth."""
-    from slam.metrics import ate
-    from slam.metrics.align import associate_poses
+    from swarmsplat.slam.metrics import ate
+    from swarmsplat.slam.metrics.align import associate_poses
 
     try:
         return ate(*gt, *est, align="se3", max_diff=GT_MAX_DIFF).transform.matrix
@@ -148,7 +148,7 @@ def _alignment(gt: tuple, est: tuple) -> np.ndarray:
 
 def _add_tracks(scene: Scene, names: list[str], members: list[str], est: dict, gt: dict, frame_of: dict) -> None:
     """Loop-closed, tracking-only and ground-truth trajectories of one component's agents, in its frame."""
-    from slam.metrics import ate_multi
+    from swarmsplat.slam.metrics import ate_multi
 
     have = [n for n in members if n in gt and "slam" in est.get(n, {})]
     S_inv = {}
@@ -182,7 +182,7 @@ def _add_tracks(scene: Scene, names: list[str], members: list[str], est: dict, g
                 T = _anchor(T, e.get("slam"))
             scene.tracks.append(Track(f"{n}_no_lc", n, "no_lc", T[:, :3, 3], lighten(c), fr))
         if n in S_inv:
-            from slam.metrics.align import associate_poses
+            from swarmsplat.slam.metrics.align import associate_poses
 
             pairs = associate_poses(*gt[n], *e["slam"], max_diff=GT_MAX_DIFF)
             T_gt = S_inv[n][None] @ pairs.T_gt
@@ -198,7 +198,7 @@ def _anchor(T: np.ndarray, ref: tuple | None) -> np.ndarray:
 
 def _ground_truth(run: Path, m: dict, names: list[str]) -> tuple[dict, dict, str]:
     """({agent: (t, T_world_cam)}, {agent: camera}, note) from the run's dataset, when it can be found."""
-    from slam.datasets import load_dataset
+    from swarmsplat.slam.io.datasets import load_dataset
 
     recorded = m.get("dataset")
     cands = [Path(recorded)] if recorded else []
@@ -233,15 +233,15 @@ def _ground_truth(run: Path, m: dict, names: list[str]) -> tuple[dict, dict, str
 def _keyframe_poses(run: Path, names: list[str], team: bool) -> dict[str, np.ndarray]:
     """{agent: [K, 4, 4]} keyframe poses in id order (team: the optimised pose graph; one agent: keyframes.txt)."""
     if not team:
-        from slam.trajectory import read_tum
+        from swarmsplat.slam.io.trajectory import read_tum
 
         p = run / "keyframes.txt"
         return {names[0]: read_tum(p)[1]} if p.is_file() else {}
     p = run / "pose_graph_optimized.g2o"
     if not p.is_file():
         return {}
-    from graph.g2o import read_g2o
-    from graph.pose_graph import key_index, key_robot
+    from swarmsplat.graph.g2o import read_g2o
+    from swarmsplat.graph.pose_graph import key_index, key_robot
 
     g = read_g2o(p)
     per: dict[str, dict[int, np.ndarray]] = {}

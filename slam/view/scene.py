@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kernels import se3
+from swarmsplat.kernels import se3
 
 # Agent colours (RGB 0-255), in agent order; loop edges and ground truth have their own colours, none of these.
 AGENT_COLORS = [(31, 119, 180), (44, 160, 44), (214, 39, 40), (148, 103, 189), (23, 190, 207), (140, 86, 75),
@@ -118,7 +118,7 @@ class Scene:
 
 
 def splats_from_params(name: str, params) -> Splats:
-    """Splats of a slam.gaussian_map.GaussianParams (log scales, wxyz quaternions, logit opacities, RGB colours):
+    """Splats of a slam.dense.gaussian_map.GaussianParams (log scales, wxyz quaternions, logit opacities, RGB colours):
     Σ = R diag(s²) Rᵀ, as the rasteriser builds it."""
     import torch
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kernels.errors import SwarmsplatError
+from swarmsplat.kernels.errors import SwarmsplatError
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 # As root Chromium needs --no-sandbox; the rest keep a headless run off the network and quick to start.
@@ -164,7 +164,7 @@ def take_screenshot(viewer, out: str | Path, *, width: int = 1280, height: int =
                     min_changed: float = 0.002) -> Path:
     """Open `viewer.url` in headless Chromium, wait until its splats are drawn, write the page as PNG to `out`
     (atomically). ScreenshotError when there is no Chromium or nothing was drawn within `timeout` seconds."""
-    from kernels.fileio import atomic_write_bytes
+    from swarmsplat.kernels.fileio import atomic_write_bytes
 
     browser = require_browser()
     if "map" not in viewer.layers():

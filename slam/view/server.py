@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from kernels import se3
-from kernels.errors import InputError, SwarmsplatError
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError, SwarmsplatError
 
 from .scene import GLOBAL, Scene, view_from_points
 

@@ -1,4 +1,4 @@
-"""A Scene from a run in progress: a slam.team.Team or a slam.agent.Agent as they are now (the live view).
+"""A Scene from a run in progress: a slam.run.team.Team or a slam.dense.agent.Agent as they are now (the live view).
 
 Team: each component's merged map, every agent's trajectory with loop closures (in its component's frame) and
 tracking only (anchored at its first pose), keyframe frusta at their current global poses, accepted loops.

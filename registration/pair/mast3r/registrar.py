@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from kernels.camera import PinholeCamera
-from kernels.errors import InputError
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
 
 from ..base import Encoding, PairRegistrar, PairResult
 from .matching import fast_reciprocal_nns, pose_from_matches
@@ -54,7 +54,7 @@ def load_mast3r_checkpoint(path, device: str = "cpu", *, trust_checkpoint: bool 
     if not any(k.startswith("dec_blocks2") for k in state):  # DUSt3R-style checkpoints share the decoder
         state = {**state, **{k.replace("dec_blocks", "dec_blocks2"): v for k, v in state.items()
                              if k.startswith("dec_blocks.")}}
-    from registration.place_recognition.backbones import load_into
+    from swarmsplat.registration.place_recognition.backbones import load_into
 
     # Build on the meta device: no memory and no random initialisation for 0.7 G parameters, and a checkpoint
     # that does not fit is refused before anything is allocated; `assign` then adopts the loaded tensors.
@@ -119,7 +119,7 @@ class Mast3rRegistrar(PairRegistrar):
 
     @torch.no_grad()
     def encode(self, image: np.ndarray) -> Encoding:
-        from registration.images import as_rgb8
+        from swarmsplat.registration.images import as_rgb8
 
         rgb = as_rgb8(image, min_side=self.net.cfg.patch_size)
         x, meta = self.preprocess(rgb)

@@ -1,0 +1,320 @@
+"""Typed configuration of one GRAND-SLAM agent: nested pydantic models, YAML overrides, validated on load,
+written next to the results (`to_yaml`). No global config: every component receives its own section.
+
+Defaults work on the generated 320x240 sequences and on TUM-like real data at 640x480 (which the agent works on
+at `image.max_width`, 320 by default, to suit a CPU).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from swarmsplat.kernels.errors import InputError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ImageConfig(_Section):
+    max_width: int = Field(320, ge=16, description="frames wider than this are downsampled (area) for the whole "
+                                                   "pipeline; 0 keeps the input size")
+    min_depth: float = Field(0.1, gt=0, description="depth below this (metres) is treated as invalid")
+    max_depth: float = Field(10.0, gt=0, description="depth beyond this (metres) is treated as invalid")
+    min_valid_fraction: float = Field(0.05, ge=0, le=1, description="frames with fewer valid depth pixels are "
+                                                                    "skipped with a warning")
+
+
+class TrackingConfig(_Section):
+    coarse: Literal["rgbd_odometry", "none"] = "rgbd_odometry"
+    coarse_max_width: int = Field(320, ge=16, description="resolution of the coarse frame-to-frame odometry")
+    coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
+                                                            "distrusted: constant velocity is used instead")
+    refine: bool = Field(True, description="frame-to-model refinement after the coarse stage (§III-C): "
+                                          "Gauss-Newton against the active submap rendered at the last keyframe, "
+                                          "with debias_view. On (session 8): tracking-only ATE Redwood 211 10.08 "
+                                          "vs 10.25 mm coarse-only at 1.40x the tracking time; demo agents "
+                                          "6.3 / 2.8 / 5.5 vs 7.4 / 8.0 / 6.0 mm at 1.24-1.28x (README)")
+    refine_on_coarse_failure: bool = Field(True, description="run the refinement anyway when the coarse stage "
+                                                            "fails (then it starts from constant velocity)")
+    method: Literal["gauss_newton", "adam"] = Field(
+        "gauss_newton", description="refinement: Gauss-Newton on hybrid point-to-plane + intensity residuals "
+                                    "against the submap rendered once per map update, or Adam on eq. 5 through "
+                                    "the rasteriser's pose gradient every iteration (slam.dense.tracking.tracker)")
+    refine_max_width: int = Field(320, ge=16, description="resolution of the frame-to-model refinement "
+                                                          "(the model view is rendered at this width; 160 "
+                                                          "measured 7.2 vs 4.4 mm ATE at 320)")
+    pyramid_levels: int = Field(1, ge=1, le=4, description="refinement pyramid (each level halves the width)")
+    iterations: int = Field(3, ge=0, description="Gauss-Newton steps per pyramid level (0 = no refinement); 3 "
+                                               "measured as good as 5 (5.48 vs 5.59 mm on generated data)")
+    step_tolerance: float = Field(1e-4, gt=0, description="Gauss-Newton: stop a level when a step moves less "
+                                  "than this (m and rad); 1e-4 (0.1 mm / 0.1 mrad): demo agents 6.33 / 2.84 / 5.54 "
+                                  "mm at 1.24-1.28x the coarse tracking time, 1e-5: 6.30 / 2.84 / 5.65 mm at "
+                                  "1.29-1.47x")
+    photometric_weight: float = Field(0.3, ge=0, description="Gauss-Newton: intensity term weight (intensity in "
+                                                             "[0, 1] against metres)")
+    max_distance: float = Field(0.05, gt=0, description="Gauss-Newton: correspondence gate (m)")
+    min_model_coverage: float = Field(0.3, ge=0, le=1, description="Gauss-Newton: skip the refinement when less "
+                                      "than this fraction of the model view has alpha >= alpha_min")
+    max_correction: float = Field(0.05, gt=0, description="keep the coarse pose when the refinement moves it "
+                                                          "further than this (m)")
+    acceptance_test: bool = Field(True, description="Gauss-Newton: per-frame acceptance test, keep the coarse pose "
+                                  "unless the refinement lowers the robust hybrid residual against the model view")
+    min_residual_gain: float = Field(0.0, ge=0, lt=1, description="Gauss-Newton: ... by at least this fraction of "
+                                     "its value at the coarse pose")
+    max_inlier_loss: float = Field(0.1, ge=0, le=1, description="Gauss-Newton: ... and keeps at least 1 - this of "
+                                   "the coarse pose's correspondences")
+    debias_view: bool = Field(True, description="Gauss-Newton: place each model view where its own keyframe "
+                              "aligns to it (removes the view's offset from its keyframe, up to max_view_bias). "
+                              "Without it the refinement was worse than coarse-only on generated data (60 frames "
+                              "8.83 vs 6.90 mm; debiased 3.24) and on demo agent 2 (8.12 vs 5.96 mm; debiased "
+                              "5.54): each view's millimetre offset from its keyframe chains from keyframe to "
+                              "keyframe")
+    max_view_bias: float = Field(0.005, gt=0, description="Gauss-Newton: a model view is not used when its own "
+                                 "keyframe, aligned to it, moves more than this (m): the map disagrees with it")
+    adam_iterations: int = Field(20, ge=1, description="Adam: maximum iterations at the finest level")
+    lr_rotation: float = Field(2e-3, gt=0, description="Adam step on the rotation (rad)")
+    lr_translation: float = Field(2e-3, gt=0, description="Adam step on the translation (m)")
+    lambda_color: float = Field(0.5, ge=0, le=1, description="Adam: λ_c, weight of colour vs depth L1 (eq. 3/5)")
+    alpha_power: float = Field(4.0, ge=0, description="Adam: soft alpha mask M_α = alpha^p")
+    alpha_min: float = Field(0.9, ge=0, le=1, description="pixels rendered with alpha below this are ignored")
+    inlier_k: float = Field(20.0, gt=0, description="Adam: M_in drops pixels whose error exceeds k x median error")
+    normalise_by_alpha: bool = Field(False, description="Adam: compare colour / alpha and depth / alpha with the "
+                                     "input. Off: mapping fits the un-normalised renders, and depth / alpha lies "
+                                     "(1/alpha - 1) x depth behind the surface (+13.5 mm on Redwood, README)")
+    converge_rot: float = Field(2e-5, gt=0, description="Adam: stop when a step rotates less than this (rad) ...")
+    converge_trans: float = Field(2e-5, gt=0, description="... and translates less than this (m) for `patience` "
+                                                          "steps")
+    patience: int = Field(3, ge=1)
+    min_relative_gain: float = Field(0.1, ge=0, lt=1, description="Adam: keep the coarse pose unless the refined "
+                                     "one lowers the tracking loss by this fraction")
+
+
+class KeyframeConfig(_Section):
+    every: int = Field(5, ge=1, description="a keyframe at least every N frames")
+    max_translation: float = Field(0.15, gt=0, description="... or when it moved this far from the last keyframe (m)")
+    max_rotation_deg: float = Field(10.0, gt=0, description="... or rotated this much (degrees)")
+
+
+class MappingConfig(_Section):
+    max_width: int = Field(0, ge=0, description="width of the mapping renders; 0 (default) = the working "
+                                                "resolution (image.max_width). A lower width maps faster and "
+                                                "coarser; evaluation is at the working and input resolution")
+    iterations: int = Field(30, ge=0, description="optimisation iterations per new keyframe")
+    first_iterations: int = Field(100, ge=0, description="iterations for a submap's first keyframe")
+    current_keyframe_fraction: float = Field(0.4, ge=0, le=1, description="share of iterations on the newest keyframe")
+    alpha_seed: float = Field(0.95, ge=0, le=1, description="α_min: seed Gaussians where rendered alpha is below "
+                                                           "this (0.95 measured +2 dB PSNR over 0.6 for +6 % Gaussians)")
+    seed_stride: int = Field(1, ge=1, description="one seed per stride x stride pixels in sparse regions")
+    seed_without_depth: bool = Field(True, description="also seed the large regions without valid depth (windows, "
+                                     "sky, beyond the sensor's range) at the farthest valid depth nearby or of the "
+                                     "frame (slam.dense.mapping.mapper.fallback_depth); off leaves them empty, rendered black")
+    no_depth_min_region: float = Field(0.01, ge=0, le=1, description="... regions (>= 3 px across) covering at "
+                                       "least this fraction of the image; smaller holes are left to the "
+                                       "Gaussians around them")
+    max_new_gaussians: int = Field(30000, ge=1)
+    init_opacity: float = Field(0.5, gt=0, lt=1)
+    init_scale_factor: float = Field(2.0, gt=0, description="initial radius = factor x stride x pixel footprint / 2. "
+                                     "2 (was 1) measured on Redwood at 320 px: 31.4 vs 28.1 dB, 100k vs 166k "
+                                     "Gaussians, and an opaque map (median alpha 0.996 vs 0.953)")
+    lambda_color: float = Field(0.5, ge=0, le=1, description="λ_c of eq. 3")
+    alpha_power: float = Field(0.0, ge=0, description="soft alpha mask M_α = alpha^p (0 = no mask)")
+    inlier_k: float = Field(50.0, gt=0, description="M_in: drop pixels whose error exceeds k x median error")
+    lr_means: float = Field(5e-4, gt=0, description="metres per step (scaled by the scene depth)")
+    lr_log_scales: float = Field(5e-3, gt=0)
+    lr_quats: float = Field(1e-3, gt=0)
+    lr_opacities: float = Field(5e-2, gt=0)
+    lr_colors: float = Field(2e-2, gt=0)
+    prune_min_opacity: float = Field(0.05, ge=0, lt=1)
+    prune_max_scale: float = Field(0.5, gt=0, description="metres")
+    isotropic_regulariser: float = Field(10.0, ge=0, description="penalty on scales far from their mean")
+    seed: int = 0
+
+
+class MapRefineConfig(_Section):
+    """Server-side refinement of each component's merged map after the final pose-graph optimisation
+    (slam.dense.mapping.refine_merged). Measured on the demo data: submaps overlap, and the merged map renders ~6 dB below each
+    submap alone until it is optimised jointly over all keyframes."""
+
+    iterations_per_keyframe: int = Field(16, ge=0, description="optimisation steps per keyframe of the component "
+                                         "(one keyframe per step); 0 disables refinement. 16 against 8 (session "
+                                         "8): Redwood 211 merged map 30.07 vs 29.19 dB at 320x240 for 46 vs 22 s, "
+                                         "a generated agent 27.81 vs 27.24 dB for 23 vs 11 s, rgbd5 34.41 vs 33.79 "
+                                         "dB; 24 (Redwood, capped at max_iterations): 30.40 dB for 59 s")
+    max_iterations: int = Field(1000, ge=0, description="cap on the steps per component (bounds the time)")
+    lr_scale: float = Field(1.0, gt=0, description="learning rates start at mapping's lr_* times this (until "
+                                                    "session 11: 0.5, constant)")
+    lr_final_scale: float = Field(0.3, gt=0, le=1, description="the learning rates decay geometrically to this "
+                                  "fraction of their start over the refinement's steps (1 = constant). Measured "
+                                  "with lr_scale 1: +0.6 dB on the demo, +0.4 dB on Redwood 211 (42 of 43 views) "
+                                  "against 0.5 constant")
+    lambda_color: float = Field(0.9, ge=0, le=1, description="λ_c of eq. 3 here: geometry is settled by mapping; "
+                                                             "the noisy depth term mostly fights colour detail")
+    isotropic_regulariser: float = Field(0.0, ge=0, description="mapping's penalty on anisotropic scales; off "
+                                                                "here so Gaussians can follow texture edges")
+    min_contribution: float = Field(0.2, ge=0, description="first drop Gaussians whose total blending weight is "
+                                    "below this many pixels in every keyframe (copies hidden behind another "
+                                    "submap's surface); 0 keeps all")
+    overlap_cull: bool = Field(True, description="before refining, keep each surface point in one submap only: "
+                               "the one whose keyframe observed it on its depth surface from closest "
+                               "(slam.dense.mapping.overlap_cull). Measured on Redwood 211: 256k -> 108k Gaussians, 27.26 dB "
+                               "after refinement against 27.09, in 57 s against 100 s")
+    overlap_depth_tolerance: float = Field(0.03, ge=0, description="a keyframe observes a Gaussian's centre when "
+                                           "it lies within max(this (m), overlap_depth_tolerance_rel x depth) of "
+                                           "the keyframe's depth at its pixel")
+    overlap_depth_tolerance_rel: float = Field(0.02, ge=0, description="see overlap_depth_tolerance")
+    view_margin: float = Field(0.15, ge=0, description="a step optimises the Gaussians whose centre projects into "
+                                                       "the keyframe's image grown by this fraction per side")
+    views: Literal["mapping", "small"] = Field("mapping", description="keyframe images the refinement fits: "
+                                               "'mapping' = at the mapping resolution (agents keep them, "
+                                               "w x h x 7 bytes per keyframe), 'small' = the loop-closure copies "
+                                               "(submaps.keep_keyframe_width): faster, blurrier above that width")
+    single_agent: bool = Field(True, description="`swarmsplat run` refines its one agent's merged map the same "
+                               "way after the last frame (its submaps overlap as a team's do). Measured with the "
+                               "overlap cull: Redwood 211 psnr_merged 23.3 -> 27.3 dB (320x240) for 56 s, a "
+                               "generated agent 21.1 -> 25.1 dB for 25 s; false skips it")
+    refine_poses: bool = Field(False, description="also refine each keyframe's pose with the map (photometric "
+                               "bundle adjustment; each agent's first keyframe holds its gauge); the keyframes and "
+                               "the frames tracked after them then follow the refined poses "
+                               "(Keyframe.T_local_refined). Measured: merged map +1.0 dB on the demo, +0.66 dB on "
+                               "Redwood 211, but the demo's team ATE 0.30 -> 0.38 cm, so off by default")
+    lr_pose_rotation: float = Field(1e-3, gt=0, description="Adam step on a keyframe's rotation (rad)")
+    lr_pose_translation: float = Field(3e-4, gt=0, description="Adam step on a keyframe's translation (m); 1e-3 "
+                                       "measured team ATE 0.40 against 0.38 cm on the demo")
+    optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "
+                                                    "Gaussians of each step's view only, with per-Gaussian bias "
+                                                    "correction (slam.dense.mapping.selective_adam); 'adam': torch's Adam over "
+                                                    "the whole merged map every step. Measured equal (demo 26.89 "
+                                                    "vs 26.91 dB, Redwood 27.04 vs 27.05 dB, same time within 8 %)")
+    seed: int = 0
+
+
+class SubmapConfig(_Section):
+    d_max: float = Field(0.5, gt=0, description="new submap when the keyframe is this far from the submap's first (m)")
+    theta_max_deg: float = Field(30.0, gt=0, description="... or rotated this much (degrees)")
+    max_keyframes: int = Field(40, ge=1, description="... or the submap has this many keyframes (bounds memory)")
+    keep_keyframe_width: int = Field(160, ge=16, description="stored keyframes (for loop closure) kept at this width")
+
+
+class LoopClosureConfig(_Section):
+    enabled: bool = True
+    descriptor: Literal["thumbnail", "bow", "vlad", "xfeat-vlad", "auto"] = Field(
+        "thumbnail", description="keyframe descriptor from registration.place_recognition; 'thumbnail' needs no "
+                                 "weights or vocabulary, 'bow'/'vlad' need `vocabulary`; 'xfeat-vlad' (VLAD over "
+                                 "XFeat, recall@1 0.96 vs 0.50 thumbnail on Redwood revisits) takes `vocabulary` "
+                                 "or trains one from the agent's first `vocabulary_keyframes` keyframes; "
+                                 "'auto' = thumbnail")
+    vocabulary: str | None = Field(None, description="BoW/VLAD vocabulary (.npz) for descriptor bow/vlad/xfeat-vlad")
+    vocabulary_keyframes: int = Field(8, ge=2, description="xfeat-vlad without `vocabulary`: keyframes the agent "
+                                                           "trains it from (described once it is trained)")
+    candidates: Literal["descriptor", "pose", "both"] = Field(
+        "both", description="where candidates come from: the keyframe descriptor (top_k above tau_sim), the tracked "
+                            "poses (pose_top_k by view overlap; GRAND-SLAM eq. 6), or both")
+    top_k: int = Field(3, ge=1, description="descriptor candidates per keyframe")
+    pose_top_k: int = Field(2, ge=0, description="pose candidates per keyframe (best view overlap first)")
+    pose_max_distance: float = Field(1.0, gt=0, description="pose candidates: camera centres at most this far (m)")
+    pose_max_angle_deg: float = Field(45.0, gt=0, le=180, description="... and viewing directions at most this apart")
+    pose_min_overlap: float = Field(0.3, ge=0, le=1, description="... and at least this fraction of the query's "
+                                    "depth pixels reprojected into the match with consistent depth")
+    tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate (measured on generated data: "
+                                                          "revisits 0.90-0.98, other views <= 0.77)")
+    min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
+    min_baseline: float = Field(0.0, ge=0, description="optional spatial gap between keyframe poses (m)")
+    fitness_min: float = Field(0.5, ge=0, le=1, description="τ_f: accept when ICP fitness is above")
+    rmse_max: float = Field(0.03, gt=0, description="τ_ρ: accept when ICP inlier RMSE is below (m)")
+    icp_max_distance: float = Field(0.05, gt=0, description="ICP correspondence distance (m)")
+    max_correction: float = Field(0.5, gt=0, description="reject loops that move the pose by more than this (m)")
+    information: Literal["registration", "fixed"] = Field(
+        "registration", description="edge information (eqs. 10-11): from each registration's information matrix, "
+                                    "RMSE and correspondence count (tracking edges chain their frame-to-frame steps; "
+                                    "slam.dense.loops.edge_information), or 'fixed' = the sigmas below for every edge")
+    information_points: float = Field(25.0, gt=0, description="effectively independent residuals per registration "
+                                      "(dense residuals are correlated; sets the overall confidence, the same for "
+                                      "tracking and loop edges)")
+    odometry_sigma_rot: float = Field(0.01, gt=0, description="edge std (rad) with information: fixed")
+    odometry_sigma_trans: float = Field(0.01, gt=0, description="edge std (m) with information: fixed")
+    residual_max_trans: float = Field(0.03, gt=0, description="after each optimisation, a loop whose residual "
+                                      "exceeds this (m) ...")
+    residual_max_deg: float = Field(1.5, gt=0, description="... or this (degrees) is rejected as inconsistent and "
+                                    "the graph solved again")
+    max_move_factor: float = Field(3.0, gt=0, description="an optimisation may move a keyframe at most this times "
+                                   "the loops' disagreement with the current poses ...")
+    max_move_slack: float = Field(0.05, ge=0, description="... plus this (m); otherwise it is not applied")
+
+
+class KernelsConfig(_Section):
+    backend: Literal["warp", "taichi"] = "warp"
+    device: Literal["cpu", "cuda", "vulkan"] = "cpu"
+    torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default). The per-call "
+                                                    "tensors are small, so one thread avoids costly thread "
+                                                    "hand-offs; the kernels bring their own parallelism")
+
+
+class SlamConfig(_Section):
+    image: ImageConfig = ImageConfig()
+    tracking: TrackingConfig = TrackingConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    mapping: MappingConfig = MappingConfig()
+    map_refine: MapRefineConfig = MapRefineConfig()
+    submaps: SubmapConfig = SubmapConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
+    kernels: KernelsConfig = KernelsConfig()
+    max_frames: int = Field(0, ge=0, description="process at most this many frames (0 = all)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.image.min_depth >= self.image.max_depth:
+            raise ValueError("image.min_depth must be below image.max_depth")
+        return self
+
+    # ---- YAML -------------------------------------------------------------------------------------------------
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+    def override(self, updates: dict[str, Any]) -> "SlamConfig":
+        """A new config with nested `updates` merged in (validated)."""
+        return _validate(_deep_merge(self.model_dump(mode="json"), updates), "override")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> "SlamConfig":
+        """Defaults, then the YAML file (if given), then `overrides`; raises InputError naming the bad field."""
+        data: dict[str, Any] = {}
+        if path is not None:
+            path = Path(path)
+            if not path.is_file():
+                raise InputError(f"config file not found: {path}")
+            try:
+                loaded = yaml.safe_load(path.read_text())
+            except yaml.YAMLError as e:
+                mark = getattr(e, "problem_mark", None)
+                where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+                raise InputError(f"{where}: invalid YAML ({getattr(e, 'problem', e)})") from None
+            if loaded is None:
+                loaded = {}
+            if not isinstance(loaded, dict):
+                raise InputError(f"{path}: expected a mapping of config sections at the top level")
+            data = loaded
+        if overrides:
+            data = _deep_merge(data, overrides)
+        return _validate(data, str(path) if path else "config")
+
+
+def _deep_merge(base: dict, upd: dict) -> dict:
+    out = dict(base)
+    for k, v in upd.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _validate(data: dict, where: str) -> SlamConfig:
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        raise InputError(f"{where}: field '{field}': {err['msg']}") from None

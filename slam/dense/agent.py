@@ -1,0 +1,186 @@
+"""One GRAND-SLAM agent. `Agent.step` reads as the algorithm: track, maybe start a submap, map, detect loops."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.camera import PinholeCamera
+
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.loops.edge_information import OdometryChain, failed_covariance, registration_covariance
+from .frames import RGBD, make_rgbd
+from .gaussian_map import GaussianMap, GaussianParams
+from swarmsplat.slam.dense.loops.loop_closure import LoopCloser
+from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper
+from .render import render, viewmat_from_pose
+from .submaps import Keyframe, frame_local_poses, needs_new_submap, start_submap, world_pose
+from swarmsplat.slam.dense.tracking.tracker import Tracker
+
+
+@dataclass
+class FramePose:
+    frame_index: int
+    timestamp: float
+    submap_id: int
+    T_local_cam: np.ndarray  # [4, 4] in its submap's frame
+
+
+@dataclass
+class Timings:
+    tracking: float = 0.0
+    mapping: float = 0.0
+    loop_closure: float = 0.0
+    frames: int = 0
+    skipped: list[int] = field(default_factory=list)  # frame indices, in input order
+    skip_reasons: dict[int, str] = field(default_factory=dict)  # frame index -> why it was skipped
+
+
+class Agent:
+    def __init__(self, camera: PinholeCamera, cfg: SlamConfig | None = None, *, name: str = "agent",
+                 reference: bool = False):
+        self.cfg = cfg or SlamConfig()
+        self.name = name
+        self.camera = camera
+        self.gmap = GaussianMap()
+        self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth, reference=reference)
+        self.mapper = Mapper(self.cfg.mapping, reference=reference)
+        self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
+        self._chain = OdometryChain(self.loops.model)  # tracking covariance since the last keyframe
+        self.keyframes: list[Keyframe] = []
+        self.poses: list[FramePose] = []
+        self.time = Timings()
+        self._last_kf_pose: np.ndarray | None = None  # T_local_cam of the last keyframe (active submap)
+        # Keep every keyframe's mapping-resolution images after its submap is retired (a team sets this when its
+        # server refines the merged map on them: config map_refine.views "mapping").
+        self.keep_keyframe_images = False
+
+    # ---- the algorithm ----------------------------------------------------------------------------------------
+
+    def step(self, index: int, timestamp: float, color: np.ndarray, depth: np.ndarray | None) -> FramePose | None:
+        """Process one RGB-D frame; returns its pose record, or None when the frame was skipped."""
+        frame = self._prepare(index, color, depth)
+        if frame is None:
+            return None
+        t0 = time.perf_counter()
+        T_local_cam = self._track(frame)
+        t1 = time.perf_counter()
+        if self._is_keyframe(T_local_cam):
+            T_local_cam = self._maybe_start_submap(T_local_cam)
+            kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
+            self._map(kf)
+            t2 = time.perf_counter()
+            self._detect_loops(kf)
+            self.time.mapping += t2 - t1
+            self.time.loop_closure += time.perf_counter() - t2
+        self.time.tracking += t1 - t0
+        self.time.frames += 1
+        rec = FramePose(index, timestamp, self.gmap.active.id, T_local_cam)
+        self.poses.append(rec)
+        return rec
+
+    # ---- the steps ------------------------------------------------------------------------------------------
+
+    def _prepare(self, index: int, color: np.ndarray, depth: np.ndarray | None) -> RGBD | None:
+        img = self.cfg.image
+        f = make_rgbd(color, depth, self.camera, min_depth=img.min_depth, max_depth=img.max_depth)
+        if f.valid_fraction() < img.min_valid_fraction:
+            self.skip_frame(index, f"only {100 * f.valid_fraction():.1f}% of its depth is valid (need "
+                                   f"{100 * img.min_valid_fraction:.0f}%)")
+            return None
+        return f.resized(img.max_width)
+
+    def skip_frame(self, index: int, reason: str) -> None:
+        """Leave frame `index` out (too little valid depth, or unreadable: slam.run.guard.read_frame) with one
+        warning; it is listed with `reason` in metrics.json `skipped_frames`."""
+        warnings.warn(f"{self.name}: frame {index} skipped: {reason}", RuntimeWarning, stacklevel=4)
+        self.time.skipped.append(int(index))
+        self.time.skip_reasons[int(index)] = reason
+
+    def skipped_frames(self) -> list[dict]:
+        """[{"frame": index, "reason": why}] of every skipped frame, in input order (metrics.json)."""
+        return [{"frame": i, "reason": self.time.skip_reasons.get(i, "")} for i in self.time.skipped]
+
+    def _track(self, frame: RGBD) -> np.ndarray:
+        params = self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()
+        r = self.tracker.track(frame, params)
+        if self.poses and self.poses[-1].submap_id == self.gmap.active.id:
+            step = se3.inverse(self.poses[-1].T_local_cam) @ r.T_local_cam
+            c = r.coarse
+            cov = (registration_covariance(c.information, c.n_correspondences, c.inlier_rmse, c.T_target_source,
+                                           self._chain.model)
+                   if r.coarse_ok and c is not None else failed_covariance(self._chain.model))
+            self._chain.add(step, cov)
+        return r.T_local_cam
+
+    def _is_keyframe(self, T_local_cam: np.ndarray) -> bool:
+        k = self.cfg.keyframes
+        if self._last_kf_pose is None or not self.poses:
+            return True
+        since = self.poses[-1].frame_index - self.keyframes[-1].frame_index + 1
+        D = se3.inverse(self._last_kf_pose) @ T_local_cam
+        return (since >= k.every or np.linalg.norm(D[:3, 3]) > k.max_translation
+                or np.degrees(se3.rotation_angle(D[:3, :3])) > k.max_rotation_deg)
+
+    def _maybe_start_submap(self, T_local_cam: np.ndarray) -> np.ndarray:
+        """Start a new submap at this keyframe if needed; returns the frame's pose in the (new) active submap."""
+        if self.gmap.submaps and not needs_new_submap(self.cfg.submaps, T_local_cam, len(self.gmap.active.keyframe_ids)):
+            return T_local_cam
+        T_world_cam = self.gmap.active.T_world_local @ T_local_cam if self.gmap.submaps else np.eye(4)
+        start_submap(self.gmap, T_world_cam, self.keyframes, keep_images=self.keep_keyframe_images)
+        self.tracker.reset_frame(se3.inverse(T_local_cam))
+        return np.eye(4)
+
+    def _add_keyframe(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> Keyframe:
+        s = self.gmap.active
+        kf = Keyframe(len(self.keyframes), index, timestamp, s.id, T_local_cam.copy(),
+                      frame.resized(self.cfg.mapping.max_width), frame.resized(self.cfg.submaps.keep_keyframe_width))
+        self.keyframes.append(kf)
+        s.keyframe_ids.append(kf.id)
+        self._last_kf_pose = T_local_cam.copy()
+        return kf
+
+    def _map(self, kf: Keyframe) -> None:
+        s = self.gmap.active
+        kfs = [self.keyframes[i] for i in s.keyframe_ids]
+        iters = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
+        self.mapper.map(self.gmap, s, [MapKeyframe(k.T_local_cam, k.map_rgbd) for k in kfs], iters)
+
+    def _detect_loops(self, kf: Keyframe) -> None:
+        self.loops.add_keyframe(kf, self.keyframes, self.gmap, self._chain.information())
+        self._chain.reset()
+        if self.cfg.loop_closure.enabled and self.loops.detect(kf, self.keyframes, self.gmap):
+            self.loops.optimise(self.keyframes, self.gmap)
+
+    # ---- results ----------------------------------------------------------------------------------------------
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps [N], T_world_cam [N, 4, 4]) of every tracked frame, with the current submap frames (and
+        following its keyframe's refined pose, once the map refinement refined it: slam.dense.submaps.frame_local_poses)."""
+        if not self.poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        local = frame_local_poses(self.poses, self.keyframes)
+        T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ L for p, L in zip(self.poses, local)])
+        return np.array([p.timestamp for p in self.poses]), T
+
+    def trajectory_no_lc(self) -> tuple[np.ndarray, np.ndarray]:
+        """The same frames as `trajectory`, placed as tracking alone places them (loop closures left out)."""
+        if not self.poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        T = np.stack([self.gmap.submaps[p.submap_id].T_world_local_no_lc @ p.T_local_cam for p in self.poses])
+        return np.array([p.timestamp for p in self.poses]), T
+
+    def keyframe_world_poses(self) -> np.ndarray:
+        return np.stack([world_pose(self.gmap, k) for k in self.keyframes]) if self.keyframes else np.zeros((0, 4, 4))
+
+    def render_keyframe(self, kf: Keyframe, camera: PinholeCamera) -> tuple[torch.Tensor, torch.Tensor]:
+        """Render `kf`'s own submap at its pose: (color [H, W, 3], depth [H, W]) — the training-view render."""
+        s = self.gmap.submaps[kf.submap_id]
+        with torch.no_grad():
+            out = render(s.params, viewmat_from_pose(kf.T_local), camera)
+        return out.color.clamp(0, 1), out.depth_normalised

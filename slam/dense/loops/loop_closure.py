@@ -1,0 +1,311 @@
+"""Intra-agent loop closures (GRAND-SLAM §III-D–E): descriptor candidates, RGB-D registration with fitness / RMSE
+gates, pose-graph optimisation over keyframe poses, and submaps moved to the optimised frames (eqs. 14–15).
+
+Every candidate is recorded with the reason it was accepted or rejected (`LoopCloser.log`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+
+from . import loop_check
+from swarmsplat.slam.config import LoopClosureConfig
+from .edge_information import InformationModel, fixed_information, information, registration_covariance
+from swarmsplat.slam.dense.frames import RGBD
+from swarmsplat.slam.dense.gaussian_map import GaussianMap
+from swarmsplat.slam.dense.rgbd_registration import register_loop
+from swarmsplat.slam.dense.submaps import Keyframe, world_pose
+
+
+def _make_recognizer(cfg: LoopClosureConfig):
+    """The keyframe descriptor named in the config, from registration.place_recognition."""
+    from swarmsplat.registration.place_recognition import make_recognizer
+
+    name = "thumbnail" if cfg.descriptor == "auto" else cfg.descriptor
+    if name == "xfeat-vlad" and not cfg.vocabulary:
+        return make_recognizer(name)  # untrained: LoopCloser trains it from the agent's own keyframes
+    if name in ("bow", "vlad") and not cfg.vocabulary:
+        raise InputError(f"loop_closure.descriptor {name!r} needs loop_closure.vocabulary (a .npz vocabulary file)")
+    return make_recognizer(name, checkpoint=cfg.vocabulary if name != "thumbnail" else None)
+
+
+@dataclass
+class LoopCandidate:
+    query_kf: int
+    match_kf: int
+    query_frame: int
+    match_frame: int
+    similarity: float
+    accepted: bool = False
+    reason: str = ""
+    fitness: float = 0.0
+    inlier_rmse: float = float("inf")
+    correction_m: float = 0.0
+    source: str = "descriptor"  # "descriptor" (place recognition) or "pose" (tracked poses' view overlap)
+    overlap: float = float("nan")  # view overlap of the tracked poses (pose candidates)
+
+
+@dataclass
+class Edge:
+    """A relative-pose constraint between two keyframes of one agent (odometry or an accepted loop)."""
+
+    i: int  # keyframe ids
+    j: int
+    T_ij: np.ndarray  # [4, 4] pose of j in i's camera frame
+    info: np.ndarray  # [6, 6] information, twist order [omega, v], in j's tangent space (GTSAM BetweenFactor)
+    candidate: LoopCandidate | None = None  # loops: the log entry, updated when the loop is rejected later
+    rejected: bool = False
+    applied: bool = False  # part of an optimisation that was applied
+
+
+class LoopCloser:
+    def __init__(self, cfg: LoopClosureConfig, *, max_depth: float = 10.0):
+        self.cfg = cfg
+        self.max_depth = max_depth
+        self.odometry: list[Edge] = []
+        self.loops: list[Edge] = []
+        self.log: list[LoopCandidate] = []
+        self.optimisations = 0
+        self.not_applied = 0  # optimisations whose move was not justified by the loops
+        self.model = InformationModel(n_eff=cfg.information_points)
+        self._recognizer = _make_recognizer(cfg)
+        self._pending: dict[int, np.ndarray] = {}  # xfeat-vlad: local descriptors of keyframes awaiting the vocabulary
+
+    @property
+    def active_loops(self) -> list[Edge]:
+        return [e for e in self.loops if not e.rejected]
+
+    # ---- the keyframe chain ---------------------------------------------------------------------------------
+
+    def _describe(self, kf: Keyframe, keyframes: list[Keyframe]) -> None:
+        """kf.descriptor from the configured recogniser. An xfeat-vlad recogniser without a vocabulary file
+        trains it from the first `vocabulary_keyframes` keyframes (k-means over their XFeat descriptors), which
+        are described then; until then they have no descriptor (no descriptor candidates)."""
+        rec = self._recognizer
+        if getattr(rec, "trained", True):
+            kf.descriptor = rec.describe(kf.small.color)
+            return
+        self._pending[kf.id] = rec._local(kf.small.color)
+        if len(self._pending) >= self.cfg.vocabulary_keyframes and \
+                sum(len(x) for x in self._pending.values()) >= rec.n_clusters:
+            rec.fit_local(list(self._pending.values()))
+            by_id = {k.id: k for k in keyframes}
+            by_id[kf.id] = kf
+            for i, x in self._pending.items():
+                by_id[i].descriptor = rec.describe_local(x)
+            self._pending = {}
+
+    def add_keyframe(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap,
+                     odometry_info: np.ndarray | None = None) -> None:
+        """Record the tracking constraint between the previous keyframe and `kf`, as tracked now, with the
+        tracker's information (`odometry_info`, slam.dense.loops.edge_information.OdometryChain) or the fixed sigmas."""
+        self._describe(kf, keyframes)
+        if kf.id > 0:
+            prev = keyframes[kf.id - 1]
+            if prev.submap_id == kf.submap_id:  # exact: no submap frames involved
+                T = se3.inverse(prev.T_local_cam) @ kf.T_local_cam
+            else:
+                T = se3.project_rigid(se3.inverse(world_pose(gmap, prev)) @ world_pose(gmap, kf))
+            if self.cfg.information == "fixed" or odometry_info is None:
+                info = fixed_information(self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans)
+            else:
+                info = odometry_info
+            self.odometry.append(Edge(prev.id, kf.id, T, info))
+
+    # ---- detection and verification ------------------------------------------------------------------------
+
+    def candidates(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> list[LoopCandidate]:
+        """Keyframes of earlier submaps at least Δ_min frames back: the top-k by descriptor cosine similarity above
+        τ_sim, and (cfg.candidates 'pose' / 'both') the top-k by view overlap of the tracked poses (eq. 6's
+        initial guess: distance, viewing angle, then reprojected depth)."""
+        cfg = self.cfg
+        T_q = world_pose(gmap, kf)
+        pool = [o for o in keyframes if o.submap_id != kf.submap_id and kf.frame_index - o.frame_index >= cfg.min_index_gap
+                and not (cfg.min_baseline > 0 and np.linalg.norm(world_pose(gmap, o)[:3, 3] - T_q[:3, 3]) < cfg.min_baseline)]
+        out: list[LoopCandidate] = []
+        if cfg.candidates in ("descriptor", "both"):
+            scored = sorted(((float(np.dot(kf.descriptor, o.descriptor)), o) for o in pool if o.descriptor is not None),
+                            key=lambda s: -s[0])
+            for sim, other in scored[: cfg.top_k]:
+                c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim)
+                if sim < cfg.tau_sim:
+                    c.reason = f"similarity {sim:.3f} < tau_sim {cfg.tau_sim}"
+                    self.log.append(c)
+                    continue
+                out.append(c)
+        if cfg.candidates in ("pose", "both"):
+            taken = {c.match_kf for c in out}
+            near = []
+            for o in pool:
+                if o.id in taken:
+                    continue
+                T_oq = se3.inverse(world_pose(gmap, o)) @ T_q
+                if (np.linalg.norm(T_oq[:3, 3]) > cfg.pose_max_distance
+                        or np.degrees(se3.rotation_angle(T_oq[:3, :3])) > cfg.pose_max_angle_deg):
+                    continue
+                near.append((view_overlap(kf.small, o.small, T_oq), o))
+            near.sort(key=lambda s: -s[0])
+            for ov, other in near[: cfg.pose_top_k]:
+                sim = float(np.dot(kf.descriptor, other.descriptor)) if other.descriptor is not None else float("nan")
+                c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim, source="pose", overlap=ov)
+                if ov < cfg.pose_min_overlap:
+                    c.reason = f"overlap {ov:.2f} < pose_min_overlap {cfg.pose_min_overlap}"
+                    self.log.append(c)
+                    continue
+                out.append(c)
+        return out
+
+    def verify(self, c: LoopCandidate, keyframes: list[Keyframe], gmap: GaussianMap) -> LoopCandidate:
+        """Register query (source) to match (target) from the tracked guess (eq. 6), then apply the gates."""
+        cfg = self.cfg
+        q, j = keyframes[c.query_kf], keyframes[c.match_kf]
+        T_init = se3.project_rigid(se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q))  # eq. 6: T_j^-1 T_q
+        r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, min_fitness=cfg.fitness_min,
+                          max_rmse=cfg.rmse_max, max_depth=self.max_depth)
+        c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
+        c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
+        if r.fitness <= cfg.fitness_min:
+            c.reason = f"fitness {r.fitness:.3f} <= tau_f {cfg.fitness_min}"
+        elif r.inlier_rmse >= cfg.rmse_max:
+            c.reason = f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {cfg.rmse_max}"
+        elif not r.success:
+            c.reason = f"registration failed: {r.reason}"
+        elif c.correction_m > cfg.max_correction:
+            c.reason = f"correction {c.correction_m:.3f} m > max_correction {cfg.max_correction}"
+        else:
+            c.accepted = True
+            c.reason = "accepted"
+            self.loops.append(Edge(j.id, q.id, se3.project_rigid(r.T_target_source), self.loop_information(r), c))
+        self.log.append(c)
+        return c
+
+    def loop_information(self, r) -> np.ndarray:
+        """Information of an accepted registration (slam.dense.loops.edge_information), or the fixed sigmas."""
+        if self.cfg.information == "fixed":
+            return fixed_information(self.cfg.odometry_sigma_rot, self.cfg.odometry_sigma_trans)
+        cov = registration_covariance(r.information, r.n_correspondences, r.inlier_rmse, r.T_target_source, self.model)
+        return information(cov, self.model)
+
+    def detect(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> list[LoopCandidate]:
+        """Candidates for `kf`, each verified; returns the accepted ones."""
+        return [c for c in (self.verify(c, keyframes, gmap) for c in self.candidates(kf, keyframes, gmap))
+                if c.accepted]
+
+    # ---- optimisation ------------------------------------------------------------------------------------
+
+    def reject(self, e: Edge, reason: str) -> None:
+        e.rejected = True
+        if e.candidate is not None:
+            e.candidate.accepted, e.candidate.reason = False, reason
+
+    def optimise(self, keyframes: list[Keyframe], gmap: GaussianMap) -> dict:
+        """Pose-graph optimisation over keyframe poses; loops the optimum cannot satisfy are rejected and the graph
+        solved again (slam.dense.loops.loop_check); an optimum that moves keyframes further than the loops justify is not
+        applied (its new loops are rejected). Otherwise every submap moves rigidly to the optimised pose of its
+        first keyframe (eqs. 14–15; keyframes and Gaussians follow their submap)."""
+        cfg = self.cfg
+        initial = {kf.id: world_pose(gmap, kf) for kf in keyframes}
+        fixed = keyframes[0].id
+        new = [e for e in self.loops if not e.rejected and not e.applied]
+        optimised, rejected = initial, 0
+        while self.active_loops:
+            loops = self.active_loops
+            optimised = optimise_pose_graph(initial, self.odometry, loops, fixed=fixed)
+            bad = loop_check.worst_violation(optimised, [(e.i, e.j, e.T_ij) for e in loops],
+                                             cfg.residual_max_trans, cfg.residual_max_deg)
+            if bad is None:
+                break
+            self.reject(loops[bad.index], f"inconsistent after optimisation: residual {100 * bad.trans_m:.1f} cm / "
+                                          f"{bad.rot_deg:.2f} deg > {100 * cfg.residual_max_trans:.1f} cm / "
+                                          f"{cfg.residual_max_deg} deg")
+            rejected += 1
+        else:  # every loop was rejected: nothing to move
+            optimised = initial
+        self.optimisations += 1
+        moved = loop_check.max_move(initial, optimised)
+        allowed = loop_check.justified_move(initial, [(e.i, e.j, e.T_ij) for e in self.active_loops],
+                                            cfg.max_move_factor, cfg.max_move_slack)
+        if moved > allowed:
+            self.not_applied += 1
+            for e in new:
+                if not e.rejected:
+                    self.reject(e, f"optimisation would move keyframes {moved:.3f} m, more than the loops justify "
+                                   f"({allowed:.3f} m): not applied")
+            warnings.warn(f"loop closure: optimisation not applied (it would move keyframes {moved:.3f} m, the loops "
+                          f"justify {allowed:.3f} m)", RuntimeWarning, stacklevel=2)
+            return {"submaps_moved": 0, "max_shift_m": 0.0, "rejected": rejected, "applied": False}
+        for e in self.loops:
+            e.applied = True
+        shifts = []
+        for s in gmap.submaps:
+            if not s.keyframe_ids:
+                continue
+            first = keyframes[s.keyframe_ids[0]]
+            D = gmap.place_submap(s, optimised[first.id] @ se3.inverse(first.T_local_cam))
+            shifts.append(float(np.linalg.norm(D[:3, 3])))
+        return {"submaps_moved": len(shifts), "max_shift_m": max(shifts, default=0.0), "rejected": rejected,
+                "applied": True}
+
+    def log_rows(self) -> list[dict]:
+        return [asdict(c) for c in self.log]
+
+
+def view_overlap(query: RGBD, match: RGBD, T_match_query: np.ndarray, *, stride: int = 4,
+                 depth_tolerance: float = 0.1) -> float:
+    """Fraction of the query's valid depth pixels (every `stride`-th) that land inside the match image in front
+    of its camera with a depth within `depth_tolerance` (relative) of the match's depth there."""
+    d = query.depth[::stride, ::stride]
+    cam = query.camera
+    v, u = np.nonzero(d > 0)
+    if len(u) == 0:
+        return 0.0
+    z = d[v, u].astype(np.float64)
+    x = ((u * stride - cam.cx) / cam.fx) * z
+    y = ((v * stride - cam.cy) / cam.fy) * z
+    p = np.stack([x, y, z], 1) @ T_match_query[:3, :3].T + T_match_query[:3, 3]
+    mc = match.camera
+    front = p[:, 2] > 1e-3
+    zu = np.where(front, p[:, 2], 1.0)
+    uu = np.round(mc.fx * p[:, 0] / zu + mc.cx).astype(np.int64)
+    vv = np.round(mc.fy * p[:, 1] / zu + mc.cy).astype(np.int64)
+    inside = front & (uu >= 0) & (uu < mc.width) & (vv >= 0) & (vv < mc.height)
+    dm = np.zeros(len(z))
+    dm[inside] = match.depth[vv[inside], uu[inside]]
+    ok = inside & (dm > 0) & (np.abs(dm - p[:, 2]) < depth_tolerance * p[:, 2])
+    return float(ok.sum()) / len(z)
+
+
+def optimise_pose_graph(initial: dict[int, np.ndarray], odometry: list[Edge], loops: list[Edge], *,
+                        fixed: int) -> dict[int, np.ndarray]:
+    """Levenberg–Marquardt over keyframe poses (eq. 13) with `graph/`: tracking and loop edges as relative-pose
+    constraints with their information (twist order [omega, v]); the graph anchors its first pose (the first
+    keyframe, `fixed`)."""
+    from swarmsplat.graph.formulations import build_problem
+    from swarmsplat.graph.pose_graph import PoseGraph
+    from swarmsplat.graph.solvers import solve
+
+    from swarmsplat.kernels.errors import SwarmsplatError
+
+    g = PoseGraph()
+    for k in sorted(initial):
+        g.add_pose(k, initial[k])
+
+    for e in odometry:
+        g.add_odometry(e.i, e.j, e.T_ij, e.info)
+    for e in loops:
+        g.add_loop(e.i, e.j, e.T_ij, e.info)
+    try:
+        res = solve(build_problem(g, "base"), "lm")
+    except (SwarmsplatError, RuntimeError) as err:  # an indeterminate system: keep the tracked poses
+        warnings.warn(f"pose-graph optimisation failed ({err}); poses left as tracked", stacklevel=2)
+        return dict(initial)
+    out = {k: se3.project_rigid(res.poses[k]) for k in initial}
+    # The graph anchors each component at its own choice of pose; re-anchor at `fixed` so that frame stays put.
+    D = initial[fixed] @ se3.inverse(out[fixed])
+    return {k: se3.project_rigid(D @ T) for k, T in out.items()}

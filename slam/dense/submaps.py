@@ -1,0 +1,83 @@
+"""Submap life cycle (GRAND-SLAM §III-B.1): when to start a new submap, and retiring the old one so memory stays
+bounded by the active submap plus the stored (frozen) Gaussians and small keyframe copies."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from swarmsplat.kernels import se3
+
+from swarmsplat.slam.config import SubmapConfig
+from .frames import RGBD
+from .gaussian_map import GaussianMap, Submap
+
+
+@dataclass
+class Keyframe:
+    """A keyframe of the agent. Its world pose is `T_world_local` of its submap composed with its local pose, so
+    moving the submap (pose-graph optimisation, eq. 14) moves the keyframe with it. The local pose is the tracked
+    `T_local_cam`, or `T_local_refined` once the global map refinement has refined it (slam.dense.mapping.refine_merged): the map
+    is fitted to that pose, and the frames tracked after the keyframe follow it (`frame_local_poses`)."""
+
+    id: int
+    frame_index: int
+    timestamp: float
+    submap_id: int
+    T_local_cam: np.ndarray  # [4, 4]
+    map_rgbd: RGBD | None  # mapping resolution; dropped when the submap is retired (unless a team keeps it)
+    small: RGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
+    descriptor: np.ndarray | None = None  # [D] unit vector
+    T_local_refined: np.ndarray | None = None  # [4, 4] after the map refinement's pose refinement
+
+    @property
+    def T_local(self) -> np.ndarray:
+        """The keyframe's best pose in its submap: refined if it was, else as tracked."""
+        return self.T_local_cam if self.T_local_refined is None else self.T_local_refined
+
+
+def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: int) -> bool:
+    """True when the keyframe is further than d_max or θ_max from the active submap's first keyframe (the local
+    origin), or the submap already holds `max_keyframes`."""
+    moved = float(np.linalg.norm(T_local_cam[:3, 3]))
+    turned = float(np.degrees(se3.rotation_angle(T_local_cam[:3, :3])))
+    return moved > cfg.d_max or turned > cfg.theta_max_deg or n_keyframes >= cfg.max_keyframes
+
+
+def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe], *,
+                 keep_images: bool = False) -> Submap:
+    """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies, unless
+    `keep_images`: a team's server refines the merged map on them) and start a new one whose local frame is the
+    camera at T_world_cam."""
+    if gmap.submaps and not keep_images:
+        old = gmap.active.id
+        for kf in keyframes:
+            if kf.submap_id == old:
+                kf.map_rgbd = None
+    return gmap.new_submap(T_world_cam)
+
+
+def world_pose(gmap: GaussianMap, kf: Keyframe) -> np.ndarray:
+    return gmap.submaps[kf.submap_id].T_world_local @ kf.T_local
+
+
+def last_keyframes(poses, keyframes: list[Keyframe]) -> list[Keyframe | None]:
+    """For each tracked frame (`poses`: records with frame_index, in tracking order) the last keyframe at or
+    before it, if that keyframe is in the frame's submap (else None)."""
+    kfs = sorted(keyframes, key=lambda k: k.frame_index)
+    out, j, last = [], 0, None
+    for rec in poses:
+        while j < len(kfs) and kfs[j].frame_index <= rec.frame_index:
+            last, j = kfs[j], j + 1
+        out.append(last if last is not None and last.submap_id == rec.submap_id else None)
+    return out
+
+
+def frame_local_poses(poses, keyframes: list[Keyframe]) -> list[np.ndarray]:
+    """Each tracked frame's pose in its submap (`poses`: records with frame_index, submap_id, T_local_cam, in
+    tracking order): as tracked, except after a keyframe of the same submap whose pose was refined, where the frame
+    keeps its tracked pose relative to that keyframe (T_refined · T_kf⁻¹ · T_frame)."""
+    return [rec.T_local_cam if kf is None or kf.T_local_refined is None
+            else kf.T_local_refined @ se3.inverse(kf.T_local_cam) @ rec.T_local_cam
+            for rec, kf in zip(poses, last_keyframes(poses, keyframes))]

@@ -1,0 +1,118 @@
+"""Dataset loaders: our folder format plus the public layouts users already have (TUM RGB-D, Redwood /
+ICL-NUIM, Replica and Multiagent Replica, EuRoC, ScanNet exports, 7-Scenes). Every loader returns lazily loading
+`Sequence`s; a `MultiAgentDataset` groups one per agent.
+
+    load_sequence(path, fmt="auto") -> Sequence
+    load_dataset(path, fmt="auto")  -> MultiAgentDataset   (a single sequence becomes a one-agent team)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from swarmsplat.kernels.errors import InputError
+
+from ._sequence import ImageSequence
+from .associate import associate_unique, match_nearest
+from .base import Frame, MultiAgentDataset, Sequence
+from .euroc import is_euroc_sequence, load_euroc_sequence
+from .folder import is_folder_sequence, load_folder_dataset, load_folder_sequence
+from .redwood import is_redwood_sequence, load_redwood_sequence
+from .replica import is_replica_sequence, load_replica_sequence
+from .scannet import is_scannet_sequence, load_scannet_sequence
+from .sevenscenes import is_sevenscenes_sequence, load_sevenscenes_sequence
+from .tum import is_tum_sequence, load_tum_sequence
+
+__all__ = [
+    "Frame", "Sequence", "MultiAgentDataset", "ImageSequence", "FORMATS",
+    "load_sequence", "load_dataset", "detect_sequence_format",
+    "load_folder_sequence", "load_folder_dataset", "load_tum_sequence", "load_redwood_sequence",
+    "load_replica_sequence", "load_euroc_sequence", "load_scannet_sequence", "load_sevenscenes_sequence",
+    "match_nearest", "associate_unique",
+]
+
+# Checked in this order: our format first (it is TUM-like but carries calibration.yaml); ScanNet (color/ depth/
+# intrinsic/) before Redwood (color/ depth/ and a .log).
+_DETECT = {
+    "folder": is_folder_sequence,
+    "tum": is_tum_sequence,
+    "replica": is_replica_sequence,
+    "euroc": is_euroc_sequence,
+    "scannet": is_scannet_sequence,
+    "redwood": is_redwood_sequence,
+    "7scenes": is_sevenscenes_sequence,
+}
+_LOAD = {
+    "folder": load_folder_sequence,
+    "tum": load_tum_sequence,
+    "replica": load_replica_sequence,
+    "euroc": load_euroc_sequence,
+    "scannet": load_scannet_sequence,
+    "redwood": load_redwood_sequence,
+    "7scenes": load_sevenscenes_sequence,
+}
+FORMATS = tuple(_DETECT)
+
+_LAYOUTS_HELP = ("our format (calibration.yaml + rgb.txt), TUM RGB-D (rgb.txt + depth.txt), Replica "
+                 "(results/ + traj.txt), EuRoC (mav0/cam0/data.csv), ScanNet (color/ + depth/ + intrinsic/), "
+                 "Redwood (color/ + depth/ + .log) or 7-Scenes (frame-NNNNNN.color.png + .depth.png)")
+
+
+def _check(path: str | Path, fmt: str) -> tuple[Path, str]:
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"dataset path not found: {p}")
+    if not p.is_dir():
+        raise InputError(f"dataset path is not a folder: {p}")
+    fmt = (fmt or "auto").lower()
+    if fmt != "auto" and fmt not in FORMATS:
+        raise InputError(f"unknown dataset format {fmt!r}; expected one of {', '.join(FORMATS)} or auto")
+    return p, fmt
+
+
+def detect_sequence_format(path: str | Path) -> str | None:
+    """The layout name of a single-sequence folder, or None when no loader recognises it."""
+    p = Path(path)
+    for name, test in _DETECT.items():
+        if test(p):
+            return name
+    return None
+
+
+def load_sequence(path: str | Path, fmt: str = "auto", **kwargs) -> ImageSequence:
+    """Load one sequence; `fmt` is one of FORMATS or "auto". Extra keyword arguments go to the loader
+    (e.g. `camera=` for TUM/Redwood/Replica/7-Scenes, `undistort=` for EuRoC)."""
+    p, fmt = _check(path, fmt)
+    if fmt == "auto":
+        fmt = detect_sequence_format(p)
+        if fmt is None:
+            raise InputError(f"{p}: not a recognised sequence folder; expected {_LAYOUTS_HELP}")
+    return _LOAD[fmt](p, **kwargs)
+
+
+def load_dataset(path: str | Path, fmt: str = "auto", **kwargs) -> MultiAgentDataset:
+    """Load a team: a root with dataset.yaml (our format), a single sequence (one agent), or a folder whose
+    sub-folders are sequences of one layout (Multiagent Replica, a set of EuRoC runs, a 7-Scenes scene's seq-NN
+    folders), agents in name order."""
+    p, fmt = _check(path, fmt)
+    if (p / "dataset.yaml").is_file() and fmt in ("auto", "folder"):
+        return load_folder_dataset(p)
+    own = detect_sequence_format(p) if fmt == "auto" else (fmt if _DETECT[fmt](p) else None)
+    if own is not None:
+        seq = _LOAD[own](p, **kwargs)
+        return MultiAgentDataset(root=p, agents=[seq], name=seq.name, kind="rgbd" if seq.is_rgbd else "mono",
+                                 meta={"layout": own})
+    subs = [(d, detect_sequence_format(d)) for d in sorted(p.iterdir()) if d.is_dir()]
+    subs = [(d, f) for d, f in subs if f is not None and (fmt == "auto" or f == fmt)]
+    if not subs:
+        raise InputError(f"{p}: no dataset.yaml, and neither the folder nor its sub-folders are sequences; "
+                         f"expected {_LAYOUTS_HELP}")
+    layouts = sorted({f for _, f in subs})
+    if len(layouts) > 1:
+        raise InputError(f"{p}: sub-folders mix sequence layouts ({', '.join(layouts)}); pass fmt= to choose one")
+    seqs = [_LOAD[f](d, **kwargs) for d, f in subs]
+    kinds = {s.is_rgbd for s in seqs}
+    if len(kinds) > 1:
+        raise InputError(f"{p}: sub-folders mix RGB-D and monocular sequences")
+    return MultiAgentDataset(root=p, agents=seqs, name=p.name, kind="rgbd" if kinds.pop() else "mono",
+                             meta={"layout": layouts[0]})

@@ -1,0 +1,211 @@
+"""One robot per process over Zenoh: `run_robot` is what `swarmsplat robot --id K` runs; `launch` starts N of them
+on this machine, gives them a common tick 0 once every one is connected, and gathers their outputs.
+
+A robot process writes `robots/<agent>/`: `state.npz` (keyframe trajectory, odometry, stamps), `bytes.json`, and
+its held estimate and (if it ever optimised) the graphs of its last solve as swarm messages (`*.msg`, the same
+safe encoding as on the wire). `launch` then writes the same outputs as an in-process run (`outputs.py`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from swarmsplat.kernels.errors import InputError, SwarmsplatError
+from swarmsplat.kernels.fileio import atomic_path, atomic_write_bytes, atomic_write_text, output_dir
+from swarmsplat.slam.run.guard import guarded, keep
+
+from swarmsplat.slam.flocc.swarm import messages as M
+
+
+@guarded("robot")
+def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: float | None = None,
+              port_base: int = 17447, run: str = "swarmsplat", stride: int = 4, schedule=None,
+              place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
+              formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
+              r_thr: float | None = None, k: float | None = None, strict: bool = False) -> Path:
+    """Run robot `robot` of `dataset` on Zenoh until the schedule ends; write its outputs under `out`.
+
+    start_time: epoch seconds of tick 0 (None: read it from stdin after printing `ready`, as `launch` does).
+    The VLAD/BoW vocabulary must be given (`place_checkpoint`) so that every robot describes images alike.
+    Interrupted (SIGINT / SIGTERM, e.g. from `launch`) or failing, it writes its state so far and re-raises.
+    """
+    from swarmsplat.slam.flocc.swarm.clocked import TickClock, run_clocked
+    from swarmsplat.slam.flocc.swarm.node import RobotNode
+    from swarmsplat.slam.flocc.swarm.optimiser import warm_up
+    from swarmsplat.slam.run.swarm import KeyframeFeeder, prepare
+    from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
+
+    if robot < 0:
+        raise InputError(f"--id must be >= 0, got {robot}")
+    check_port_base(port_base, robot + 1)
+    output_dir(out, "--out")
+    if place in ("bow", "vlad") and not place_checkpoint:
+        raise InputError("a robot process needs the shared vocabulary: --place-checkpoint VOCAB.npz")
+    setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
+                    backend=backend, formulation=formulation, solver=solver, uniform_noise=uniform_noise,
+                    r_thr=r_thr, k=k, strict=strict)
+    n = len(setup.dataset.agents)
+    if not 0 <= robot < n:
+        raise InputError(f"--id {robot}: the dataset has robots 0..{n - 1}")
+    check_port_base(port_base, n)
+    seq = setup.dataset.agents[robot]
+    clock = TickClock()
+    tx = ZenohTransport(robot, list(range(n)), run=run, port_base=port_base, schedule=setup.schedule, clock=clock)
+    node = RobotNode(robot, seq.camera, tx, setup.recognizer, setup.registrar, setup.node_config)
+    feeder = KeyframeFeeder(seq, setup.stride, strict)
+    warm_up()
+    tx.wait_for_peers(60.0)
+    d = Path(out) / "robots" / seq.name
+    keep(lambda status, reason: _write_state(d, robot, node, tx, feeder, None, status=status, reason=reason))
+    if start_time is None:
+        print("ready", flush=True)
+        start_time = float(sys.stdin.readline())
+
+    def step(tick: int) -> None:
+        feeder.feed(node, setup.schedule.frames_at(tick))
+        node.step(tick)
+
+    try:
+        skipped = run_clocked(step, setup.schedule.ticks, start_time, setup.schedule.tick_seconds, clock)
+    finally:
+        tx.close()
+    return _write_state(d, robot, node, tx, feeder, skipped)
+
+
+def _write_state(d: Path, robot: int, node, tx, feeder, skipped_ticks: int | None, *, status: str = "complete",
+                 reason: str | None = None) -> Path:
+    """A robot process's outputs (the module docstring), each written atomically; bytes.json last, so a robot
+    folder with bytes.json is whole."""
+    d.mkdir(parents=True, exist_ok=True)
+    with atomic_path(d / "state.npz") as tmp:
+        np.savez(tmp, trajectory=node.trajectory(), odometry=np.array(node.odometry),
+                 timestamps=np.array(node.timestamps))
+    if node.estimate is not None:
+        atomic_write_bytes(d / "estimate.msg", M.encode(node.estimate, robot, 0))
+    if node.solved_basis:
+        for r in node.solved_basis:
+            atomic_write_bytes(d / f"graph_{int(r)}.msg", M.encode(node.subs[int(r)], int(r), 0))
+    atomic_write_text(d / "bytes.json", json.dumps({**tx.stats.to_dict(), "n_solves": node.n_solves,
+                                                   "skipped_ticks": skipped_ticks, "status": status,
+                                                   "reason": reason, "skipped_frames": feeder.skipped.rows}))
+    return d
+
+
+def check_port_base(port_base: int, robots: int) -> None:
+    """Robot K listens on TCP port port_base + K: every one of them must be a valid port."""
+    if not 1 <= port_base <= 65536 - max(robots, 1):
+        raise InputError(f"--port-base {port_base}: robots listen on port-base + id, which must lie in 1..65535 "
+                         f"for all {robots} robots")
+
+
+@guarded("swarm")
+def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, timeout: float | None = None,
+           **options) -> dict:
+    """Start one `swarmsplat robot` process per robot, wait for them, and write the run's outputs. `options` are
+    `run_robot`'s keyword arguments (stride, schedule, place, backend, formulation, solver, uniform_noise).
+    An interrupt is passed on to the robots (SIGINT), which write their state; the outputs are then gathered from
+    the robots that did, with metrics.json "status" "interrupted" / "failed"."""
+    from swarmsplat.slam.run.swarm_results import write_outputs
+    from swarmsplat.slam.run.swarm import prepare
+
+    check_port_base(port_base, 1)
+    out = output_dir(out, "--out")
+    vocab = options.pop("place_checkpoint", None)
+    place = options.get("place", "bow")
+    setup = prepare(dataset, place_checkpoint=vocab,
+                    vocabulary_out=None if vocab else out / "vocabulary.npz",
+                    **{k: v for k, v in options.items() if k in ("stride", "schedule", "place", "backend", "formulation",
+                                                                 "solver", "uniform_noise", "r_thr", "k", "strict")})
+    if place in ("bow", "vlad") and not vocab:
+        vocab = str(out / "vocabulary.npz")
+    sched_path = out / "schedule.yaml"
+    import yaml
+
+    atomic_write_text(sched_path, yaml.safe_dump(setup.schedule.to_dict(), sort_keys=False))
+    n = len(setup.dataset.agents)
+    check_port_base(port_base, n)
+    run_name = f"r{os.getpid()}"
+    cmd = lambda r: [sys.executable, "-m", "swarmsplat.slam", "robot", "--id", str(r), str(dataset), "--out", str(out),  # noqa: E731
+                     "--port-base", str(port_base), "--run", run_name, "--schedule", str(sched_path),
+                     "--stride", str(setup.stride), "--place", place, "--backend", options.get("backend", "classical"),
+                     "--formulation", setup.node_config.solve.formulation, "--solver", setup.node_config.solve.solver] \
+        + (["--place-checkpoint", vocab] if vocab else []) \
+        + (["--uniform-noise"] if setup.node_config.solve.uniform_noise else []) \
+        + (["--strict"] if setup.strict else []) \
+        + sum([[f"--{n.replace('_', '-')}", str(options[n])] for n in ("r_thr", "k") if options.get(n) is not None], [])
+    # Own sessions: a Ctrl-C in the terminal reaches this process only, which passes it on once (_stop); a second
+    # signal would make a robot exit before its state is written.
+    procs = [subprocess.Popen(cmd(r), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              start_new_session=True) for r in range(n)]
+
+    def save(status: str, reason: str) -> Path:
+        gather(out, setup, status=status, reason=reason)
+        return out
+
+    keep(save)
+    try:
+        for r, p in enumerate(procs):
+            line = p.stdout.readline().strip()
+            if line != "ready":
+                raise SwarmsplatError(f"robot {r} did not start: {(line + p.stderr.read())[-800:]}")
+        start = time.time() + 2.0
+        for p in procs:
+            p.stdin.write(f"{start}\n")
+            p.stdin.flush()
+        limit = timeout or setup.schedule.ticks * setup.schedule.tick_seconds * 3 + 120
+        for r, p in enumerate(procs):
+            _, err = p.communicate(timeout=limit)
+            if p.returncode != 0:
+                raise SwarmsplatError(f"robot {r} failed (exit {p.returncode}): {err[-800:]}")
+    except BaseException:
+        _stop(procs)
+        raise
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    return gather(out, setup)
+
+
+def _stop(procs, wait_s: float = 10.0) -> None:
+    """Ask every running robot to stop (SIGINT: it writes its state) and wait up to `wait_s` for all of them."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    end = time.time() + wait_s
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.0, end - time.time()))
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def gather(out: Path, setup, *, status: str = "complete", reason: str | None = None) -> dict:
+    """Read the robot processes' outputs and write the run's (`outputs.write_outputs`). A run cut short
+    (status "interrupted" / "failed") gathers the robots that wrote their state and leaves out the others."""
+    from swarmsplat.slam.run.swarm_results import write_outputs
+
+    robots, final, skipped = {}, {}, []
+    for r, seq in enumerate(setup.dataset.agents):
+        d = out / "robots" / seq.name
+        if status != "complete" and not (d / "bytes.json").is_file():
+            continue
+        st = np.load(d / "state.npz")
+        b = json.loads((d / "bytes.json").read_text())
+        skipped += b.pop("skipped_frames", [])
+        b.pop("status", None), b.pop("reason", None)
+        est = M.decode((d / "estimate.msg").read_bytes())[1] if (d / "estimate.msg").exists() else None
+        robots[r] = {"trajectory": st["trajectory"], "odometry": st["odometry"], "timestamps": st["timestamps"],
+                     "bytes": b, "estimate": est, "n_solves": b.get("n_solves", 0)}
+        graphs = sorted(d.glob("graph_*.msg"))
+        if graphs and not final:  # the lowest robot that optimised: its last solve is the team's
+            final = {int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs}
+    return write_outputs(out, setup, robots, final, mode="zenoh", status=status, reason=reason, skipped=skipped)

@@ -1,0 +1,217 @@
+"""A team of GRAND-SLAM agents and the server (§III-D–E, §IV): each agent runs the per-agent pipeline (track,
+submaps, map) on its own sequence; every keyframe it makes goes to the server, which closes intra- and
+inter-agent loops on one multi-agent pose graph and moves the submaps (slam.dense.team.server).
+
+The agents run in one process, round-robin one frame each, as if they recorded at the same time; an agent whose
+sequence ends leaves the rotation and the others carry on. Loop closures are the server's job, so each agent's
+own optimisation is switched off (it would undo the inter-agent corrections); the agent's LoopCloser still
+provides descriptors, tracking edges and intra-agent verification.
+
+    from swarmsplat.slam.run.team import run_team
+    metrics = run_team("data/synth", "results/team", SlamConfig())
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from swarmsplat.kernels import se3
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import output_dir
+
+from swarmsplat.slam.dense.agent import Agent
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.loops.loop_log import LoopRecord
+from .partial_results import write_partial_team
+from swarmsplat.slam.run.guard import guarded, keep, read_frame
+from swarmsplat.slam.dense.team.server import Server, ServerConfig
+
+
+class Team:
+    """N agents and one server. `step(a, frame)` feeds agent a one frame; `run(...)` feeds whole sequences."""
+
+    def __init__(self, cameras: Sequence, names: Sequence[str], config: SlamConfig | None = None,
+                 server: ServerConfig | None = None, *, reference: bool = False):
+        if len(cameras) != len(names) or not names:
+            raise InputError(f"a team needs one camera per agent name, got {len(cameras)} and {len(names)}")
+        if len(names) > 26:
+            raise InputError(f"at most 26 agents (one pose-graph letter each), got {len(names)}")
+        self.cfg = config or SlamConfig()
+        scfg = (server or ServerConfig()).model_copy()
+        scfg.intra_loops = scfg.intra_loops and self.cfg.loop_closure.enabled
+        scfg.inter_loops = scfg.inter_loops and self.cfg.loop_closure.enabled
+        agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
+        self.agents = [Agent(c, agent_cfg, name=n, reference=reference) for c, n in zip(cameras, names)]
+        rc = self.cfg.map_refine  # the server's map refinement fits the keyframes at the mapping resolution
+        for ag in self.agents:
+            ag.keep_keyframe_images = rc.views == "mapping" and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
+        self.server = Server(self.agents, scfg)
+        self.reference = reference
+        # Per agent, each submap's origin as tracking alone placed it: the trajectory without loop closures.
+        self._origins_no_lc: list[list[np.ndarray]] = [[] for _ in self.agents]
+        self.rounds = 0
+        self.frames_done = [0] * len(self.agents)
+
+    # ---- running ---------------------------------------------------------------------------------------------
+
+    def step(self, a: int, index: int, timestamp: float, color: np.ndarray, depth: np.ndarray | None
+             ) -> list[LoopRecord]:
+        """One frame of agent a; when it becomes a keyframe the server looks for loops. Returns new loop records."""
+        ag = self.agents[a]
+        n_kf, n_sm = len(ag.keyframes), len(ag.gmap.submaps)
+        ag.step(index, timestamp, color, depth)
+        self.frames_done[a] += 1
+        if len(ag.gmap.submaps) > n_sm:
+            self._record_origin(a)
+        if len(ag.keyframes) > n_kf:
+            return self.server.on_keyframe(a, ag.keyframes[-1], self.rounds)
+        return []
+
+    def _record_origin(self, a: int) -> None:
+        """A new submap's origin relative to the previous one is pure tracking (it is set from the active submap
+        and the tracked pose); chaining those relatives gives the submap origins a run without loops would have."""
+        sms = self.agents[a].gmap.submaps
+        origins = self._origins_no_lc[a]
+        if not origins:
+            origins.append(sms[0].T_world_local.copy())
+            return
+        k = len(sms) - 1
+        rel = se3.inverse(sms[k - 1].T_world_local) @ sms[k].T_world_local
+        origins.append(origins[k - 1] @ rel)
+
+    def run(self, sequences: Sequence, *, limits: Sequence[int] | None = None, stride: int = 1,
+            progress: Callable[[int, int, str], None] | None = None, strict: bool = False) -> float:
+        """Feed every agent its sequence, one frame per agent per round, until all have ended. `limits[a]` caps
+        agent a's input frames; `stride` k uses every k-th frame (a faster, coarser run). An unreadable frame is
+        skipped with a warning (strict: raise). Returns wall seconds.
+        progress: called after every round with (rounds done, rounds in all, status line)."""
+        if stride < 1:
+            raise InputError(f"frame stride must be at least 1, got {stride}")
+        n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
+             for a, s in enumerate(sequences)]
+        rounds = -(-max(n, default=0) // stride)
+        t0 = time.perf_counter()
+        for i in range(rounds):
+            self.rounds = i
+            for a, seq in enumerate(sequences):
+                if i * stride < n[a]:  # an agent whose sequence has ended simply leaves the rotation
+                    f = read_frame(seq, i * stride, self.agents[a], strict=strict)
+                    if f is not None:  # None: unreadable, skipped with a warning
+                        self.step(a, f.index, f.timestamp, f.color, f.depth)
+            if progress:
+                progress(i + 1, rounds, self.status(i + 1, rounds, time.perf_counter() - t0))
+        return time.perf_counter() - t0
+
+    def finish(self) -> dict | None:
+        """A last global optimisation over every keyframe (those added since the last loop included)."""
+        if any(r.accepted for r in self.server.records):
+            return self.server.optimise()
+        return None
+
+    def refine_map(self) -> dict:
+        """The server's global map refinement (config section `map_refine`; iterations_per_keyframe 0 = off)."""
+        rc = self.cfg.map_refine
+        if rc.iterations_per_keyframe <= 0 or rc.max_iterations <= 0:
+            return {}
+        return self.server.refine_maps(rc, self.cfg.mapping, reference=self.reference)
+
+    def status(self, done: int, total: int, elapsed: float) -> str:
+        loops = self.server.records
+        acc_i = sum(r.accepted and r.kind == "intra" for r in loops)
+        acc_x = sum(r.accepted and r.kind == "inter" for r in loops)
+        groups = len(self.server.components())
+        return (f"round {done}/{total}  keyframes {sum(len(a.keyframes) for a in self.agents)}  "
+                f"Gaussians {sum(len(a.gmap) for a in self.agents)}  loops {acc_i} intra / {acc_x} inter "
+                f"of {len(loops)}  separate frames {groups}  {elapsed:.0f}s")
+
+    # ---- results ---------------------------------------------------------------------------------------------
+
+    def trajectory(self, a: int) -> tuple[np.ndarray, np.ndarray]:
+        """Agent a's frames in its component's frame, with loop closures: each frame follows the pose-graph optimum
+        of its keyframe (Server.global_trajectory per_keyframe=True)."""
+        return self.server.global_trajectory(a, per_keyframe=True)
+
+    def trajectory_no_lc(self, a: int) -> tuple[np.ndarray, np.ndarray]:
+        """Agent a's frames as tracking alone placed them (its own world frame)."""
+        ag = self.agents[a]
+        o = self._origins_no_lc[a]
+        if not ag.poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        return (np.array([p.timestamp for p in ag.poses]),
+                np.stack([o[p.submap_id] @ p.T_local_cam for p in ag.poses]))
+
+    def keyframe_pose_no_lc(self, a: int, kf) -> np.ndarray:
+        return self._origins_no_lc[a][kf.submap_id] @ kf.T_local_cam
+
+
+@guarded("team")
+def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
+             server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
+             stride: int = 1, progress: bool = True, reference: bool = False, render_views: int = 8,
+             observer=None, strict: bool = False) -> dict:
+    """Run the team on a multi-agent RGB-D dataset (any layout `slam.io.datasets.load_dataset` reads) and write
+    every output to `out_dir` (see slam.run.team_results). Returns the metrics written to metrics.json.
+    `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from swarmsplat.slam.io.datasets.split.split_sequence).
+
+    frames: at most this many input frames per agent (None: config.max_frames, 0 = all); limits: per-agent
+    caps; stride: use every stride-th frame.
+    render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all).
+    observer: `observer(team)` after every round, `observer(team, force=True)` after the map refinement
+    (slam.view.live.LiveView, the live view).
+    strict: stop at an unreadable frame (default: skip it). An interrupt or a failure writes what was done so far
+    (slam.run.partial_results.write_partial_team) and re-raises.
+    """
+    from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
+    from swarmsplat.slam.io.progress import TeamRounds, reporting
+    from .runtime import use_kernels
+    from .team_results import render_metrics, write_team_results
+
+    cfg = config or SlamConfig()
+    ds = dataset_path if isinstance(dataset_path, MultiAgentDataset) else load_dataset(dataset_path)
+    if ds.kind != "rgbd":
+        raise InputError(f"{ds.root}: the GRAND-SLAM team needs RGB-D sequences, this dataset is {ds.kind}")
+    use_kernels(cfg.kernels)  # backend, device and torch's thread count, as `swarmsplat run`
+    cap = frames if frames is not None else cfg.max_frames
+    caps = []
+    for a in range(len(ds.agents)):  # the smaller of the global and the agent's own cap; 0 = no cap
+        c = [int(x) for x in (cap, limits[a] if limits else None) if x]
+        caps.append(min(c) if c else 0)
+    out = output_dir(out_dir, "--out")
+    team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server, reference=reference)
+    cpu0 = time.process_time()
+    t_start = time.perf_counter()
+    keep(lambda status, reason: write_partial_team(team, ds, out, status=status, reason=reason,
+                                                   wall_s=time.perf_counter() - t_start,
+                                                   run_info={"frame_stride": stride, "frame_caps": caps}))
+    with TeamRounds(team, enabled=progress, observer=observer) as show:
+        wall = team.run(ds.agents, limits=caps, stride=stride, progress=show, strict=strict)
+    t_fin = time.perf_counter()
+    team.finish()
+    wall += time.perf_counter() - t_fin
+    before, refined = None, {}
+    if cfg.map_refine.iterations_per_keyframe > 0 and cfg.map_refine.max_iterations > 0:
+        t_ev = time.perf_counter()
+        before = render_metrics(team, ds, render_views, novel=False)  # not counted in the run's wall time
+        if progress:
+            n = sum(len(a.keyframes) for a in team.agents)
+            print(f"[team] refining the merged map over {n} keyframes (map_refine: "
+                  f"{cfg.map_refine.iterations_per_keyframe} steps per keyframe, at most "
+                  f"{cfg.map_refine.max_iterations} per component)", file=sys.stderr)
+        traj_before = ([team.trajectory(a) for a in range(len(team.agents))] if cfg.map_refine.refine_poses
+                       else None)
+        t_ref = time.perf_counter()
+        with reporting(progress):
+            refined = team.refine_map()
+        wall += time.perf_counter() - t_ref
+        if observer is not None:
+            observer(team, force=True)
+        before["seconds"] = t_ref - t_ev
+        before["trajectories"] = traj_before
+    return write_team_results(team, ds, out, wall_s=wall, cpu_s=time.process_time() - cpu0,
+                              render_views=render_views, progress=progress, before_refine=before,
+                              refine=refined, run_info={"frame_stride": stride, "frame_caps": caps})
