@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 import time
 
-from .common import machine_info, markdown_table
+from .common import machine_info, markdown_table, write_results
 
 # subject name -> module; modules that do not exist (yet) are skipped by `all` and reported by name.
 SUBJECTS = {
@@ -58,7 +57,6 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     from swarmsplat.kernels.errors import SwarmsplatError
-    from swarmsplat.kernels.fileio import atomic_write_text
 
     names = sorted(SUBJECTS) if args.subject == "all" else [args.subject]
     backends = ["warp", "taichi"] if args.kernels == "both" else [args.kernels]
@@ -82,11 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         table = markdown_table(res["rows"], res["columns"])
         md.append(f"### {name}\n\n{mod.DESCRIPTION}\n\n{table}\n" + "".join(f"\n- {n}" for n in res.get("notes", [])))
         print(md[-1])
+    write_results(args.json_out, args.md_out, report, "\n\n".join(md))
     if args.json_out:
-        atomic_write_text(args.json_out, json.dumps(report, indent=2, default=float))
         print(f"[perf] wrote {args.json_out}", file=sys.stderr)
-    if args.md_out:
-        atomic_write_text(args.md_out, "\n\n".join(md) + "\n")
     return 0
 
 

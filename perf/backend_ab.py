@@ -1,7 +1,7 @@
 """Taichi against Warp on the same rasteriser calls, interleaved in one process:
 `python -m perf.backend_ab [--rounds R] [--json OUT]`.
 
-Issue 13 asks for the slower backend "within 2x" of the faster one at 640x480 / 50k. `python -m perf raster` times
+The target: the slower backend within 2x of the faster one at 640x480 / 50k. `python -m perf raster` times
 each backend's cases one after the other, so a drift of the machine's speed between them (seen here: the same call
 reading 51 and 67 ms a minute apart) lands on one backend only. This alternates the two backends call by call on
 the same scenes (perf/raster.py's `make_scene`, the same `_ours` call as perf raster: forward + backward of a sum

@@ -48,11 +48,51 @@ def time_fn(fn: Callable[[], object], *, repeat: int = 5, warmup: int = 1, devic
     return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times), "runs": len(times)}
 
 
-def machine_info() -> dict:
-    import os
+def _git(*args: str) -> str | None:
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        r = subprocess.run(["git", "-C", here, *args], capture_output=True, text=True, check=False, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
 
-    info = {"platform": platform.platform(), "python": platform.python_version(), "cpu_count": os.cpu_count(),
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux; platform.processor() elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.lower().startswith(("model name", "hardware", "cpu model")):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _version(module: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(module)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def machine_info() -> dict:
+    """Where and from what a result came: commit (and whether the tree had uncommitted changes), date, CPU model,
+    cores, load average, GPU, and the versions of Python and the libraries that set the speed. Every result file
+    of perf/ carries it, so a file's name never has to."""
+    info = {"commit": _git("rev-parse", "--short=12", "HEAD"),
+            "dirty": None if _git("rev-parse", "HEAD") is None else
+            bool(_git("status", "--porcelain", "--untracked-files=no")),
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "cpu_model": cpu_model(), "cpu_count": os.cpu_count(),
+            "load_average_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+            "platform": platform.platform(), "python": platform.python_version(),
             "processor": platform.processor() or platform.machine()}
+    for dist, key in (("torch", "torch"), ("warp-lang", "warp"), ("taichi", "taichi"), ("gtsam", "gtsam"),
+                      ("numpy", "numpy"), ("open3d", "open3d")):
+        info[key] = _version(dist)
     try:
         import torch
 
@@ -65,14 +105,34 @@ def machine_info() -> dict:
     return info
 
 
+def provenance_line(info: dict) -> str:
+    """One Markdown line for a result file's head: commit, date, CPU, load and library versions."""
+    dirty = " (uncommitted changes)" if info.get("dirty") else ""
+    libs = ", ".join(f"{k} {info[k]}" for k in ("torch", "warp", "taichi", "gtsam") if info.get(k))
+    return (f"_Measured at commit {info.get('commit')}{dirty} on {info.get('date')}: {info.get('cpu_model')}, "
+            f"{info.get('cpu_count')} cores, load {info.get('load_average_1min')}; {libs}._")
+
+
+def write_results(json_out: str | None, md_out: str | None, report: dict, md: str | None = None) -> None:
+    """Write a result (JSON, with `machine` = machine_info() unless it has one) and its Markdown (headed by the
+    provenance line), each atomically."""
+    import json
+
+    from swarmsplat.kernels.fileio import atomic_write_text
+
+    report = dict(report)
+    report.setdefault("machine", machine_info())
+    if json_out:
+        atomic_write_text(json_out, json.dumps(report, indent=1, default=float))
+    if md_out and md is not None:
+        atomic_write_text(md_out, provenance_line(report["machine"]) + "\n\n" + md.rstrip("\n") + "\n")
+
+
 def print_and_save(res: dict, json_out: str | None) -> None:
     """Print res["rows"] as a Markdown table; with json_out, write res plus the machine's description there."""
     print(markdown_table(res["rows"], list(res["rows"][0])))
     if json_out:
-        import json
-
-        with open(json_out, "w") as f:
-            json.dump(dict(res, machine=machine_info()), f, indent=1)
+        write_results(json_out, None, res)
 
 
 def fmt(v) -> str:

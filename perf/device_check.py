@@ -135,8 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     from swarmsplat import kernels
-    from swarmsplat.kernels.fileio import atomic_write_text
-    from .common import machine_info
+    from .common import machine_info, write_results
 
     out = Path(args.out or REPO / "perf" / "results" / f"device-check-{args.device}.json")
     report = {"device": args.device, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info(),
@@ -154,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_bench:
         report["bench"] = run_bench(args.device, args.subjects, args.timeout)
     report["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
-    atomic_write_text(out, json.dumps(report, indent=2, default=str))
+    write_results(str(out), None, report)
     print(f"[device-check] wrote {out}", file=sys.stderr)
     failed = bool(report.get("tests", {}).get("failures")) or "error" in report.get("tests", {})
     failed = failed or any("error" in v for v in report.get("bench", {}).values())

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import sys
 import time
 
@@ -129,8 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
 
-    from swarmsplat.kernels.fileio import atomic_write_text
-    from .common import machine_info
+    from .common import machine_info, write_results
 
     t0 = time.perf_counter()
     report = {"machine": machine_info(), "quick": args.quick, "seed": args.seed, "backbones": {}}
@@ -141,11 +139,9 @@ def main(argv: list[str] | None = None) -> int:
         report["backbones"][b] = res
         md.append(f"#### {b.upper()} odometry\n\n{markdown(res)}\n")
     report["total_s"] = time.perf_counter() - t0
-    atomic_write_text(args.json_out, json.dumps(report, indent=2, default=float))
     text = "\n".join(md)
     print(text)
-    if args.md_out:
-        atomic_write_text(args.md_out, text)
+    write_results(args.json_out, args.md_out, report, text)
     return 0
 
 

@@ -1,6 +1,6 @@
 """FLOCC-SLAM's keyframe-distance study (Fig. 5) and the R_thr sweep, on generated monocular multi-robot data.
 
-    python -m perf.flocc_fig5 --json perf/results/flocc-fig5.json --md perf/results/flocc-fig5.md [--quick]
+    python -m perf.flocc_fig5 --json perf/results/fig5-cpu.json --md perf/results/fig5-cpu.md [--quick]
         [--backends classical xfeat] [--agents 6] [--spacings 0.4 0.8]
 
 Data: the monocular generator's world, paths and drifting metric odometry (`slam.synthetic`, as `swarmsplat
@@ -368,8 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     from swarmsplat.kernels.errors import InputError
-    from swarmsplat.kernels.fileio import atomic_write_text
-    from .common import machine_info
+    from .common import machine_info, write_results
     from .flocc_fig5_report import header, markdown
 
     if args.from_json:
@@ -390,11 +389,10 @@ def main(argv: list[str] | None = None) -> int:
         res.update(machine=machine_info(), wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                    command="python -m perf.flocc_fig5 " + " ".join(argv if argv is not None else sys.argv[1:]),
                    load_start=load0[0], load_end=os.getloadavg()[0])
-        atomic_write_text(args.json_out, json.dumps(res, indent=1, default=float))
+        write_results(args.json_out, None, res)
     text = header(res) + markdown(res)
     print(text)
-    if args.md_out:
-        atomic_write_text(args.md_out, text)
+    write_results(None, args.md_out, res, text)
     return 0
 
 

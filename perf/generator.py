@@ -1,9 +1,9 @@
 """Synthetic generator throughput at 320x240: our full pipeline against Open3D's bare ray cast of one ray per pixel.
 
 The generator runs on NumPy, Open3D and one Warp CPU kernel (the texture) whatever kernel backend or device is
-chosen, so `backends` and `device` only label the run. Target (issue #2): >= 20 frames/s for the whole pipeline on
+chosen, so `backends` and `device` only label the run. Target: >= 20 frames/s for the whole pipeline on
 a 2-core machine. Rows at the default `supersample` (rays per pixel side, colour averaged over the pixel) and at 1
-(one ray through each pixel centre, the generator before session 10).
+(one ray through each pixel centre, the generator before supersampling).
 """
 
 from __future__ import annotations

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import pkgutil
 import re
 import struct
@@ -176,17 +175,14 @@ def main(argv=None) -> int:
     p.add_argument("--json", dest="json_out", help="write the table as JSON here")
     p.add_argument("--md", dest="md_out", help="write the Markdown table here")
     args = p.parse_args(argv)
-    from swarmsplat.kernels.fileio import atomic_write_text
+    from .common import write_results
 
     res = run(args.arch)
     md = markdown(res)
     print(md)
     print(f"[gpu_codegen] {len(res['modules'])} Warp modules x {len(res['archs'])} archs, "
           f"{len(res['failures'])} failed builds", file=sys.stderr)
-    if args.json_out:
-        atomic_write_text(args.json_out, json.dumps(res, indent=2))
-    if args.md_out:
-        atomic_write_text(args.md_out, md)
+    write_results(args.json_out, args.md_out, res, md)
     return 1 if res["failures"] else 0
 
 

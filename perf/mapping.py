@@ -206,7 +206,7 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
             row["vs_scalar"] = scalar[row["N"]]["iteration_ms"] / row["iteration_ms"]
     if scalar:
         notes.append(f"{SCALAR_PEER}: Warp with its own compositing, projection, binning, activation and loss "
-                     "kernels (the CUDA ones, scalar code on the CPU; since session 16 the loss too); "
+                     "kernels (the CUDA ones, scalar code on the CPU, the loss included); "
                      "vs_scalar = its iteration_ms / warp's, same run and scene")
     columns = ["backend", "image", "N", "iteration_ms", "iteration_cpu_ms", "render_ms", "loss_ms", "backward_ms",
                "adam_ms", "peer_iteration_ms", "speedup", "vs_scalar"]

@@ -328,9 +328,9 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         f"{TAICHI_SCALAR_PEER}: Taichi compositing one pixel at a time (kernels/_taichi/raster.py, its GPU kernels); "
         "taichi composites with kernels/_taichi/raster_cpu.py's row-vector kernels; vs_scalar_* for taichi = "
         "taichi-scalar time / taichi time. taichi_over_warp_* = taichi time / warp time, same run and scene (the "
-        "issue-13 target: within 2x).",
-        "Timed calls are made as the pipeline makes them, kernels.rasterize(count_touched=False) (since session 15; "
-        "before, with the default count_touched=True, which costs Taichi's vector forward ~1.7x); pairs_M comes from "
+        "target: within 2x).",
+        "Timed calls are made as the pipeline makes them, kernels.rasterize(count_touched=False) (the "
+        "default count_touched=True costs Taichi's vector forward ~1.7x); pairs_M comes from "
         "one more call that counts.",
     ]
     if skipped:

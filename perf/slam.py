@@ -3,7 +3,7 @@
 
 The default SlamConfig tracks in two stages (coarse odometry, then frame-to-model refinement); the peer is the
 same pipeline with the coarse stage only (tracking.refine false), run in the same process: the tracking-time
-ratio says what the refinement costs here (issue 13's budget: <= 1.5x), the two ATEs what it gains.
+ratio says what the refinement costs here (budget: <= 1.5x), the two ATEs what it gains.
 """
 
 from __future__ import annotations

@@ -280,9 +280,9 @@ def main(argv: list[str] | None = None) -> int:
         rows = compare(seq, variants, a.frames, mapping=json.loads(a.mapping) if a.mapping else None,
                        shadow=not a.no_shadow, poses=a.poses, stride=a.stride)
     if a.json_out:
-        from swarmsplat.kernels.fileio import atomic_write_text
+        from .common import write_results
 
-        atomic_write_text(a.json_out, json.dumps({"rows": rows, "argv": argv or sys.argv[1:]}, indent=1, default=float))
+        write_results(a.json_out, None, {"rows": rows, "argv": argv or sys.argv[1:]})
     return 0
 
 

@@ -92,7 +92,7 @@ def test_r_thr_defaults_per_pair_backend():
     from swarmsplat.graph.confidence import R_THR_DEFAULT
     from swarmsplat.slam.flocc.frontend import default_r_thr
 
-    assert default_r_thr("classical") == 0.15  # measured: perf/results/flocc-fig5.md
+    assert default_r_thr("classical") == 0.15  # measured: perf/results/fig5-cpu.md
     assert default_r_thr("xfeat") == 0.25  # measured with the same sweep (python -m perf.flocc_fig5 --quick)
     assert default_r_thr("mast3r") == R_THR_DEFAULT == 0.3  # the paper's value, for its dense matches
     assert default_r_thr("something-new") == R_THR_DEFAULT

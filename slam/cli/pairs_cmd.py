@@ -29,7 +29,7 @@ def register(sub) -> None:
                    help="cosine similarity threshold (default: 0.1, the paper's permissive value)")
     p.add_argument("--top-k", type=int, default=1, help="neighbours per keyframe (default: 1)")
     p.add_argument("--stride", type=int, default=1, help="every N-th frame is a keyframe (default: 1)")
-    p.add_argument("--r-thr", type=float, default=None, help="correspondence-ratio gate R_thr of eq. 1 (default per pair backend: classical 0.15, xfeat 0.25, measured in perf/results/flocc-fig5*.md; mast3r and others 0.3 as the paper)")
+    p.add_argument("--r-thr", type=float, default=None, help="correspondence-ratio gate R_thr of eq. 1 (default per pair backend: classical 0.15, xfeat 0.25, measured in perf/results/fig5-*.md; mast3r and others 0.3 as the paper)")
     p.add_argument("--k", type=float, default=None, help="logistic steepness k of eq. (2) (default: graph's)")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="torch device of learned backends")
     p.add_argument("--trust-checkpoint", action="store_true",

@@ -20,7 +20,7 @@ def add_swarm_options(p) -> None:
     p.add_argument("--place", default="bow", help="place recognition: bow, vlad, cosplace, netvlad (default: bow)")
     p.add_argument("--place-checkpoint", metavar="PATH", help="weights, or a bow/vlad vocabulary .npz")
     p.add_argument("--backend", default="classical", help="pair registration: classical, xfeat, mast3r, lightglue")
-    p.add_argument("--r-thr", type=float, help="correspondence-ratio gate R_thr of eq. 1 (default per pair backend: classical 0.15, xfeat 0.25, measured in perf/results/flocc-fig5*.md; mast3r and others 0.3 as the paper)")
+    p.add_argument("--r-thr", type=float, help="correspondence-ratio gate R_thr of eq. 1 (default per pair backend: classical 0.15, xfeat 0.25, measured in perf/results/fig5-*.md; mast3r and others 0.3 as the paper)")
     p.add_argument("--k", type=float, help="logistic steepness k of eq. 2 (default 5)")
     p.add_argument("--strict", action="store_true",
                    help="stop at the first unreadable keyframe image (default: skip it with a warning; "

@@ -49,7 +49,7 @@ class LoopMeasurement:
 # scales with the overlapping area. Classical SIFT inliers fall off faster with viewpoint change: on the generated
 # teams the correct classical loops have ratios 0.16-0.21 at the 10th percentile and the wrong ones 0.13-0.25 at the
 # 90th. 0.15 is the lowest gate with no false merge up to 0.6 m keyframe spacing there (precision 0.97, recall 0.93;
-# 0.3 loses 15 % of the correct loops): perf/results/flocc-fig5.md. XFeat + LighterGlue keeps more inliers across
+# 0.3 loses 15 % of the correct loops): perf/results/fig5-cpu.md. XFeat + LighterGlue keeps more inliers across
 # viewpoints: correct ratios p10 0.33 / p50 0.72, wrong p50 0.044 / p90 0.154 (`python -m perf.flocc_fig5 --quick
 # --backends classical xfeat`, seed 1, 486 registrations); 0.25 sits between the two (pooled precision 0.94,
 # recall 0.95; the IS-LM ATE is the same for every gate from 0.15 to 0.4). Unmeasured backends keep the paper's.
