@@ -41,13 +41,16 @@ def _load(name: str):
         raise
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, prog: str = "python -m perf",
+         parser_class: type[argparse.ArgumentParser] = argparse.ArgumentParser) -> int:
+    """The driver. `prog` and `parser_class` let another front end (`swarmsplat bench`) name itself in usage and
+    turn usage errors into its own."""
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["device-check"]:
         from .device_check import main as device_check
 
-        return device_check(argv[1:])
-    p = argparse.ArgumentParser(prog="python -m perf", description=__doc__.splitlines()[0])
+        return device_check(argv[1:], prog=f"{prog} device-check", parser_class=parser_class)
+    p = parser_class(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("subject", choices=sorted(SUBJECTS) + ["all"])
     p.add_argument("--kernels", choices=["warp", "taichi", "both"], default="both")
     p.add_argument("--device", choices=["cpu", "cuda", "vulkan"], default="cpu", help="vulkan: Taichi only")

@@ -121,10 +121,11 @@ def _env() -> dict:
     return env
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, prog: str = "python -m perf device-check",
+         parser_class: type[argparse.ArgumentParser] = argparse.ArgumentParser) -> int:
     from .__main__ import SUBJECTS
 
-    p = argparse.ArgumentParser(prog="python -m perf device-check", description=__doc__.splitlines()[0])
+    p = parser_class(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("--device", choices=["cuda", "vulkan", "cpu"], default="cuda")
     p.add_argument("--subjects", nargs="+", choices=sorted(SUBJECTS), default=sorted(SUBJECTS),
                    help="perf subjects to benchmark (default: all)")

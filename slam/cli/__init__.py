@@ -47,11 +47,22 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     return f"swarmsplat: warning: {message}\n"
 
 
+def version() -> str:
+    """The installed distribution's version ("unknown" when run from a checkout that is not installed)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("swarmsplat")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="swarmsplat",
         description="Collaborative multi-robot SLAM: GRAND-SLAM (RGB-D Gaussian splatting) and FLOCC-SLAM loop closing.",
     )
+    parser.add_argument("--version", action="version", version=f"swarmsplat {version()}")
     parser.add_argument("--debug", action="store_true", help="show full tracebacks for errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
@@ -79,7 +90,7 @@ def _end_now(code: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. Exit codes: 0 done, 2 bad input (one line on stderr), 130 interrupted (SIGINT / SIGTERM;
     a second one exits at once), 1 failed; an interrupted or failed run has written what it had (slam.run.guard).
-    argv None (the console script, `python -m slam`): after an interrupt or an unexpected failure the process
+    argv None (the console script, `python -m swarmsplat.slam`): after an interrupt or an unexpected failure the process
     ends at once (`_end_now`), whatever thread is still running."""
     import warnings
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 def register(sub) -> None:
     p = sub.add_parser("bench", help="run perf/ benchmarks (same flags as `python -m perf`)", add_help=False)
+    p.add_argument("-h", "--help", action="store_true", help="perf's own help")
     p.add_argument("rest", nargs="...", help="arguments for `python -m perf`")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     import argparse
-    from unittest import mock
 
     from swarmsplat.kernels.errors import InputError
     from swarmsplat.kernels.fileio import output_file
@@ -24,8 +24,8 @@ def run(args) -> int:
             if path:
                 output_file(path, flag, create=False)
 
-    def one_line(parser, message):  # perf's own parser: the package's one-line error instead of usage + error
-        raise InputError(f"{message} (see swarmsplat bench --help)")
+    class OneLineParser(argparse.ArgumentParser):  # the package's one-line error instead of usage + error
+        def error(self, message):
+            raise InputError(f"{message} (see swarmsplat bench --help)")
 
-    with mock.patch.object(argparse.ArgumentParser, "error", one_line):
-        return perf_main(args.rest)
+    return perf_main(["--help"] if args.help else args.rest, prog="swarmsplat bench", parser_class=OneLineParser)
