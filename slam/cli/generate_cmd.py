@@ -21,17 +21,17 @@ def register(sub) -> None:
     p.add_argument("--mono", action="store_true", default=None,
                    help="monocular variant: images + drifting metric odometry, no depth")
     p.add_argument("--preview", metavar="PNG", help="also save a top-down picture of the world and the paths")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     import sys
 
-    from tqdm import tqdm
-
     from swarmsplat.kernels.errors import InputError
     from swarmsplat.kernels.fileio import output_dir, output_file
     from swarmsplat.slam.synthetic import GeneratorConfig, agent_poses, generate, generate_world
+    from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.synthetic.writer import check_output_dir
 
     if not args.out and not args.preview:
@@ -51,8 +51,8 @@ def run(args) -> int:
     if args.out:
         check_output_dir(args.out)  # before the progress bar, so a refusal is one clean line
         total = config.agents * config.frames
-        with tqdm(total=total, unit="frame", desc=f"generate {config.kind}", file=sys.stderr) as bar:
-            out = generate(args.out, config, progress=bar.update)
+        with bar(total, f"[generate] {config.kind} frames", unit="frame", enabled=not args.quiet) as b:
+            out = generate(args.out, config, progress=b.update)
         print(f"wrote {config.kind} dataset '{config.name}' with {config.agents} agents x {config.frames} frames "
               f"({config.width}x{config.height}, seed {config.seed}) to {out}")
     return 0

@@ -87,13 +87,12 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     strict: stop at an unreadable keyframe image (default: leave it out with a warning). An interrupt or a failure
     writes the rows registered so far with status "interrupted" / "failed" and re-raises.
     """
-    from tqdm import tqdm
-
     from swarmsplat.graph.confidence import K_DEFAULT
     from swarmsplat.registration.pair import make_registrar
     from swarmsplat.registration.place_recognition import VOCABULARY_BACKENDS, PlaceDatabase, make_recognizer
     from swarmsplat.slam.io.datasets import load_dataset
     from swarmsplat.slam.flocc.frontend import LoopFrontend
+    from swarmsplat.slam.io.progress import bar as progress_bar
 
     if stride < 1 or top_k < 1:
         raise InputError(f"stride and top_k must be >= 1, got stride={stride}, top_k={top_k}")
@@ -126,7 +125,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     db = PlaceDatabase(recognizer.dim)
     desc, skips, rows = {}, {a: SkipLog(a) for a in names}, []
     keep(lambda status, reason: _write_partial(out, rows, status, reason, skips))
-    bar = tqdm(total=sum(map(len, kf.values())), desc="describe", disable=not progress, leave=False)
+    bar = progress_bar(sum(map(len, kf.values())), "[pairs] describe", unit="keyframe", enabled=progress)
     for a in names:
         described, readable = [], []
         for f_index in kf[a]:
@@ -157,13 +156,15 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
                          k=K_DEFAULT if k is None else k, r_thr=r_thr)
     n_reg, n_acc, n_in = 0, 0, 0
     have_gt = all(s.gt_poses is not None for s in seqs.values())
-    for m in tqdm(cands, desc="register", disable=not progress, leave=False):
-        meas = front.evaluate((m.query_agent, m.query_index), (m.agent, m.index), m.similarity)
-        n_reg += int(meas.loop.success)
-        n_acc += int(meas.accepted)
-        rows.append(_row(meas, seqs, kf, have_gt))
-        if have_gt and meas.accepted and rows[-1]["t_err_m_gt_scale"] <= 2.0:
-            n_in += 1
+    with progress_bar(len(cands), "[pairs] register", unit="pair", enabled=progress) as reg_bar:
+        for m in cands:
+            meas = front.evaluate((m.query_agent, m.query_index), (m.agent, m.index), m.similarity)
+            n_reg += int(meas.loop.success)
+            n_acc += int(meas.accepted)
+            rows.append(_row(meas, seqs, kf, have_gt))
+            if have_gt and meas.accepted and rows[-1]["t_err_m_gt_scale"] <= 2.0:
+                n_in += 1
+            reg_bar.update(1, f"{n_acc} accepted")
     _write_csv(out, rows)
     enc_bytes = [e.nbytes for e in front.encodings.values()]
     ap = {sc: inlier_precision_recall(rows, sc)["ap"] for sc in ("similarity", "n_correspondences", "ratio")} \
