@@ -1,4 +1,4 @@
-"""`swarmsplat run` on a multi-agent dataset dispatches to the team (issue 7, part 4)."""
+"""`swarmsplat run` on a multi-agent dataset dispatches to the team."""
 
 import json
 

@@ -1,4 +1,4 @@
-"""A long run never loses its work (issue 18): a corrupt frame is skipped and listed (`--strict` stops instead),
+"""A long run never loses its work: a corrupt frame is skipped and listed (`--strict` stops instead),
 an interrupt sent to a running `swarmsplat run` leaves a readable trajectory of every frame tracked before it
 and a metrics.json with status "interrupted", a failure leaves status "failed", and a second signal while the
 partial results are written exits at once."""

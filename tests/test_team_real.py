@@ -1,4 +1,4 @@
-"""A two-agent split of a real RGB-D recording (issue 7, "Numbers"): the five Redwood / Augmented ICL-NUIM
+"""A two-agent split of a real RGB-D recording: the five Redwood / Augmented ICL-NUIM
 living-room-1 frames with noisy depth, cut into agents with DISJOINT frames (agent_0: frames 0-2, agent_1:
 frames 3-4). Each agent starts in its own frame (its first camera); the team must accept an inter-agent loop,
 bring agent 1 into agent 0's (the global) frame, and track both close to the ground truth."""

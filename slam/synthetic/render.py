@@ -111,7 +111,7 @@ def shade_color(world: World, traced: Traced, camera: PinholeCamera) -> np.ndarr
 
 
 def shade_color_numpy(world: World, traced: Traced, camera: PinholeCamera) -> np.ndarray:
-    """`shade_color` in NumPy (its twin, and the generator before session 11)."""
+    """`shade_color` in NumPy (its twin, and the generator before the Warp texture kernel)."""
     n, h, w = traced.shape
     hit = np.isfinite(traced.t_hit) & (traced.t_hit > 0)
     idx = np.nonzero(hit)[0]
