@@ -45,7 +45,7 @@ test: setup browser
 	$(VPY) -m pytest -q
 
 bench: setup
-	$(VPY) -m perf all --quick --json perf/results/quick.json
+	$(VPY) -m perf all --quick --json runs/bench-quick.json --md runs/bench-quick.md
 
 # On a GPU machine (e.g. a Jetson): the suite's cases for DEVICE and a quick benchmark of every perf subject on
 # it, into perf/results/device-check-$(DEVICE).json. DEVICE=vulkan checks Taichi's Vulkan device instead.
