@@ -2,7 +2,8 @@
 (`kernels.reference`), and the geometry every layer shares (SE(3), cameras).
 
 Choose the backend and device once, at run time: `kernels.use(backend="warp"|"taichi", device="cpu"|"cuda"|
-"vulkan")` (vulkan: Taichi only); `kernels.devices()` lists the pairs that work on this machine. Nothing
+"vulkan")` (vulkan: Taichi only); `kernels.devices()` lists the pairs that work on this machine. Inside
+`with kernels.use_reference():` the kernels that have a twin run it instead (tests, checks). Nothing
 initialises Warp or Taichi at import time; backend modules load on first use. GPU notes: docs/gpu.md.
 """
 
@@ -12,12 +13,12 @@ import importlib
 from typing import TYPE_CHECKING
 
 from . import se3
-from .backend import Backend, active, cuda_available, devices, use
+from .backend import Backend, active, cuda_available, devices, reference_active, use, use_reference
 from .camera import PinholeCamera
 from .errors import BackendError, GraphError, InputError, RegistrationError, SwarmsplatError
 
 __all__ = [
-    "use", "active", "devices", "cuda_available", "Backend", "backend_module",
+    "use", "use_reference", "reference_active", "active", "devices", "cuda_available", "Backend", "backend_module",
     "PinholeCamera", "se3", "check_tensor", "axpy",
     "SwarmsplatError", "InputError", "BackendError", "RegistrationError", "GraphError",
 ]

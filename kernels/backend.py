@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from .errors import BackendError
@@ -35,6 +36,7 @@ class Backend:
 
 _lock = threading.Lock()
 _active: Backend | None = None
+_reference = False  # inside `use_reference()`: kernels with a twin run the twin
 _taichi_arch: str | None = None  # Taichi can only hold one arch per process at a time
 _warp_ready = False
 
@@ -150,6 +152,26 @@ def use(backend: str = "warp", device: str = "cpu") -> Backend:
             _init_taichi(device)
         _active = Backend(backend, device)
         return _active
+
+
+@contextmanager
+def use_reference(on: bool = True):
+    """Inside the block, the kernels that have a twin in `kernels.reference` (the rasteriser, the parameter
+    activations) run the twin: plain torch, slow, the specification the backends are tested against. Everything
+    else keeps running on the backend chosen with `use()`. Process-wide while the block runs; nests, and the
+    previous choice returns on leaving it. on=False runs the backend inside an outer block."""
+    global _reference
+    before = _reference
+    _reference = bool(on)
+    try:
+        yield
+    finally:
+        _reference = before
+
+
+def reference_active() -> bool:
+    """True inside `use_reference()`: callers with a twin run it instead of the backend's kernel."""
+    return _reference
 
 
 def active() -> Backend:

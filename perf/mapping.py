@@ -93,6 +93,7 @@ def _optimise_s(submap, keyframes, cfg, iterations: int) -> float:
 def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
     """The plain loop: torch's default Adam, torch's activations, slam.dense.render.rgbd_loss + the isotropic penalty, one
     keyframe a step."""
+    from swarmsplat.kernels import use_reference
     from swarmsplat.slam.dense.param_ops import activate
     from swarmsplat.slam.dense.render import render, rgbd_loss, viewmat_from_pose
 
@@ -107,7 +108,9 @@ def _peer_step_s(submap, keyframes, cfg, iterations: int) -> float:
     for i in range(iterations):
         vm, color, depth, cam = targets[i % len(targets)]
         opt.zero_grad(set_to_none=True)
-        out = render(p, vm, cam, activated=activate(p, reference=True))  # torch's exp, sigmoid and clamp
+        with use_reference():  # torch's exp, sigmoid and clamp (the twin); the rasteriser stays on the backend
+            act = activate(p)
+        out = render(p, vm, cam, activated=act)
         loss = rgbd_loss(out, color, depth, lambda_color=cfg.lambda_color, alpha_power=cfg.alpha_power,
                          inlier_k=cfg.inlier_k)
         s = p.scales

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import swarmsplat.slam.dense.mapping.refine_merged as mr
+from swarmsplat.kernels import use_reference
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.slam.config import MappingConfig, MapRefineConfig
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
@@ -57,7 +58,8 @@ def test_the_optimiser_gets_the_decayed_rates(monkeypatch, optimizer):
         monkeypatch.setattr(SelectiveAdam, "step", spy_step)
     p, views = _scene()
     cfg = MapRefineConfig(lr_final_scale=0.25, optimizer=optimizer, min_contribution=0.0, iterations_per_keyframe=5)
-    refine_map(p, views, cfg, MappingConfig(), iterations=5, reference=True)
+    with use_reference():
+        refine_map(p, views, cfg, MappingConfig(), iterations=5)
     lrs = np.array(seen)
     assert lrs.shape[0] == 5
     assert np.allclose(lrs / lrs[0], [[lr_factor(0.25, i, 5)] for i in range(5)])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from swarmsplat.kernels import use_reference
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from swarmsplat.slam.dense.param_ops import activate, clamp01, isotropic_penalty
 
@@ -61,7 +62,8 @@ def _activation_case(n: int, seed: int):
 def _activate_and_grads(log_s, logits, colors, ups, reference: bool, iso_weight: float = 7.0):
     p = GaussianParams(torch.zeros_like(log_s), log_s.clone().requires_grad_(True), torch.zeros(len(logits), 4),
                        logits.clone().requires_grad_(True), colors.clone().requires_grad_(True))
-    a = activate(p, reference=reference)
+    with use_reference(reference):
+        a = activate(p)
     loss = (a.scales * ups[0]).sum() + (a.opacities * ups[1]).sum() + (a.colors * ups[2]).sum()
     if iso_weight:
         loss = loss + iso_weight * a.isotropic

@@ -42,14 +42,13 @@ class Timings:
 
 
 class Agent:
-    def __init__(self, camera: PinholeCamera, cfg: SlamConfig | None = None, *, name: str = "agent",
-                 reference: bool = False):
+    def __init__(self, camera: PinholeCamera, cfg: SlamConfig | None = None, *, name: str = "agent"):
         self.cfg = cfg or SlamConfig()
         self.name = name
         self.camera = camera
         self.gmap = GaussianMap()
-        self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth, reference=reference)
-        self.mapper = Mapper(self.cfg.mapping, reference=reference)
+        self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth)
+        self.mapper = Mapper(self.cfg.mapping)
         self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
         self._chain = OdometryChain(self.loops.model)  # tracking covariance since the last keyframe
         self.keyframes: list[Keyframe] = []

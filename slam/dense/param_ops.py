@@ -100,12 +100,14 @@ class _Activate(torch.autograd.Function):
         return d_ls, d_lo, d_col, None, None
 
 
-def activate(params, *, reference: bool = False) -> Activated:
+def activate(params) -> Activated:
     """`params`' (a GaussianParams) scales, opacities, clamp01(colors) and isotropic_penalty(scales): one kernel
-    each way on the active backend for float32 params with at least one Gaussian; the plain torch forms with
-    `reference` (the tests' torch twin), for other dtypes and for no Gaussians."""
+    each way on the active backend for float32 params with at least one Gaussian; the plain torch forms (the
+    twin) inside `kernels.use_reference()`, for other dtypes and for no Gaussians."""
+    from swarmsplat.kernels import reference_active
+
     ls, lo, col = params.log_scales, params.logit_opacities, params.colors
-    if reference or len(lo) == 0 or not all(t.dtype == torch.float32 for t in (ls, lo, col)):
+    if reference_active() or len(lo) == 0 or not all(t.dtype == torch.float32 for t in (ls, lo, col)):
         s = params.scales
         return Activated(s, params.opacities, clamp01(col), isotropic_penalty(s))
     from swarmsplat import kernels

@@ -21,7 +21,7 @@ def viewmat_from_pose(T_local_cam: np.ndarray, device="cpu", dtype=torch.float32
     return torch.as_tensor(se3.inverse(T_local_cam), dtype=dtype, device=device)
 
 
-def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera, *, reference: bool = False,
+def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera, *,
            background: tuple[float, float, float] = (0.0, 0.0, 0.0), activated: Activated | None = None):
     """Rasterise `params` seen through `viewmat` [4, 4] (local-to-camera; may carry a pose gradient).
     `activated`: `slam.dense.param_ops.activate(params)` when the caller has it already (mapping: its isotropic penalty
@@ -29,10 +29,12 @@ def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera,
 
     Returns the rasteriser's RenderOutput (color [H, W, 3], depth [H, W] alpha-weighted metres, alpha [H, W], ...;
     n_touched is None from the kernels: nothing here uses it).
-    `reference=True` uses the slow torch twin (tests).
+    Inside `kernels.use_reference()` the slow torch twin renders (tests).
     """
+    from swarmsplat.kernels import reference_active
+
     extra = {}
-    if reference:
+    if reference_active():
         from swarmsplat.kernels.reference import rasterize_reference as rasterize
     else:
         from swarmsplat.kernels import rasterize
@@ -40,7 +42,7 @@ def render(params: GaussianParams, viewmat: torch.Tensor, camera: PinholeCamera,
         extra["count_touched"] = False  # the pipeline does not use n_touched (None)
     dev, dt = params.means.device, params.means.dtype
     K = torch.as_tensor(camera.K, dtype=dt, device=dev)
-    a = activated if activated is not None else activate(params, reference=reference)
+    a = activated if activated is not None else activate(params)
     return rasterize(params.means, params.quats, a.scales, a.opacities, a.colors,
                      viewmat.to(dt), K, int(camera.width), int(camera.height),
                      background=torch.tensor(background, dtype=dt, device=dev), near=NEAR, far=FAR, **extra)

@@ -25,7 +25,7 @@ from .runtime import kernels_record
 
 @guarded("run")
 def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
-                 frames: int | None = None, progress: bool = True, reference: bool = False,
+                 frames: int | None = None, progress: bool = True,
                  observer=None, strict: bool = False) -> dict:
     """Track and map `dataset_path` (any layout `slam.io.datasets.load_sequence` reads) with one agent.
 
@@ -51,7 +51,7 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
-    agent = Agent(seq.camera, cfg, name=seq.name, reference=reference)
+    agent = Agent(seq.camera, cfg, name=seq.name)
     rc = cfg.map_refine
     refine = rc.single_agent and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
     agent.keep_keyframe_images = refine and rc.views == "mapping"  # the refinement's views, after submaps retire
@@ -78,7 +78,7 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
 
         before = agent.trajectory()[1] if rc.refine_poses else None
         with reporting(progress):
-            refined = refine_agent(agent, rc, cfg.mapping, reference=reference)
+            refined = refine_agent(agent, rc, cfg.mapping)
     wall = time.perf_counter() - t0 - t_eval
     return write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined, own_scores=own,
                          trajectory_before_refine=before)

@@ -36,7 +36,7 @@ class Team:
     """N agents and one server. `step(a, frame)` feeds agent a one frame; `run(...)` feeds whole sequences."""
 
     def __init__(self, cameras: Sequence, names: Sequence[str], config: SlamConfig | None = None,
-                 server: ServerConfig | None = None, *, reference: bool = False):
+                 server: ServerConfig | None = None):
         if len(cameras) != len(names) or not names:
             raise InputError(f"a team needs one camera per agent name, got {len(cameras)} and {len(names)}")
         if len(names) > 26:
@@ -46,12 +46,11 @@ class Team:
         scfg.intra_loops = scfg.intra_loops and self.cfg.loop_closure.enabled
         scfg.inter_loops = scfg.inter_loops and self.cfg.loop_closure.enabled
         agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
-        self.agents = [Agent(c, agent_cfg, name=n, reference=reference) for c, n in zip(cameras, names)]
+        self.agents = [Agent(c, agent_cfg, name=n) for c, n in zip(cameras, names)]
         rc = self.cfg.map_refine  # the server's map refinement fits the keyframes at the mapping resolution
         for ag in self.agents:
             ag.keep_keyframe_images = rc.views == "mapping" and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
         self.server = Server(self.agents, scfg)
-        self.reference = reference
         # Per agent, each submap's origin as tracking alone placed it: the trajectory without loop closures.
         self._origins_no_lc: list[list[np.ndarray]] = [[] for _ in self.agents]
         self.rounds = 0
@@ -118,7 +117,7 @@ class Team:
         rc = self.cfg.map_refine
         if rc.iterations_per_keyframe <= 0 or rc.max_iterations <= 0:
             return {}
-        return self.server.refine_maps(rc, self.cfg.mapping, reference=self.reference)
+        return self.server.refine_maps(rc, self.cfg.mapping)
 
     def status(self, done: int, total: int, elapsed: float) -> str:
         loops = self.server.records
@@ -152,8 +151,8 @@ class Team:
 @guarded("team")
 def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
              server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
-             stride: int = 1, progress: bool = True, reference: bool = False, render_views: int = 8,
-             observer=None, strict: bool = False) -> dict:
+             stride: int = 1, progress: bool = True, render_views: int = 8, observer=None,
+             strict: bool = False) -> dict:
     """Run the team on a multi-agent RGB-D dataset (any layout `slam.io.datasets.load_dataset` reads) and write
     every output to `out_dir` (see slam.run.team_results). Returns the metrics written to metrics.json.
     `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from swarmsplat.slam.io.datasets.split.split_sequence).
@@ -182,7 +181,7 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
         c = [int(x) for x in (cap, limits[a] if limits else None) if x]
         caps.append(min(c) if c else 0)
     out = output_dir(out_dir, "--out")
-    team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server, reference=reference)
+    team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server)
     cpu0 = time.process_time()
     t_start = time.perf_counter()
     keep(lambda status, reason: write_partial_team(team, ds, out, status=status, reason=reason,

@@ -55,15 +55,15 @@ def mapping_loss(out, color: torch.Tensor, depth: torch.Tensor, params: Gaussian
     return loss
 
 
-def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, generator: torch.Generator,
-                   reference: bool = False) -> GaussianParams:
+def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, generator: torch.Generator
+                   ) -> GaussianParams:
     """New Gaussians (submap-local frame) for the parts of `kf` the submap does not cover yet."""
     f = kf.rgbd
     cam = f.camera
     depth = f.depth
     if len(submap.params):
         with torch.no_grad():
-            out = render(submap.params.detached(), viewmat_from_pose(kf.T_local_cam), cam, reference=reference)
+            out = render(submap.params.detached(), viewmat_from_pose(kf.T_local_cam), cam)
             alpha = out.alpha.cpu().numpy()
     else:
         alpha = np.zeros_like(depth)
@@ -133,14 +133,13 @@ def make_optimizer(p: GaussianParams, cfg: MappingConfig, lr_scale: float = 1.0)
 
 
 class Mapper:
-    def __init__(self, cfg: MappingConfig, *, reference: bool = False):
+    def __init__(self, cfg: MappingConfig):
         self.cfg = cfg
-        self.reference = reference
         self.gen = torch.Generator().manual_seed(cfg.seed)
 
     def map(self, gmap: GaussianMap, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> MappingStats:
         """Seed from the newest keyframe (the last of `keyframes`), optimise, prune."""
-        new = seed_gaussians(submap, keyframes[-1], self.cfg, generator=self.gen, reference=self.reference)
+        new = seed_gaussians(submap, keyframes[-1], self.cfg, generator=self.gen)
         added = gmap.add(submap, new)
         first, last, it = self.optimise(submap, keyframes, iterations)
         pruned = gmap.prune(submap, min_opacity=self.cfg.prune_min_opacity, max_scale=self.cfg.prune_max_scale)
@@ -165,8 +164,8 @@ class Mapper:
                 j = int(torch.randint(0, len(targets), (1,), generator=self.gen))
             vm, color, depth, cam = targets[j]
             opt.zero_grad(set_to_none=True)
-            act = activate(p, reference=self.reference)
-            out = render(p, vm, cam, reference=self.reference, activated=act)
+            act = activate(p)
+            out = render(p, vm, cam, activated=act)
             loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser, act)
             loss.backward()
             opt.step()

@@ -48,7 +48,7 @@ def _overlap_keep(parts, views, view_submaps, cfg, mapping, merged):
                       tol_rel=cfg.overlap_depth_tolerance_rel)
 
 
-def _refine_parts(parts, views, view_keyframes, cfg, mapping, reference: bool, fixed_views=None) -> dict:
+def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) -> dict:
     """parts: [(submap, T frame <- submap local)]; refine their merged map over `views` (in that frame;
     view_keyframes[i] = (submap, keyframe) of views[i]), hand each submap its surviving Gaussians back and each
     keyframe its refined pose (with cfg.refine_poses). Returns the statistics."""
@@ -61,8 +61,7 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, reference: bool, f
     if runs and cfg.overlap_cull:
         owned = _overlap_keep(parts, views, view_submaps, cfg, mapping, merged)
     cull_s = time.perf_counter() - t0
-    refined, kept, st = refine_map(merged.select(owned), views, cfg, mapping, reference=reference,
-                                   fixed_views=fixed_views)
+    refined, kept, st = refine_map(merged.select(owned), views, cfg, mapping, fixed_views=fixed_views)
     keep = owned.clone()
     keep[owned] = kept
     overlap, hidden = int((~owned).sum()), int((~kept).sum())
@@ -101,7 +100,7 @@ def _start_pose(server, a, kf, cfg):
     return server.global_pose(a, kf)
 
 
-def refine_components(server, cfg, mapping, *, reference: bool = False) -> dict:
+def refine_components(server, cfg, mapping) -> dict:
     """Refine each component of `server` (slam.dense.team.server.Server) in place. cfg: MapRefineConfig; mapping:
     MappingConfig (loss, learning rates, pruning). Returns per-component statistics keyed by the root agent."""
     out = {}
@@ -114,12 +113,12 @@ def refine_components(server, cfg, mapping, *, reference: bool = False) -> dict:
             parts += [(sm, s.T_global_world @ sm.T_world_local) for sm in s.agent.gmap.submaps]
             views += [_view(kf, _start_pose(server, a, kf, cfg), cfg) for kf in s.agent.keyframes]
             view_keyframes += [(s.agent.gmap.submaps[kf.submap_id], kf) for kf in s.agent.keyframes]
-        out[server.slots[root].agent.name] = _refine_parts(parts, views, view_keyframes, cfg, mapping, reference,
+        out[server.slots[root].agent.name] = _refine_parts(parts, views, view_keyframes, cfg, mapping,
                                                            fixed or None)
     return out
 
 
-def refine_agent(agent, cfg, mapping, *, reference: bool = False) -> dict | None:
+def refine_agent(agent, cfg, mapping) -> dict | None:
     """Refine one agent's merged map (world frame) over its keyframes, in place; None when there is nothing to
     refine (refinement off, or no keyframe)."""
     if cfg.iterations_per_keyframe <= 0 or cfg.max_iterations <= 0 or not agent.keyframes:
@@ -127,5 +126,4 @@ def refine_agent(agent, cfg, mapping, *, reference: bool = False) -> dict | None
     poses = agent.keyframe_world_poses()
     views = [_view(kf, T, cfg) for kf, T in zip(agent.keyframes, poses)]
     view_keyframes = [(agent.gmap.submaps[kf.submap_id], kf) for kf in agent.keyframes]
-    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping,
-                         reference)
+    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping)

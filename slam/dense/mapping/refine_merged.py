@@ -130,7 +130,7 @@ def visible_indices(means: torch.Tensor, view: RefineView, margin: float) -> tor
     return torch.nonzero(front & inside).squeeze(1)
 
 
-def contributions(params: GaussianParams, views: list[RefineView], *, reference: bool = False) -> torch.Tensor:
+def contributions(params: GaussianParams, views: list[RefineView]) -> torch.Tensor:
     """[N] the largest total blending weight (sum over pixels of alpha x transmittance, in pixels) each Gaussian
     has in any of `views`: the gradient of the summed rendered colour with respect to its colour."""
     p = params.detached()
@@ -138,7 +138,7 @@ def contributions(params: GaussianParams, views: list[RefineView], *, reference:
     w = torch.zeros(len(p), dtype=p.means.dtype)
     for v in views:
         p.colors.grad = None
-        render(p, v.viewmat, v.camera, reference=reference).color.sum().backward()
+        render(p, v.viewmat, v.camera).color.sum().backward()
         w = torch.maximum(w, p.colors.grad.detach().sum(dim=1) / 3.0)
     return w
 
@@ -164,7 +164,7 @@ def lr_factor(final: float, step: int, steps: int) -> float:
 
 
 def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
-               iterations: int | None = None, reference: bool = False, fixed_views: set[int] | None = None
+               iterations: int | None = None, fixed_views: set[int] | None = None
                ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
     """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
     mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
@@ -188,7 +188,7 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     if n_it <= 0 or not views or len(params) == 0:
         return params.detached(), keep, RefineStats(0, len(views), len(params), float("nan"), float("nan"), 0.0)
     if cfg.min_contribution > 0:
-        keep = contributions(params, views, reference=reference) >= cfg.min_contribution
+        keep = contributions(params, views) >= cfg.min_contribution
     gen = torch.Generator().manual_seed(cfg.seed)
     p = params.select(keep).requires_grad_(cfg.optimizer == "adam")
     lr = cfg.lr_scale
@@ -229,8 +229,8 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         # the demo's 211k-Gaussian map, 114k rows per view: 8 vs 15 ms per step).
         sub = GaussianParams(*(t.detach().index_select(0, idx).requires_grad_(True) for t in tensors))
         viewmat, leaf = poses.viewmat(j, v) if poses is not None else (v.viewmat, None)
-        act = activate(sub, reference=reference)
-        out = render(sub, viewmat, v.camera, reference=reference, activated=act)
+        act = activate(sub)
+        out = render(sub, viewmat, v.camera, activated=act)
         loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser, act)
         loss.backward()
         if poses is not None:

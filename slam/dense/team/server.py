@@ -417,12 +417,12 @@ class Server:
                     T[n] = T_kf @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
         return stamps, T
 
-    def refine_maps(self, cfg, mapping, *, reference: bool = False) -> dict:
+    def refine_maps(self, cfg, mapping) -> dict:
         """Global map refinement of every component after the final optimisation (slam.dense.mapping.refine)."""
         from swarmsplat.slam.dense.mapping.refine import refine_components
 
         t0 = time.perf_counter()
-        out = refine_components(self, cfg, mapping, reference=reference)
+        out = refine_components(self, cfg, mapping)
         self.time["refine"] = self.time.get("refine", 0.0) + time.perf_counter() - t0
         return out
 

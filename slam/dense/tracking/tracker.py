@@ -80,13 +80,11 @@ class RefineInfo:
         return self.final.score / max(self.start.score, 1e-300)
 
 
-def model_view(params: GaussianParams, T_local_cam: np.ndarray, camera, *, alpha_min: float,
-               reference: bool = False) -> RGBD:
+def model_view(params: GaussianParams, T_local_cam: np.ndarray, camera, *, alpha_min: float) -> RGBD:
     """The submap `params` seen from T_local_cam [4, 4] (camera-to-local) through `camera`, as an RGB-D frame:
     composited colour (uint8) and alpha-weighted depth D̂ (metres), depth 0 where alpha < alpha_min."""
     with torch.no_grad():
-        out = render(params, torch.as_tensor(se3.inverse(T_local_cam), dtype=torch.float32), camera,
-                     reference=reference)
+        out = render(params, torch.as_tensor(se3.inverse(T_local_cam), dtype=torch.float32), camera)
     color = (out.color.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
     depth = torch.where(out.alpha >= alpha_min, out.depth, torch.zeros_like(out.depth))
     return RGBD(color, depth.cpu().numpy().astype(np.float32), camera)
@@ -150,18 +148,18 @@ def refine_detail(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_local_cam
 
 
 def refine_pose(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig,
-                *, reference: bool = False, max_depth: float = 10.0) -> tuple[np.ndarray, int, float]:
+                *, max_depth: float = 10.0) -> tuple[np.ndarray, int, float]:
     """Frame-to-model refinement of T_local_cam [4, 4] against `params` with cfg.method, the model rendered at
     T_local_cam itself (the Tracker renders it once per map update instead). Returns (pose, iterations, loss)."""
     if cfg.method == "gauss_newton":
         cam = frame.resized(cfg.refine_max_width).camera
-        view = model_view(params.detached(), T_local_cam, cam, alpha_min=cfg.alpha_min, reference=reference)
+        view = model_view(params.detached(), T_local_cam, cam, alpha_min=cfg.alpha_min)
         return refine_against_view(frame, view, T_local_cam, T_local_cam, cfg, max_depth=max_depth)
-    return refine_pose_adam(params, frame, T_local_cam, cfg, reference=reference)
+    return refine_pose_adam(params, frame, T_local_cam, cfg)
 
 
-def refine_pose_adam(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig,
-                     *, reference: bool = False) -> tuple[np.ndarray, int, float]:
+def refine_pose_adam(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig
+                     ) -> tuple[np.ndarray, int, float]:
     """Eq. 5 by Adam over a resolution pyramid (coarsest first). Returns (pose, iterations, loss)."""
     frozen = params.detached()
     T_start = T = np.asarray(T_local_cam, dtype=np.float64)
@@ -169,21 +167,19 @@ def refine_pose_adam(params: GaussianParams, frame: RGBD, T_local_cam: np.ndarra
     for level in reversed(range(cfg.pyramid_levels)):
         f = frame.resized(max(16, cfg.refine_max_width >> level))
         iters = cfg.adam_iterations if level == 0 else max(1, cfg.adam_iterations // 2)
-        T, it, loss = _refine_level(frozen, f, T, cfg, iters, reference)
+        T, it, loss = _refine_level(frozen, f, T, cfg, iters)
         total_it += it
     if cfg.min_relative_gain > 0 and np.isfinite(loss):
-        loss0 = tracking_loss(frozen, frame.resized(cfg.refine_max_width), T_start, cfg, reference)
+        loss0 = tracking_loss(frozen, frame.resized(cfg.refine_max_width), T_start, cfg)
         if not loss < (1.0 - cfg.min_relative_gain) * loss0:
             return T_start, total_it, loss0
     return T, total_it, loss
 
 
-def tracking_loss(params: GaussianParams, f: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig,
-                  reference: bool = False) -> float:
+def tracking_loss(params: GaussianParams, f: RGBD, T_local_cam: np.ndarray, cfg: TrackingConfig) -> float:
     """The eq.-5 tracking loss of `f` rendered at T_local_cam (no gradient)."""
     with torch.no_grad():
-        out = render(params, torch.as_tensor(se3.inverse(T_local_cam), dtype=torch.float32), f.camera,
-                     reference=reference)
+        out = render(params, torch.as_tensor(se3.inverse(T_local_cam), dtype=torch.float32), f.camera)
         if float(out.alpha.max()) < cfg.alpha_min:
             return float("inf")
         return float(rgbd_loss(out, f.color_tensor(), f.depth_tensor(), lambda_color=cfg.lambda_color,
@@ -191,8 +187,8 @@ def tracking_loss(params: GaussianParams, f: RGBD, T_local_cam: np.ndarray, cfg:
                                normalise=cfg.normalise_by_alpha))
 
 
-def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: TrackingConfig, iters: int,
-                  reference: bool) -> tuple[np.ndarray, int, float]:
+def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: TrackingConfig, iters: int
+                  ) -> tuple[np.ndarray, int, float]:
     color, depth = f.color_tensor(), f.depth_tensor()
     viewmat0 = torch.as_tensor(se3.inverse(T0), dtype=torch.float64)
     w = torch.zeros(3, dtype=torch.float64, requires_grad=True)
@@ -203,7 +199,7 @@ def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: Tracking
     for it in range(1, iters + 1):
         opt.zero_grad(set_to_none=True)
         viewmat = se3.exp_torch(torch.cat([w, v])) @ viewmat0
-        out = render(params, viewmat.float(), f.camera, reference=reference)
+        out = render(params, viewmat.float(), f.camera)
         if float(out.alpha.detach().max()) < cfg.alpha_min:
             break  # nothing of the model is visible: keep the coarse pose
         loss = rgbd_loss(out, color, depth, lambda_color=cfg.lambda_color, alpha_power=cfg.alpha_power,
@@ -228,10 +224,9 @@ def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: Tracking
 class Tracker:
     """Keeps the previous frame for the coarse stage and a constant-velocity fallback."""
 
-    def __init__(self, cfg: TrackingConfig, *, max_depth: float = 10.0, reference: bool = False):
+    def __init__(self, cfg: TrackingConfig, *, max_depth: float = 10.0):
         self.cfg = cfg
         self.max_depth = max_depth
-        self.reference = reference
         self._prev: RGBD | None = None
         self._prev_pose: np.ndarray | None = None  # T_local_cam of the previous frame (active submap frame)
         self._velocity = np.eye(4)  # T_prev_cur of the last step
@@ -270,7 +265,7 @@ class Tracker:
                                         target=self._view[3])
                 it, loss = (info.iterations, info.rmse) if info.accepted else (0, float("nan"))
             else:
-                T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg, reference=self.reference)
+                T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg)
         self._velocity = se3.inverse(self._prev_pose) @ T
         self._remember(frame, T)
         return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info)
@@ -284,8 +279,7 @@ class Tracker:
         With `debias_view` the returned pose is where that keyframe aligns to the view (its self-check below),
         so a view offset from its keyframe by B gives T_local_view = T_keyframe @ inv(B)."""
         if self._view is None or self._view[0] is not params:
-            view = model_view(params.detached(), self._prev_pose, camera, alpha_min=self.cfg.alpha_min,
-                              reference=self.reference)
+            view = model_view(params.detached(), self._prev_pose, camera, alpha_min=self.cfg.alpha_min)
             target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
             B = self._view_bias(view, target)
             T_view = self._prev_pose.copy()
