@@ -62,13 +62,17 @@ def test_tracking_recovers_a_perturbed_pose(mapped):
     T0 = T_true @ se3.exp(np.array([0.02, -0.02, 0.01, 0.02, -0.015, 0.02]))
     # The paper's eq. 5 by Adam through the rasteriser's pose gradient (tracking.method adam). The frame is the
     # map's own render, normalised by alpha, so the loss normalises too.
+    # Iterations: Adam moves at most ~lr (2 mm) per step, so after 50 steps it was still on its way (5.9 mm left
+    # of 32 mm, against the 6 mm bound: an error set by how far the optimiser got, which any change in the map's
+    # float32 fit moves). After 100 it sits at its floor (0.4-0.8 mm here with torch's AVX-512, AVX2 and scalar
+    # kernels; 0.8 mm after 200), which the bounds below clear by > 7x on any CPU.
     tc = cfg.tracking.model_copy(update={"method": "adam", "refine_max_width": 64, "pyramid_levels": 1,
-                                         "adam_iterations": 50, "normalise_by_alpha": True})
+                                         "adam_iterations": 100, "normalise_by_alpha": True})
     T, iters, _ = refine_pose(sm.params, frame, T0, tc)
     err = lambda A: se3.inverse(T_true) @ A  # noqa: E731
     t0, t1 = np.linalg.norm(err(T0)[:3, 3]), np.linalg.norm(err(T)[:3, 3])
     r0, r1 = se3.rotation_angle(err(T0)[:3, :3]), se3.rotation_angle(err(T)[:3, :3])
-    assert 0 < iters <= 50
+    assert 0 < iters <= 100
     assert t1 < 0.2 * t0 and t1 < 0.006, (t0, t1)
     assert r1 < 0.1 * r0, (np.degrees(r0), np.degrees(r1))
 
