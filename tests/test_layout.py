@@ -139,3 +139,5 @@ def test_the_wheel_installs_one_top_level_name(tmp_path):
     for top in FOLDERS:  # every folder's modules are in it, under the one name
         expected = {f"swarmsplat/{p.relative_to(REPO).as_posix()}" for p in (REPO / top).rglob("*.py")}
         assert expected <= set(names), sorted(expected - set(names))[:5]
+    presets = {f"swarmsplat/configs/{p.name}" for p in (REPO / "configs").glob("*.yaml")}  # SlamConfig.preset(...)
+    assert presets and presets <= set(names), sorted(presets - set(names))

@@ -1,9 +1,12 @@
-"""`swarmsplat demo [--out DIR] [--preset default|tiny] [--kernels ...] [--device ...]`: generate the synthetic
-3-agent dataset, run the GRAND-SLAM team on it, evaluate, and write a report (DIR/results/report.md)."""
+"""`swarmsplat demo [--out DIR] [--preset default|tiny] [--config YAML] [--kernels ...] [--device ...]`: generate
+the synthetic 3-agent dataset, run the GRAND-SLAM team on it, evaluate, and write a report
+(DIR/results/report.md). The settings are the preset file configs/demo.yaml (or demo-tiny.yaml), then --config,
+then the flags."""
 
 from __future__ import annotations
 
 from swarmsplat.slam.cli import add_backend_flags
+from swarmsplat.slam.cli.config_flags import add_config_flags
 from swarmsplat.slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
 
 
@@ -15,22 +18,28 @@ def register(sub) -> None:
     p.add_argument("--out", default="swarmsplat_demo", help="output folder (default: ./swarmsplat_demo); the "
                                                             "dataset is cached in DIR/dataset")
     p.add_argument("--preset", choices=["default", "tiny"], default="default",
-                   help="default: 3 agents x 120 frames; tiny: 2 agents x 10 frames (a quick check)")
-    p.add_argument("--seed", type=int, help="generator seed (default: the preset's)")
+                   help="default: 3 agents x 120 frames (configs/demo.yaml); tiny: 2 agents x 10 frames, a quick "
+                        "check (configs/demo-tiny.yaml)")
+    add_config_flags(p, preset=False)
+    p.add_argument("--seed", type=int, help="generator seed (default: the config's demo.seed, else the generator "
+                                            "preset's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_live_view_flags(p)
     add_backend_flags(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, kernels=None, device=None)  # not given: the config's kernels section
 
 
 def run(args) -> int:
     import json
 
-    from swarmsplat.slam.run.demo import run_demo
+    from swarmsplat.slam.cli.config_flags import load_config
+    from swarmsplat.slam.run.demo import PRESETS, run_demo
 
+    cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
+                                    "--device": ("kernels.device", args.device),
+                                    "--seed": ("demo.seed", args.seed)}, preset=PRESETS[args.preset])
     live = live_view(args)  # a taken port fails before the run starts
-    m = run_demo(args.out, preset=args.preset, kernels=args.kernels, device=args.device, seed=args.seed,
-                 progress=not args.quiet, observer=live)
+    m = run_demo(args.out, preset=args.preset, config=cfg, progress=not args.quiet, observer=live)
     keys = ["ate_rmse_team", "ate_rmse_team_agents", "joined_agents", "unjoined_agents", "psnr", "ssim", "depth_l1",
             "loops_accepted", "loop_candidates"]
     summary = {k: m.get(k) for k in keys}

@@ -1,6 +1,7 @@
 """`swarmsplat robot --id K DATASET --out DIR ...`: one robot of a monocular dataset as its own process, talking
 to the others over Zenoh (peer-to-peer on this machine or a network). Without --start-time it prints `ready`
-once connected and reads the epoch time of tick 0 from stdin (what `swarmsplat swarm --processes` does)."""
+once connected and reads the epoch time of tick 0 from stdin (what `swarmsplat swarm --processes` does, handing
+every robot the same --config file)."""
 
 from __future__ import annotations
 
@@ -12,16 +13,13 @@ def register(sub) -> None:
     p.add_argument("--id", type=int, required=True, help="robot id: the dataset's K-th agent")
     add_swarm_options(p)
     p.add_argument("--start-time", type=float, help="epoch seconds of tick 0 (default: read from stdin)")
-    p.add_argument("--port-base", type=int, default=17447, help="robot K listens on port-base + K")
     p.add_argument("--run", default="swarmsplat", help="run name (Zenoh key prefix) shared by the robots")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from swarmsplat.slam.cli.swarm_cmd import swarm_config
     from swarmsplat.slam.run.swarm_processes import run_robot
 
-    run_robot(args.dataset, args.id, args.out, start_time=args.start_time, port_base=args.port_base, run=args.run,
-              stride=args.stride, schedule=args.schedule, place=args.place, place_checkpoint=args.place_checkpoint,
-              backend=args.backend, formulation=args.formulation, solver=args.solver,
-              uniform_noise=args.uniform_noise, r_thr=args.r_thr, k=args.k, strict=args.strict)
+    run_robot(args.dataset, args.id, args.out, swarm_config(args), start_time=args.start_time, run=args.run)
     return 0

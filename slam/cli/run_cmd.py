@@ -1,10 +1,12 @@
-"""`swarmsplat run DATASET --out DIR [--config YAML] [--kernels ...] [--device ...] [--frames N] [--split R]`:
-one agent's GRAND-SLAM over one RGB-D sequence (trajectory.txt (TUM), map.ply, metrics.json, loops.csv, plots,
-config.yaml in DIR), or a team on a multi-agent dataset or on a single sequence split into agents (--split)."""
+"""`swarmsplat run DATASET --out DIR [--config YAML] [--preset NAME] [--kernels ...] [--device ...] [--frames N]
+[--split R]`: one agent's GRAND-SLAM over one RGB-D sequence (trajectory.txt (TUM), map.ply, metrics.json,
+loops.csv, plots, config.yaml in DIR), or a team on a multi-agent dataset or on a single sequence split into agents
+(--split; the config's `server` and `team` sections apply)."""
 
 from __future__ import annotations
 
 from swarmsplat.slam.cli import add_backend_flags
+from swarmsplat.slam.cli.config_flags import add_config_flags
 from swarmsplat.slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
 
 
@@ -14,12 +16,13 @@ def register(sub) -> None:
                                    "map.ply (3DGS), metrics.json, loops.csv, trajectory.png and config.yaml to --out. "
                                    "A multi-agent dataset, or a sequence cut into agents with --split, runs as a "
                                    "team (inter-agent loops, one global pose graph, merged map). "
-                                   "--kernels/--device override the config file's kernels section.")
+                                   "--kernels/--device override the config file's kernels section; a team run "
+                                   "also reads its server and team sections.")
     p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood / ICL-NUIM, Replica, ScanNet "
                                    "export, 7-Scenes seq-NN) or a multi-agent dataset (dataset.yaml, Multiagent "
                                    "Replica, a 7-Scenes scene with several sequences), which runs as a team")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--config", help="YAML file overriding the default settings")
+    add_config_flags(p)
     p.add_argument("--frames", type=int, help="process at most N frames (per agent)")
     p.add_argument("--split", metavar="RANGES",
                    help="run one sequence as a team: comma-separated half-open frame ranges START:STOP, one agent "
@@ -32,7 +35,7 @@ def register(sub) -> None:
                         "it under skipped_frames)")
     add_live_view_flags(p)
     add_backend_flags(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, kernels=None, device=None)  # not given: the config's kernels section
 
 
 def run(args) -> int:
@@ -40,7 +43,7 @@ def run(args) -> int:
 
     from swarmsplat.kernels.errors import InputError
     from swarmsplat.kernels.fileio import output_dir
-    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.cli.config_flags import load_config
     from swarmsplat.slam.run.sequence import run_sequence
 
     ranges = None
@@ -51,7 +54,8 @@ def run(args) -> int:
     if args.frames is not None and args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")
     output_dir(args.out, "--out", create=False)  # a file or an unwritable place fails before any loading
-    cfg = SlamConfig.from_yaml(args.config, overrides={"kernels": {"backend": args.kernels, "device": args.device}})
+    cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
+                                    "--device": ("kernels.device", args.device)}, preset=args.preset)
     from swarmsplat.slam.io.datasets import load_dataset
 
     ds = load_dataset(args.dataset)
@@ -67,7 +71,7 @@ def run(args) -> int:
         except InputError as e:
             raise InputError(f"--split: {e}") from None
     if len(ds) > 1:
-        # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map (issue 7).
+        # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map.
         from swarmsplat.slam.run.team import run_team
 
         m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,

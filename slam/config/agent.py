@@ -7,13 +7,9 @@ at `image.max_width`, 320 by default, to suit a CPU).
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-
-from swarmsplat.kernels.errors import InputError
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class _Section(BaseModel):
@@ -252,69 +248,3 @@ class KernelsConfig(_Section):
     torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default). The per-call "
                                                     "tensors are small, so one thread avoids costly thread "
                                                     "hand-offs; the kernels bring their own parallelism")
-
-
-class SlamConfig(_Section):
-    image: ImageConfig = ImageConfig()
-    tracking: TrackingConfig = TrackingConfig()
-    keyframes: KeyframeConfig = KeyframeConfig()
-    mapping: MappingConfig = MappingConfig()
-    map_refine: MapRefineConfig = MapRefineConfig()
-    submaps: SubmapConfig = SubmapConfig()
-    loop_closure: LoopClosureConfig = LoopClosureConfig()
-    kernels: KernelsConfig = KernelsConfig()
-    max_frames: int = Field(0, ge=0, description="process at most this many frames (0 = all)")
-
-    @model_validator(mode="after")
-    def _check(self):
-        if self.image.min_depth >= self.image.max_depth:
-            raise ValueError("image.min_depth must be below image.max_depth")
-        return self
-
-    # ---- YAML -------------------------------------------------------------------------------------------------
-
-    def to_yaml(self) -> str:
-        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
-
-    def override(self, updates: dict[str, Any]) -> "SlamConfig":
-        """A new config with nested `updates` merged in (validated)."""
-        return _validate(_deep_merge(self.model_dump(mode="json"), updates), "override")
-
-    @classmethod
-    def from_yaml(cls, path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> "SlamConfig":
-        """Defaults, then the YAML file (if given), then `overrides`; raises InputError naming the bad field."""
-        data: dict[str, Any] = {}
-        if path is not None:
-            path = Path(path)
-            if not path.is_file():
-                raise InputError(f"config file not found: {path}")
-            try:
-                loaded = yaml.safe_load(path.read_text())
-            except yaml.YAMLError as e:
-                mark = getattr(e, "problem_mark", None)
-                where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-                raise InputError(f"{where}: invalid YAML ({getattr(e, 'problem', e)})") from None
-            if loaded is None:
-                loaded = {}
-            if not isinstance(loaded, dict):
-                raise InputError(f"{path}: expected a mapping of config sections at the top level")
-            data = loaded
-        if overrides:
-            data = _deep_merge(data, overrides)
-        return _validate(data, str(path) if path else "config")
-
-
-def _deep_merge(base: dict, upd: dict) -> dict:
-    out = dict(base)
-    for k, v in upd.items():
-        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
-def _validate(data: dict, where: str) -> SlamConfig:
-    try:
-        return SlamConfig.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        raise InputError(f"{where}: field '{field}': {err['msg']}") from None

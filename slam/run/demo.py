@@ -4,6 +4,8 @@ evaluate, and write the report — what `swarmsplat demo` runs.
     from swarmsplat.slam.run.demo import run_demo
     metrics = run_demo("demo_out")                 # 3 agents x 120 frames, report in demo_out/results/report.md
     metrics = run_demo("demo_out", preset="tiny")  # 2 agents x 10 frames: seconds, for tests
+
+The settings are the presets configs/demo.yaml and configs/demo-tiny.yaml.
 """
 
 from __future__ import annotations
@@ -21,43 +23,20 @@ from swarmsplat.kernels.fileio import output_dir
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.team.server import ServerConfig
 
-# Settings per preset on top of SlamConfig's defaults, chosen so the demo fits its time budget on a 2-core CPU.
-DEMO_SETTINGS: dict[str, dict[str, Any]] = {
-    # Mapping renders at the working resolution (320 px, session 7; it was 160 px): merged map 27.7 against
-    # 24.0 dB at 320x240, 5.0 min (5.2 at 160 px) (README "Multi-agent team and the demo"). Fewer mapping iterations
-    # than the defaults (20 / 60 against 30 / 100) keep the demo in its time budget.
-    "default": {
-        "mapping": {"iterations": 20, "first_iterations": 60},
-        # Server-side global map refinement, 12 steps per keyframe (62 keyframes in one component). Measured in
-        # session 11 on the demo's saved refinement inputs (320 px): with the decaying learning rate
-        # (map_refine.lr_final_scale) 12 steps render 30.3 dB, as 20 steps did at the old constant rate (20 with
-        # the decay: 30.8 dB, 8: 30.0 dB); 40 % less refinement time.
-        "map_refine": {"iterations_per_keyframe": 12, "max_iterations": 1500},
-    },
-    "tiny": {
-        "mapping": {"iterations": 10, "first_iterations": 30},
-        "keyframes": {"every": 3},
-        "loop_closure": {"min_index_gap": 3},
-    },
-}
-# Inter-agent candidates by bag of words over RootSIFT: the agents' thumbnail descriptor does not separate
-# overlapping from non-overlapping views of the generated world (median similarity 0.44 for both). With a
-# vocabulary trained on another world, τ_sim = 0.5 keeps ~90 % of the overlapping pairs (and ~35 % of the
-# others, which geometric verification rejects).
-DEMO_SERVER: dict[str, dict[str, Any]] = {"default": {"descriptor": "bow", "tau_sim": 0.5},
-                                          "tiny": {"descriptor": "bow", "tau_sim": 0.5}}
-RENDER_VIEWS = {"default": 8, "tiny": 4}
-# Every k-th input frame: the 15 fps sequences move little per frame, and this halves the default run's CPU time.
-FRAME_STRIDE = {"default": 2, "tiny": 1}
+# `--preset` name -> the preset file in configs/ holding the demo's settings (dataset, team, mapping, server).
+PRESETS = {"default": "demo", "tiny": "demo-tiny"}
 
 
-def demo_config(preset: str, kernels: str = "warp", device: str = "cpu",
+def demo_config(preset: str, kernels: str | None = None, device: str | None = None,
                 overrides: dict[str, Any] | None = None) -> SlamConfig:
-    """The SlamConfig the demo uses for `preset` (its DEMO_SETTINGS, then the backend, then `overrides`)."""
-    if preset not in DEMO_SETTINGS:
-        raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(DEMO_SETTINGS)}")
-    cfg = SlamConfig().override(DEMO_SETTINGS[preset])
-    cfg = cfg.override({"kernels": {"backend": kernels, "device": device}})
+    """The SlamConfig the demo uses for `preset` (configs/demo.yaml or demo-tiny.yaml, then the backend when
+    given, then `overrides`)."""
+    if preset not in PRESETS:
+        raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    cfg = SlamConfig.preset(PRESETS[preset])
+    backend = {k: v for k, v in (("backend", kernels), ("device", device)) if v is not None}
+    if backend:
+        cfg = cfg.override({"kernels": backend})
     return cfg.override(overrides) if overrides else cfg
 
 
@@ -108,12 +87,15 @@ def ensure_vocabulary(path: str | Path, preset: str, *, seed: int | None = None,
     return rec.save(path)
 
 
-def run_demo(out_dir: str | Path, *, preset: str = "default", kernels: str = "warp", device: str = "cpu",
-             seed: int | None = None, config: SlamConfig | None = None, server: ServerConfig | None = None,
-             progress: bool = True, observer=None) -> dict:
+def run_demo(out_dir: str | Path, *, preset: str = "default", kernels: str | None = None,
+             device: str | None = None, seed: int | None = None, config: SlamConfig | None = None,
+             server: ServerConfig | None = None, progress: bool = True, observer=None) -> dict:
     """Generate (or reuse) `out_dir/dataset`, run the team into `out_dir/results`, and return its metrics.
 
-    config / server replace the demo's own settings for `preset` (their kernels section is then used as is).
+    config: the whole config (default: `demo_config(preset, kernels, device)`); its `demo` section names the
+    generated dataset, `team` the frame stride and evaluation views, `server` the server's settings (a bag-of-words
+    descriptor without a vocabulary gets one trained on another generated world). server: replaces config.server.
+    seed: the generator's seed (None: config.demo.seed, else the generator preset's).
     observer: handed to run_team (the live view, slam.view.live).
     """
     from .team import run_team
@@ -121,19 +103,17 @@ def run_demo(out_dir: str | Path, *, preset: str = "default", kernels: str = "wa
     out = output_dir(out_dir, "--out")
     t0 = time.perf_counter()
     cpu0 = time.process_time()
-    data = ensure_dataset(out / "dataset", preset, seed=seed, progress=progress)
-    t_gen = time.perf_counter() - t0
     cfg = config or demo_config(preset, kernels, device)
-    if server is None:
-        settings = dict(DEMO_SERVER.get(preset, {}))
-        if settings.get("descriptor", "agent") != "agent":
-            settings["vocabulary"] = str(ensure_vocabulary(out / f"vocabulary_{preset}.npz", preset, seed=seed,
-                                                           progress=progress))
-        server = ServerConfig(**settings)
-    srv = server
-    metrics = run_team(data, out / "results", cfg, server=srv, progress=progress,
-                       stride=FRAME_STRIDE.get(preset, 1), render_views=RENDER_VIEWS.get(preset, 8),
-                       observer=observer)
+    if server is not None:
+        cfg = cfg.model_copy(update={"server": server})
+    dataset = cfg.demo.dataset
+    seed = cfg.demo.seed if seed is None else seed
+    data = ensure_dataset(out / "dataset", dataset, seed=seed, progress=progress)
+    t_gen = time.perf_counter() - t0
+    if cfg.server.descriptor == "bow" and cfg.server.vocabulary is None:
+        vocabulary = ensure_vocabulary(out / f"vocabulary_{dataset}.npz", dataset, seed=seed, progress=progress)
+        cfg = cfg.override({"server": {"vocabulary": str(vocabulary)}})
+    metrics = run_team(data, out / "results", cfg, progress=progress, observer=observer)
     metrics["demo"] = {"preset": preset, "dataset": str(data), "generate_s": t_gen,
                        "total_s": time.perf_counter() - t0, "total_cpu_s": time.process_time() - cpu0}
     if progress:

@@ -1,10 +1,11 @@
 """All robots of a monocular dataset in one process, talking through the simulated network on a schedule.
 
-`run_swarm(dataset, out, ...)` drives the ticks (each robot reads `frames_per_tick` frames per tick and keeps
-every `stride`-th as a keyframe), then writes the outputs (`outputs.py`). The place-recognition model and the
-pair registrar are built once and shared, as the same pretrained model would be loaded on every robot; an
-untrained BoW/VLAD vocabulary is fitted on a spread of keyframes of all robots (the stand-in for a pretrained one)
-and saved as `vocabulary.npz` so that robot processes (`launch.py`) load the very same one.
+`run_swarm(dataset, out, config, ...)` drives the ticks (each robot reads `frames_per_tick` frames per tick and
+keeps every `stride`-th as a keyframe), then writes the outputs (`swarm_results.py`). Every setting comes from the
+config tree's `swarm` section (slam.config.SwarmConfig). The place-recognition model and the pair registrar are
+built once and shared, as the same pretrained model would be loaded on every robot; an untrained BoW/VLAD
+vocabulary is fitted on a spread of keyframes of all robots (the stand-in for a pretrained one) and saved as
+`vocabulary.npz` so that robot processes (`swarm_processes.py`) load the very same one.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from swarmsplat.kernels.errors import InputError
 from swarmsplat.kernels.fileio import output_dir
+from swarmsplat.slam.config import SlamConfig, SwarmConfig
 from swarmsplat.slam.run.guard import SkipLog, guarded, keep, read_frame
 
 from swarmsplat.slam.flocc.swarm.node import NodeConfig, RobotNode
@@ -36,20 +38,41 @@ class SwarmSetup:
     node_config: NodeConfig
     strict: bool = False  # stop at an unreadable keyframe image (default: skip it with a warning)
     out: Path | None = None  # where an in-process run writes (its partial results too)
+    config: SlamConfig | None = None  # the config tree of the run, written as config.yaml with the outputs
 
 
-def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | Path | None = None,
-            place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
-            checkpoint: str | None = None, formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
-            vocabulary_out: str | Path | None = None, device: str = "cpu", r_thr: float | None = None,
-            k: float | None = None, strict: bool = False) -> SwarmSetup:
-    """Load the dataset, build the models (fitting VLAD if needed) and the schedule (default: `Schedule.default`)."""
+def swarm_config(config: SlamConfig | SwarmConfig | None = None, **options) -> SlamConfig:
+    """The config tree of a swarm run: `config` (a whole tree, or only its swarm section; None: the defaults) with
+    `options` (SwarmConfig's fields, e.g. stride=2, formulation="ss") overriding its swarm section (validated)."""
+    if isinstance(config, SwarmConfig):
+        config = SlamConfig().model_copy(update={"swarm": config})
+    cfg = config or SlamConfig()
+    return cfg.override({"swarm": options}, where="swarm options") if options else cfg
+
+
+def node_config(sw: SwarmConfig) -> NodeConfig:
+    """A robot's NodeConfig (and its SolveConfig) from the swarm section."""
+    solve = SolveConfig(formulation=sw.formulation, solver=sw.solver, uniform_noise=sw.uniform_noise,
+                        odo_sigma_rot=sw.odo_sigma_rot, odo_sigma_trans=sw.odo_sigma_trans,
+                        loop_sigma_rot=sw.loop_sigma_rot, loop_sigma_trans=sw.loop_sigma_trans)
+    return NodeConfig(threshold=sw.threshold, r_thr=sw.r_thr, k=sw.k, neighbour_timeout=sw.neighbour_timeout,
+                      resend=sw.resend, solve=solve)
+
+
+def prepare(dataset: str | Path, config: SlamConfig | SwarmConfig | None = None, *,
+            vocabulary_out: str | Path | None = None, **options) -> SwarmSetup:
+    """Load the dataset, build the models (fitting VLAD if needed) and the schedule (config.swarm.schedule,
+    default `Schedule.default`). options: SwarmConfig fields overriding config.swarm (`swarm_config`); `schedule`
+    may also be a Schedule object."""
     from swarmsplat.registration.pair import make_registrar
     from swarmsplat.registration.place_recognition import VOCABULARY_BACKENDS, make_recognizer
     from swarmsplat.slam.io.datasets import load_dataset
 
-    if stride < 1:
-        raise InputError(f"--stride must be >= 1, got {stride}")
+    schedule = options.pop("schedule", None)
+    if schedule is not None and not isinstance(schedule, Schedule):
+        options["schedule"] = str(schedule)
+    cfg = swarm_config(config, **options)
+    sw = cfg.swarm
     ds = load_dataset(dataset)
     if len(ds.agents) < 2:
         raise InputError(f"{dataset}: a swarm needs at least two agents, found {len(ds.agents)}")
@@ -59,22 +82,18 @@ def prepare(dataset: str | Path, *, stride: int = 4, schedule: Schedule | str | 
         if s.odometry is None:
             raise InputError(f"{dataset}: agent {s.name} has no odometry.txt (a monocular dataset is needed)")
     n_frames = max(len(s) for s in ds.agents)
-    if schedule is None:
-        schedule = Schedule.default(len(ds.agents), n_frames)
-    elif not isinstance(schedule, Schedule):
-        schedule = Schedule.load(schedule)
-    registrar = make_registrar(backend, checkpoint=checkpoint, device=device)
-    recognizer = make_recognizer(place, checkpoint=place_checkpoint, device=device)
-    if place in VOCABULARY_BACKENDS and not recognizer.trained:
-        every = [(s, f) for s in ds.agents for f in range(0, len(s), stride)]
+    if not isinstance(schedule, Schedule):
+        schedule = Schedule.load(sw.schedule) if sw.schedule else Schedule.default(len(ds.agents), n_frames)
+    registrar = make_registrar(sw.backend, checkpoint=sw.checkpoint, device=sw.device)
+    recognizer = make_recognizer(sw.place, checkpoint=sw.place_checkpoint, device=sw.device)
+    if sw.place in VOCABULARY_BACKENDS and not recognizer.trained:
+        every = [(s, f) for s in ds.agents for f in range(0, len(s), sw.stride)]
         pick = every[:: max(1, len(every) // 60)]
-        frames = [read_frame(s, f, SkipLog(quiet=True), strict=strict) for s, f in pick]  # the feeder warns
+        frames = [read_frame(s, f, SkipLog(quiet=True), strict=sw.strict) for s, f in pick]  # the feeder warns
         recognizer.fit([f.color for f in frames if f is not None], seed=0)
         if vocabulary_out:
             recognizer.save(vocabulary_out)
-    cfg = NodeConfig(r_thr=r_thr, k=k,
-                     solve=SolveConfig(formulation=formulation, solver=solver, uniform_noise=uniform_noise))
-    return SwarmSetup(ds, stride, schedule, recognizer, registrar, cfg, strict)
+    return SwarmSetup(ds, sw.stride, schedule, recognizer, registrar, node_config(sw), sw.strict, config=cfg)
 
 
 class KeyframeFeeder:
@@ -148,22 +167,18 @@ def write_partial_swarm(setup: SwarmSetup, nodes, feeders, *, status: str, reaso
 
 
 @guarded("swarm")
-def run_swarm(dataset: str | Path, out: str | Path, *, formulation: str = "is", solver: str = "lm",
-              schedule: str | Path | Schedule | None = None, stride: int = 4, place: str = "bow",
-              place_checkpoint: str | None = None, backend: str = "classical", checkpoint: str | None = None,
-              uniform_noise: bool = False, r_thr: float | None = None, k: float | None = None,
-              progress: bool = True, strict: bool = False) -> dict:
-    """Run the whole team in one process and write the outputs to `out` (see `outputs.write_outputs`).
+def run_swarm(dataset: str | Path, out: str | Path, config: SlamConfig | SwarmConfig | None = None, *,
+              progress: bool = True, **options) -> dict:
+    """Run the whole team in one process and write the outputs to `out` (see `swarm_results.write_outputs`;
+    config.yaml holds the config tree used). config: the config tree or its swarm section; options: SwarmConfig
+    fields overriding it (formulation="ss", stride=2, schedule=PATH or a Schedule, ...).
     Returns the metrics dictionary that is also written as `metrics.json`. An unreadable keyframe image is
-    skipped with a warning (strict: the run stops); an interrupt or failure mid-run writes the outputs so far
+    skipped with a warning (swarm.strict: the run stops); an interrupt or failure mid-run writes the outputs so far
     with "status" "interrupted" / "failed" (`write_partial_swarm`) and re-raises."""
     from swarmsplat.slam.run.swarm_results import write_outputs
 
     out = output_dir(out, "--out")
-    setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
-                    backend=backend, checkpoint=checkpoint, formulation=formulation, solver=solver,
-                    uniform_noise=uniform_noise, vocabulary_out=out / "vocabulary.npz", r_thr=r_thr, k=k,
-                    strict=strict)
+    setup = prepare(dataset, config, vocabulary_out=out / "vocabulary.npz", **options)
     setup.out = out
     nodes, net, feeders = simulate(setup, progress=progress)
     robots, final = robot_results(nodes)

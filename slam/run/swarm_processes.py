@@ -1,9 +1,10 @@
 """One robot per process over Zenoh: `run_robot` is what `swarmsplat robot --id K` runs; `launch` starts N of them
 on this machine, gives them a common tick 0 once every one is connected, and gathers their outputs.
 
-A robot process writes `robots/<agent>/`: `state.npz` (keyframe trajectory, odometry, stamps), `bytes.json`, and
+Every robot reads the same config tree (`--config out/config.yaml`, written by `launch`). A robot process writes
+`robots/<agent>/`: `state.npz` (keyframe trajectory, odometry, stamps), `bytes.json`, and
 its held estimate and (if it ever optimised) the graphs of its last solve as swarm messages (`*.msg`, the same
-safe encoding as on the wire). `launch` then writes the same outputs as an in-process run (`outputs.py`).
+safe encoding as on the wire). `launch` then writes the same outputs as an in-process run (`swarm_results.py`).
 """
 
 from __future__ import annotations
@@ -20,47 +21,48 @@ import numpy as np
 
 from swarmsplat.kernels.errors import InputError, SwarmsplatError
 from swarmsplat.kernels.fileio import atomic_path, atomic_write_bytes, atomic_write_text, output_dir
+from swarmsplat.slam.config import SlamConfig, SwarmConfig
 from swarmsplat.slam.run.guard import guarded, keep
 
 from swarmsplat.slam.flocc.swarm import messages as M
 
 
 @guarded("robot")
-def run_robot(dataset: str | Path, robot: int, out: str | Path, *, start_time: float | None = None,
-              port_base: int = 17447, run: str = "swarmsplat", stride: int = 4, schedule=None,
-              place: str = "bow", place_checkpoint: str | None = None, backend: str = "classical",
-              formulation: str = "is", solver: str = "lm", uniform_noise: bool = False,
-              r_thr: float | None = None, k: float | None = None, strict: bool = False) -> Path:
+def run_robot(dataset: str | Path, robot: int, out: str | Path, config: SlamConfig | SwarmConfig | None = None, *,
+              start_time: float | None = None, run: str = "swarmsplat", **options) -> Path:
     """Run robot `robot` of `dataset` on Zenoh until the schedule ends; write its outputs under `out`.
 
+    config: the config tree (or its swarm section) every robot of the run shares; options: SwarmConfig fields
+    overriding its swarm section (port_base, stride, schedule, place, place_checkpoint, formulation, ...).
     start_time: epoch seconds of tick 0 (None: read it from stdin after printing `ready`, as `launch` does).
-    The VLAD/BoW vocabulary must be given (`place_checkpoint`) so that every robot describes images alike.
+    The VLAD/BoW vocabulary must be given (swarm.place_checkpoint) so that every robot describes images alike.
     Interrupted (SIGINT / SIGTERM, e.g. from `launch`) or failing, it writes its state so far and re-raises.
     """
     from swarmsplat.slam.flocc.swarm.clocked import TickClock, run_clocked
     from swarmsplat.slam.flocc.swarm.node import RobotNode
     from swarmsplat.slam.flocc.swarm.optimiser import warm_up
-    from swarmsplat.slam.run.swarm import KeyframeFeeder, prepare
+    from swarmsplat.slam.run.swarm import KeyframeFeeder, prepare, swarm_config
     from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
 
+    cfg = swarm_config(config, **options)
+    sw = cfg.swarm
     if robot < 0:
         raise InputError(f"--id must be >= 0, got {robot}")
-    check_port_base(port_base, robot + 1)
+    check_port_base(sw.port_base, robot + 1)
     output_dir(out, "--out")
-    if place in ("bow", "vlad") and not place_checkpoint:
+    if sw.place in ("bow", "vlad") and not sw.place_checkpoint:
         raise InputError("a robot process needs the shared vocabulary: --place-checkpoint VOCAB.npz")
-    setup = prepare(dataset, stride=stride, schedule=schedule, place=place, place_checkpoint=place_checkpoint,
-                    backend=backend, formulation=formulation, solver=solver, uniform_noise=uniform_noise,
-                    r_thr=r_thr, k=k, strict=strict)
+    setup = prepare(dataset, cfg)
     n = len(setup.dataset.agents)
     if not 0 <= robot < n:
         raise InputError(f"--id {robot}: the dataset has robots 0..{n - 1}")
-    check_port_base(port_base, n)
+    check_port_base(sw.port_base, n)
     seq = setup.dataset.agents[robot]
     clock = TickClock()
-    tx = ZenohTransport(robot, list(range(n)), run=run, port_base=port_base, schedule=setup.schedule, clock=clock)
+    tx = ZenohTransport(robot, list(range(n)), run=run, port_base=sw.port_base, schedule=setup.schedule,
+                        clock=clock)
     node = RobotNode(robot, seq.camera, tx, setup.recognizer, setup.registrar, setup.node_config)
-    feeder = KeyframeFeeder(seq, setup.stride, strict)
+    feeder = KeyframeFeeder(seq, setup.stride, setup.strict)
     warm_up()
     tx.wait_for_peers(60.0)
     d = Path(out) / "robots" / seq.name
@@ -107,40 +109,36 @@ def check_port_base(port_base: int, robots: int) -> None:
 
 
 @guarded("swarm")
-def launch(dataset: str | Path, out: str | Path, *, port_base: int = 17447, timeout: float | None = None,
-           **options) -> dict:
-    """Start one `swarmsplat robot` process per robot, wait for them, and write the run's outputs. `options` are
-    `run_robot`'s keyword arguments (stride, schedule, place, backend, formulation, solver, uniform_noise).
+def launch(dataset: str | Path, out: str | Path, config: SlamConfig | SwarmConfig | None = None, *,
+           timeout: float | None = None, **options) -> dict:
+    """Start one `swarmsplat robot` process per robot, wait for them, and write the run's outputs. config: the
+    config tree (or its swarm section); options: SwarmConfig fields overriding it (port_base, stride, schedule,
+    place, backend, formulation, solver, uniform_noise, ...). The robots read the tree from `out/config.yaml`,
+    with the schedule (`out/schedule.yaml`) and the shared vocabulary filled in.
     An interrupt is passed on to the robots (SIGINT), which write their state; the outputs are then gathered from
     the robots that did, with metrics.json "status" "interrupted" / "failed"."""
-    from swarmsplat.slam.run.swarm_results import write_outputs
-    from swarmsplat.slam.run.swarm import prepare
+    from swarmsplat.slam.run.swarm import prepare, swarm_config
 
+    cfg = swarm_config(config, **{k: v for k, v in options.items() if k != "schedule"})
+    port_base = cfg.swarm.port_base
     check_port_base(port_base, 1)
     out = output_dir(out, "--out")
-    vocab = options.pop("place_checkpoint", None)
-    place = options.get("place", "bow")
-    setup = prepare(dataset, place_checkpoint=vocab,
-                    vocabulary_out=None if vocab else out / "vocabulary.npz",
-                    **{k: v for k, v in options.items() if k in ("stride", "schedule", "place", "backend", "formulation",
-                                                                 "solver", "uniform_noise", "r_thr", "k", "strict")})
-    if place in ("bow", "vlad") and not vocab:
+    vocab = cfg.swarm.place_checkpoint
+    setup = prepare(dataset, cfg, vocabulary_out=None if vocab else out / "vocabulary.npz",
+                    **{k: v for k, v in options.items() if k == "schedule"})
+    if cfg.swarm.place in ("bow", "vlad") and not vocab:
         vocab = str(out / "vocabulary.npz")
     sched_path = out / "schedule.yaml"
     import yaml
 
     atomic_write_text(sched_path, yaml.safe_dump(setup.schedule.to_dict(), sort_keys=False))
+    setup.config = setup.config.override({"swarm": {"schedule": str(sched_path), "place_checkpoint": vocab}})
+    atomic_write_text(out / "config.yaml", setup.config.to_yaml())
     n = len(setup.dataset.agents)
     check_port_base(port_base, n)
     run_name = f"r{os.getpid()}"
-    cmd = lambda r: [sys.executable, "-m", "swarmsplat.slam", "robot", "--id", str(r), str(dataset), "--out", str(out),  # noqa: E731
-                     "--port-base", str(port_base), "--run", run_name, "--schedule", str(sched_path),
-                     "--stride", str(setup.stride), "--place", place, "--backend", options.get("backend", "classical"),
-                     "--formulation", setup.node_config.solve.formulation, "--solver", setup.node_config.solve.solver] \
-        + (["--place-checkpoint", vocab] if vocab else []) \
-        + (["--uniform-noise"] if setup.node_config.solve.uniform_noise else []) \
-        + (["--strict"] if setup.strict else []) \
-        + sum([[f"--{n.replace('_', '-')}", str(options[n])] for n in ("r_thr", "k") if options.get(n) is not None], [])
+    cmd = lambda r: [sys.executable, "-m", "swarmsplat.slam", "robot", "--id", str(r), str(dataset),  # noqa: E731
+                     "--out", str(out), "--config", str(out / "config.yaml"), "--run", run_name]
     # Own sessions: a Ctrl-C in the terminal reaches this process only, which passes it on once (_stop); a second
     # signal would make a robot exit before its state is written.
     procs = [subprocess.Popen(cmd(r), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -1,5 +1,6 @@
 """Outputs of a swarm run, in-process or over Zenoh, all in one folder:
 
+    config.yaml              the config tree the run used (its `swarm` section drives the robots)
     <agent>.txt              each robot's keyframe trajectory in the global frame it holds (TUM, evo reads it)
     odometry/<agent>.txt     each robot's own odometry at its keyframes (the no-collaboration reference)
     pose_graph_optimized.g2o the final global graph, solved as configured (vertices = optimised poses)
@@ -11,6 +12,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +20,7 @@ import numpy as np
 from swarmsplat.kernels.errors import InputError
 from swarmsplat.kernels.fileio import atomic_write_text
 
-from swarmsplat.slam.flocc.swarm.optimiser import SolveConfig, solve_group
+from swarmsplat.slam.flocc.swarm.optimiser import solve_group
 
 ALTERNATIVES = {  # name -> (formulation, solver, uniform noise); "baseline" is Swarm-SLAM-like
     "is-lm": ("is", "lm", False), "ss-lm": ("ss", "lm", False), "base-lm": ("base", "lm", False),
@@ -100,6 +102,8 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
 
     out = Path(out)
     names = {r: s.name for r, s in enumerate(setup.dataset.agents)}
+    if getattr(setup, "config", None) is not None:
+        atomic_write_text(out / "config.yaml", setup.config.to_yaml())
     (out / "odometry").mkdir(parents=True, exist_ok=True)
     for r, d in robots.items():
         if not len(d["timestamps"]):  # no keyframe yet (a run interrupted early)
@@ -133,7 +137,7 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
                                     "per_pair": _per_pair(loops), "mean_confidence": float(np.mean(
                                         [e.confidence for e in loops])) if loops else None}
         for name, (f, s, u) in (ALTERNATIVES if complete else {}).items():
-            alt = solve_group(final_subs, SolveConfig(formulation=f, solver=s, uniform_noise=u))
+            alt = solve_group(final_subs, replace(setup.node_config.solve, formulation=f, solver=s, uniform_noise=u))
             trajs, off = {}, 0
             for r, c in zip(alt.robots, alt.counts):
                 trajs[r] = alt.poses[off: off + c]

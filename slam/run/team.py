@@ -42,7 +42,9 @@ class Team:
         if len(names) > 26:
             raise InputError(f"at most 26 agents (one pose-graph letter each), got {len(names)}")
         self.cfg = config or SlamConfig()
-        scfg = (server or ServerConfig()).model_copy()
+        if server is not None:  # the server's settings given apart replace the config's `server` section
+            self.cfg = self.cfg.model_copy(update={"server": server})
+        scfg = self.cfg.server.model_copy()
         scfg.intra_loops = scfg.intra_loops and self.cfg.loop_closure.enabled
         scfg.inter_loops = scfg.inter_loops and self.cfg.loop_closure.enabled
         agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
@@ -151,15 +153,17 @@ class Team:
 @guarded("team")
 def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
              server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
-             stride: int = 1, progress: bool = True, render_views: int = 8, observer=None,
+             stride: int | None = None, progress: bool = True, render_views: int | None = None, observer=None,
              strict: bool = False) -> dict:
     """Run the team on a multi-agent RGB-D dataset (any layout `slam.io.datasets.load_dataset` reads) and write
     every output to `out_dir` (see slam.run.team_results). Returns the metrics written to metrics.json.
     `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from swarmsplat.slam.io.datasets.split.split_sequence).
 
+    server: replaces the config's `server` section (None: config.server).
     frames: at most this many input frames per agent (None: config.max_frames, 0 = all); limits: per-agent
-    caps; stride: use every stride-th frame.
-    render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all).
+    caps; stride: use every stride-th frame (None: config.team.stride).
+    render_views: keyframes per agent rendered from the merged map for PSNR / SSIM / depth L1 (0 = all; None:
+    config.team.render_views).
     observer: `observer(team)` after every round, `observer(team, force=True)` after the map refinement
     (slam.view.live.LiveView, the live view).
     strict: stop at an unreadable frame (default: skip it). An interrupt or a failure writes what was done so far
@@ -171,6 +175,8 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     from .team_results import render_metrics, write_team_results
 
     cfg = config or SlamConfig()
+    stride = cfg.team.stride if stride is None else stride
+    render_views = cfg.team.render_views if render_views is None else render_views
     ds = dataset_path if isinstance(dataset_path, MultiAgentDataset) else load_dataset(dataset_path)
     if ds.kind != "rgbd":
         raise InputError(f"{ds.root}: the GRAND-SLAM team needs RGB-D sequences, this dataset is {ds.kind}")

@@ -1,0 +1,49 @@
+"""The `swarm` section: FLOCC-SLAM's decentralised loop closing over the robots of a monocular dataset
+(`swarmsplat swarm` and `swarmsplat robot`; slam.run.swarm builds the robots' NodeConfig and SolveConfig from it)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SwarmConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    # keyframes and schedule
+    stride: int = Field(4, ge=1, description="every stride-th frame of a robot is a keyframe")
+    schedule: str | None = Field(None, description="rendezvous schedule YAML (slam.flocc.swarm.rendezvous); "
+                                                   "null: pairs meet while recording, everyone at the end")
+    strict: bool = Field(False, description="stop at the first unreadable keyframe image; false skips it with a "
+                                            "warning and lists it under skipped_frames in metrics.json")
+    # front-end: place recognition and pair registration
+    place: str = Field("bow", description="place recognition: bow, vlad, xfeat-vlad, cosplace or netvlad")
+    place_checkpoint: str | None = Field(None, description="weights of cosplace / netvlad, or a bow / vlad "
+                                                           "vocabulary .npz; null trains the vocabulary on the "
+                                                           "dataset's keyframes")
+    backend: str = Field("classical", description="pair registration: classical, xfeat, mast3r or lightglue")
+    checkpoint: str | None = Field(None, description="weights of the pair backend (mast3r)")
+    device: Literal["cpu", "cuda"] = Field("cpu", description="torch device of the learned backends")
+    threshold: float = Field(0.1, ge=-1, le=1, description="cosine similarity a loop candidate needs")
+    r_thr: float | None = Field(None, ge=0, description="correspondence-ratio gate R_thr of eq. 1; null: the pair "
+                                                       "backend's default (slam.flocc.frontend.default_r_thr)")
+    k: float | None = Field(None, gt=0, description="logistic steepness k of eq. 2; null: the graph's default")
+    # network
+    neighbour_timeout: int = Field(3, ge=1, description="ticks without a hello before a robot counts as out of "
+                                                        "range")
+    resend: int = Field(4, ge=1, description="ticks before something a neighbour still lacks is sent again")
+    port_base: int = Field(17447, description="Zenoh runs: robot K listens on TCP port port_base + K")
+    # back-end
+    formulation: Literal["is", "ss", "base", "shared"] = Field(
+        "is", description="scale variables of the up-to-scale loops: independent (is), smoothed (ss), none (base) "
+                          "or one shared (graph.formulations)")
+    solver: Literal["lm", "gnc"] = Field("lm", description="Levenberg-Marquardt, or GNC (rejects inconsistent "
+                                                           "loops)")
+    uniform_noise: bool = Field(False, description="one noise for every factor, confidences ignored (the "
+                                                   "Swarm-SLAM-like baseline)")
+    odo_sigma_rot: float = Field(0.01, gt=0, description="odometry edge std (rad)")
+    odo_sigma_trans: float = Field(0.02, gt=0, description="odometry edge std (m)")
+    loop_sigma_rot: float = Field(0.05, gt=0, description="loop edge std at confidence 1 (rad)")
+    loop_sigma_trans: float = Field(0.1, gt=0, description="loop edge std at confidence 1 (m, unit-scale "
+                                                           "translation)")
