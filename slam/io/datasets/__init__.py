@@ -1,9 +1,13 @@
 """Dataset loaders: our folder format plus the public layouts users already have (TUM RGB-D, Redwood /
-ICL-NUIM, Replica and Multiagent Replica, EuRoC, ScanNet exports, 7-Scenes). Every loader returns lazily loading
-`Sequence`s; a `MultiAgentDataset` groups one per agent.
+ICL-NUIM, Replica and Multiagent Replica, EuRoC, ScanNet exports, 7-Scenes) and what robots record (ROS 1 / ROS 2
+bags and MCAP, slam.io.bags). Every loader returns lazily loading `Sequence`s; a `MultiAgentDataset` groups one
+per agent.
 
     load_sequence(path, fmt="auto") -> Sequence
     load_dataset(path, fmt="auto")  -> MultiAgentDataset   (a single sequence becomes a one-agent team)
+
+A bag takes `topics={"color": ..., "depth": ..., "info": ..., "odometry": ..., "gt": ...}` (any subset; the rest
+are found) in place of `fmt`.
 """
 
 from __future__ import annotations
@@ -55,7 +59,8 @@ FORMATS = tuple(_DETECT)
 
 _LAYOUTS_HELP = ("our format (calibration.yaml + rgb.txt), TUM RGB-D (rgb.txt + depth.txt), Replica "
                  "(results/ + traj.txt), EuRoC (mav0/cam0/data.csv), ScanNet (color/ + depth/ + intrinsic/), "
-                 "Redwood (color/ + depth/ + .log) or 7-Scenes (frame-NNNNNN.color.png + .depth.png)")
+                 "Redwood (color/ + depth/ + .log), 7-Scenes (frame-NNNNNN.color.png + .depth.png) or a bag "
+                 "(.bag, .mcap, .db3, ROS 2 bag folder)")
 
 
 def _check(path: str | Path, fmt: str) -> tuple[Path, str]:
@@ -63,10 +68,10 @@ def _check(path: str | Path, fmt: str) -> tuple[Path, str]:
     if not p.exists():
         raise InputError(f"dataset path not found: {p}")
     if not p.is_dir():
-        raise InputError(f"dataset path is not a folder: {p}")
+        raise InputError(f"dataset path is not a folder or a bag (.bag, .mcap, .db3): {p}")
     fmt = (fmt or "auto").lower()
     if fmt != "auto" and fmt not in FORMATS:
-        raise InputError(f"unknown dataset format {fmt!r}; expected one of {', '.join(FORMATS)} or auto")
+        raise InputError(f"unknown dataset format {fmt!r}; expected one of {', '.join(FORMATS)}, bag or auto")
     return p, fmt
 
 
@@ -79,9 +84,26 @@ def detect_sequence_format(path: str | Path) -> str | None:
     return None
 
 
+def _bag_kind(path: str | Path, fmt: str) -> bool:
+    """Is `path` a bag (or, for a team, a folder of bags)? fmt "bag" insists; another layout name refuses."""
+    from swarmsplat.slam.io.bags import is_bag
+
+    p = Path(path)
+    bag = is_bag(p) or (p.is_dir() and not (p / "dataset.yaml").is_file() and detect_sequence_format(p) is None
+                        and any(is_bag(q) for q in p.iterdir()))
+    if (fmt or "auto").lower() == "bag" and not bag:
+        raise InputError(f"{p}: not a bag (expected .bag, .mcap, .db3 or a ROS 2 bag folder with metadata.yaml)")
+    return bag and (fmt or "auto").lower() in ("auto", "bag")
+
+
 def load_sequence(path: str | Path, fmt: str = "auto", **kwargs) -> ImageSequence:
-    """Load one sequence; `fmt` is one of FORMATS or "auto". Extra keyword arguments go to the loader
-    (e.g. `camera=` for TUM/Redwood/Replica/7-Scenes, `undistort=` for EuRoC)."""
+    """Load one sequence; `fmt` is one of FORMATS, "bag" or "auto". Extra keyword arguments go to the loader
+    (e.g. `camera=` for TUM/Redwood/Replica/7-Scenes, `undistort=` for EuRoC and bags, `topics=` for bags)."""
+    if Path(path).exists() and _bag_kind(path, fmt):
+        from swarmsplat.slam.io.bags import load_bag_sequence
+
+        return load_bag_sequence(path, **kwargs)
+    kwargs.pop("topics", None)
     p, fmt = _check(path, fmt)
     if fmt == "auto":
         fmt = detect_sequence_format(p)
@@ -93,7 +115,12 @@ def load_sequence(path: str | Path, fmt: str = "auto", **kwargs) -> ImageSequenc
 def load_dataset(path: str | Path, fmt: str = "auto", **kwargs) -> MultiAgentDataset:
     """Load a team: a root with dataset.yaml (our format), a single sequence (one agent), or a folder whose
     sub-folders are sequences of one layout (Multiagent Replica, a set of EuRoC runs, a 7-Scenes scene's seq-NN
-    folders), agents in name order."""
+    folders), agents in name order; or a bag (one agent, or one per /robotN/ namespace), or a folder of bags."""
+    if Path(path).exists() and _bag_kind(path, fmt):
+        from swarmsplat.slam.io.bags import load_bag_dataset
+
+        return load_bag_dataset(path, **kwargs)
+    kwargs.pop("topics", None)
     p, fmt = _check(path, fmt)
     if (p / "dataset.yaml").is_file() and fmt in ("auto", "folder"):
         return load_folder_dataset(p)

@@ -1,0 +1,257 @@
+"""`BagSequence`: one agent's frames read lazily from a ROS 1 bag, a ROS 2 bag (.db3 / .mcap + metadata.yaml) or
+a bare .mcap file, through `rosbags` (no ROS install).
+
+Opening a bag indexes it once: every colour and depth message's record time and header stamp (deserialised one
+at a time and dropped), the first camera info, and the odometry / ground-truth poses. Colour and depth pair by
+header stamp, one to one, closest first (as TUM's associate tool); poses attach to a frame from the nearest stamp
+within `pose_max_diff`. Frames are then read on demand: in order, from one stream that keeps at most a few
+messages ahead; out of order, from the frame's record time. Memory holds the index (a few numbers per frame),
+not the images, whatever the bag's length.
+
+A bag cut short (a recording killed mid-write) is read up to its last complete message, with a warning.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError
+
+from ..datasets._sequence import _row, poses_at
+from ..datasets.associate import associate_unique
+from ..datasets.base import Frame
+from .decode import camera_from_info, decode_color, decode_depth, pose_of, stamp_of
+from .topics import TopicChoice
+
+_AHEAD = 32  # messages kept from the stream for later frames before it is restarted instead
+
+
+def open_reader(path: Path):
+    """An opened rosbags AnyReader on `path` (ROS 1 .bag, ROS 2 folder, bare .mcap / .db3)."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = path.suffix == ".bag"
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    try:
+        reader = AnyReader([path], default_typestore=store)
+        reader.open()
+    except (AnyReaderError, ValueError, KeyError, OSError) as e:
+        hint = " (a ROS 1 bag cut short has no index: `rosbag reindex` it first)" if ros1 else ""
+        raise InputError(f"{path}: cannot open as a bag: {e}{hint}") from None
+    return reader
+
+
+class BagSequence:
+    """A `Sequence` (slam.io.datasets.base) over one agent's topics of a bag."""
+
+    def __init__(self, path: str | Path, topics: TopicChoice, *, name: str | None = None,
+                 camera: PinholeCamera | None = None, max_diff: float = 0.02, pose_max_diff: float = 0.05,
+                 undistort: bool = True):
+        self.root = Path(path)
+        self.topics = topics
+        self.name = name or self.root.stem
+        self._reader = open_reader(self.root)
+        conns = {c.topic: c for c in self._reader.connections}
+        self._color_conn = conns[topics.color]
+        self._depth_conn = conns.get(topics.depth) if topics.depth else None
+        self._maps = None
+        self._index(conns, camera, max_diff, pose_max_diff, undistort)
+        self._stream = None  # (generator, index of the next frame it serves)
+        self._stash: dict[tuple[str, int], tuple[object, bytes]] = {}
+
+    # ---- index --------------------------------------------------------------------------------------------
+
+    def _where(self, topic: str) -> str:
+        return f"{self.root}: topic {topic}"
+
+    def _index(self, conns, camera, max_diff, pose_max_diff, undistort) -> None:
+        t = self.topics
+        wanted = [conns[x] for x in (t.color, t.depth, t.info, t.odometry, t.gt) if x]
+        rows: dict[str, list] = {x: [] for x in (t.color, t.depth, t.odometry, t.gt) if x}
+        info = None
+        sizes: dict[str, tuple[int, int]] = {}
+        try:
+            for conn, rec_ns, raw in self._reader.messages(connections=wanted):
+                msg = self._reader.deserialize(raw, conn.msgtype)
+                if conn.topic == t.info:
+                    info = info or msg
+                    continue
+                if conn.topic in (t.color, t.depth):
+                    if conn.topic not in sizes:  # the first of each: its encoding and size (decoded once)
+                        sizes[conn.topic] = self._size_of_first(conn, msg)
+                    rows[conn.topic].append((rec_ns, stamp_of(msg)))
+                else:
+                    rows[conn.topic].append((stamp_of(msg), pose_of(msg, conn.msgtype)))
+        except InputError:
+            raise
+        except Exception as e:  # noqa: BLE001 - rosbags raises assorted errors on a bag cut mid-message
+            warnings.warn(f"{self.root}: the bag ends early ({type(e).__name__}: {e}); read up to its last complete "
+                          "message", stacklevel=2)
+        color = np.array(rows[t.color], dtype=np.float64).reshape(-1, 2)
+        if len(color) == 0:
+            raise InputError(f"{self._where(t.color)}: no message")
+        if t.depth:
+            depth = np.array(rows[t.depth], dtype=np.float64).reshape(-1, 2)
+            if len(depth) == 0:
+                raise InputError(f"{self._where(t.depth)}: no message")
+            if t.depth in sizes and sizes[t.depth] != sizes[t.color]:
+                raise InputError(f"{self.root}: colour {t.color} is {sizes[t.color][0]}x{sizes[t.color][1]} but depth "
+                                 f"{t.depth} is {sizes[t.depth][0]}x{sizes[t.depth][1]}; expected depth registered "
+                                 "to the colour camera (e.g. aligned_depth_to_color)")
+            i, j = associate_unique(color[:, 1], depth[:, 1], max_diff)
+            if len(i) == 0:
+                raise InputError(f"{self.root}: no colour and depth stamps within {max_diff} s of each other")
+            color, depth = color[i], depth[j]
+            self._depth_rec = depth[:, 0].astype(np.int64)
+        self._color_rec = color[:, 0].astype(np.int64)
+        self._t = color[:, 1].copy()
+        self.camera = self._camera(info, camera, sizes[t.color], undistort)
+        self._gt = self._poses(rows.get(t.gt), pose_max_diff) if t.gt else None
+        self._odom = self._poses(rows.get(t.odometry), pose_max_diff) if t.odometry else None
+
+    def _size_of_first(self, conn, msg) -> tuple[int, int]:
+        decode = decode_depth if conn.topic == self.topics.depth else decode_color
+        img = decode(msg, conn.msgtype, self._where(conn.topic))
+        return int(img.shape[1]), int(img.shape[0])
+
+    def _camera(self, info, camera, size, undistort) -> PinholeCamera:
+        if camera is not None:
+            return camera
+        if info is None:
+            raise InputError(f"{self.root}: no camera_info topic for {self.topics.color}; give one with --topics "
+                             "info=TOPIC (or pass camera= from Python)")
+        cam, D, model = camera_from_info(info, self._where(self.topics.info))
+        if (cam.width, cam.height) != size:
+            raise InputError(f"{self._where(self.topics.info)}: camera_info is {cam.width}x{cam.height} but the "
+                             f"colour images are {size[0]}x{size[1]}")
+        if np.any(np.abs(D) > 1e-9):
+            if not undistort:
+                raise InputError(f"{self._where(self.topics.info)}: images are distorted ({model}, D={D.tolist()}); "
+                                 "expected rectified images, or undistortion on")
+            self._maps = _undistort_maps(cam, D, model, self._where(self.topics.info))
+        return cam
+
+    def _poses(self, rows, max_diff) -> np.ndarray | None:
+        if not rows:
+            return None
+        rows = sorted(rows, key=lambda r: r[0])
+        stamps = np.array([r[0] for r in rows])
+        return poses_at(self._t, stamps, np.stack([r[1] for r in rows]), max_diff)
+
+    # ---- frames -------------------------------------------------------------------------------------------
+
+    def _keys(self, i: int) -> list[tuple[str, int]]:
+        keys = [(self.topics.color, int(self._color_rec[i]))]
+        if self._depth_conn is not None:
+            keys.append((self.topics.depth, int(self._depth_rec[i])))
+        return keys
+
+    def _messages(self, i: int) -> dict[str, tuple[object, bytes]]:
+        keys = self._keys(i)
+        if self._stream is None or self._stream[1] != i:
+            start = min(k[1] for k in keys)
+            conns = [c for c in (self._color_conn, self._depth_conn) if c is not None]
+            self._stream = [self._reader.messages(connections=conns, start=start), i]
+            self._stash.clear()
+        gen = self._stream[0]
+        later = {k for j in range(i + 1, min(i + 1 + _AHEAD, len(self))) for k in self._keys(j)}
+        while not all(k in self._stash for k in keys):
+            try:
+                conn, rec, raw = next(gen)
+            except StopIteration:
+                raise InputError(f"{self.root}: frame {i} is indexed but its messages cannot be read") from None
+            key = (conn.topic, int(rec))
+            if key in keys or (key in later and len(self._stash) < 2 * _AHEAD):
+                self._stash[key] = (conn, raw)
+        self._stream[1] = i + 1
+        return {k[0]: self._stash.pop(k) for k in keys}
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError(f"frame index must be an integer, got {type(i).__name__}")
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i} out of range for bag sequence '{self.name}' of {n} frames")
+        msgs = self._messages(int(i))
+        conn, raw = msgs[self.topics.color]
+        color = decode_color(self._reader.deserialize(raw, conn.msgtype), conn.msgtype, self._where(conn.topic))
+        self._check_size(color, self.topics.color)
+        depth = None
+        if self._depth_conn is not None:
+            conn, raw = msgs[self.topics.depth]
+            depth = decode_depth(self._reader.deserialize(raw, conn.msgtype), conn.msgtype, self._where(conn.topic))
+            self._check_size(depth, self.topics.depth)
+        if self._maps is not None:
+            color, depth = _remap(self._maps, color, depth)
+        return Frame(index=int(i), timestamp=float(self._t[i]), color=color, depth=depth,
+                     T_world_cam_gt=_row(self._gt, i), T_world_cam_odom=_row(self._odom, i))
+
+    def _check_size(self, img: np.ndarray, topic: str) -> None:
+        if img.shape[:2] != (self.camera.height, self.camera.width):
+            raise InputError(f"{self._where(topic)}: image is {img.shape[1]}x{img.shape[0]}, expected "
+                             f"{self.camera.width}x{self.camera.height} (camera_info)")
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def is_rgbd(self) -> bool:
+        return self._depth_conn is not None
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._t
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        return self._gt
+
+    @property
+    def odometry(self) -> np.ndarray | None:
+        return self._odom
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._stream = None
+            self._reader.close()
+            self._reader = None
+
+    def __repr__(self) -> str:
+        kind = "rgbd" if self.is_rgbd else "mono"
+        return (f"BagSequence({self.name!r}, {len(self)} {kind} frames, {self.camera.width}x{self.camera.height}, "
+                f"{self.root}, color={self.topics.color})")
+
+
+def _undistort_maps(cam: PinholeCamera, D: np.ndarray, model: str, where: str):
+    import cv2
+
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]], dtype=np.float64)
+    size = (cam.width, cam.height)
+    if model in ("plumb_bob", "rational_polynomial", ""):
+        return cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
+    if model == "equidistant":
+        return cv2.fisheye.initUndistortRectifyMap(K, D[:4], np.eye(3), K, size, cv2.CV_32FC1)
+    raise InputError(f"{where}: distortion model {model!r} is not supported; expected plumb_bob, "
+                     "rational_polynomial or equidistant, or rectified images")
+
+
+def _remap(maps, color: np.ndarray, depth: np.ndarray | None):
+    """Undistorted colour (bilinear) and depth (nearest: depth is never blended across an edge), same K."""
+    import cv2
+
+    color = cv2.remap(color, maps[0], maps[1], cv2.INTER_LINEAR)
+    if depth is not None:
+        depth = cv2.remap(depth, maps[0], maps[1], cv2.INTER_NEAREST)
+    return color, depth

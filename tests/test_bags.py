@@ -1,0 +1,218 @@
+"""ROS 1 / ROS 2 bags and MCAP as datasets (slam.io.bags), written here with rosbags: the frames equal the folder's,
+a run on a bag equals the run on its folder bit for bit, topics are found or given, a namespaced bag is a team,
+reading keeps memory flat, and bad bags get one line naming the bag and the topic."""
+
+from __future__ import annotations
+
+import json
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from swarmsplat.kernels.errors import InputError  # noqa: E402
+from swarmsplat.slam.io.bags import (bag_info, is_bag, load_bag_dataset, load_bag_sequence,  # noqa: E402
+                                     parse_topics, write_bag)
+from swarmsplat.slam.io.datasets import load_dataset, load_sequence  # noqa: E402
+
+from conftest import SHARED_DATA  # noqa: E402
+
+REDWOOD = SHARED_DATA / "redwood_livingroom1_211"
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    return generate(tmp_path_factory.mktemp("bags") / "d", GeneratorConfig.preset("tiny", agents=2, frames=8))
+
+
+def _same_frames(a, b, order=None):
+    assert len(a) == len(b)
+    for i in order or range(len(a)):
+        f, g = a[i], b[i]
+        assert np.array_equal(f.color, g.color) and f.color.dtype == g.color.dtype == np.uint8, i
+        assert np.array_equal(f.depth, g.depth) and g.depth.dtype == np.float32, i
+        assert abs(f.timestamp - g.timestamp) < 1e-8, i  # header stamps hold nanoseconds
+        assert np.allclose(f.T_world_cam_gt, g.T_world_cam_gt, atol=1e-8), i  # through a quaternion
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "ros1", "db3"])
+def test_a_bag_holds_the_folders_frames(generated, tmp_path, fmt):
+    seq = load_sequence(generated / "agent_0")
+    path = write_bag(seq, tmp_path / f"a.{'bag' if fmt == 'ros1' else fmt}", fmt)
+    assert is_bag(path)
+    bag = load_sequence(path)  # detected
+    assert bag.camera == seq.camera and bag.is_rgbd
+    _same_frames(seq, bag)
+    _same_frames(seq, bag, order=[5, 2, 3, 7, 0, 1, 1])  # out of order and repeated
+
+
+def test_a_bare_mcap_file_and_compressed_colour(generated, tmp_path):
+    seq = load_sequence(generated / "agent_1")
+    folder = write_bag(seq, tmp_path / "png", "mcap", color="png", depth="32FC1")
+    (mcap,) = folder.glob("*.mcap")
+    bag = load_bag_sequence(mcap)  # the storage file alone, no metadata.yaml
+    assert bag.topics.color.endswith("/compressed")
+    _same_frames(seq, bag)  # png is lossless; 32FC1 holds the float depth exactly
+
+
+@pytest.mark.skipif(not REDWOOD.is_dir(), reason="needs ../shared/data/redwood_livingroom1_211")
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_a_run_on_a_bag_equals_the_run_on_its_folder(tmp_path, fmt):
+    """The shared real sequence's first frames as a bag: the same trajectory and map, byte for byte."""
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.run.sequence import run_sequence
+
+    frames = 8
+    bag = write_bag(load_sequence(REDWOOD), tmp_path / ("r.bag" if fmt == "ros1" else "r"), fmt, frames=frames)
+    cfg = SlamConfig().override({"max_frames": frames, "mapping": {"iterations": 4, "first_iterations": 8},
+                                 "map_refine": {"iterations_per_keyframe": 2}})
+    run_sequence(REDWOOD, tmp_path / "folder", cfg, progress=False)
+    run_sequence(bag, tmp_path / "bag", cfg, progress=False)
+    for name in ("trajectory.txt", "trajectory_no_lc.txt", "map.ply", "keyframes.txt"):
+        assert (tmp_path / "folder" / name).read_bytes() == (tmp_path / "bag" / name).read_bytes(), name
+
+
+def test_a_namespaced_bag_is_a_team_and_a_folder_of_bags_too(generated, tmp_path):
+    seqs = {f"/robot{k}/camera": load_sequence(generated / f"agent_{k}") for k in (0, 1)}
+    team = load_dataset(write_bag(seqs, tmp_path / "team", "mcap"))
+    assert [s.name for s in team.agents] == ["robot0", "robot1"] and team.kind == "rgbd"
+    for s, ref in zip(team.agents, seqs.values()):
+        assert s.topics.gt.endswith("/ground_truth/pose")
+        _same_frames(ref, s, order=[0, 3])
+    folder = tmp_path / "bags"
+    for k in (0, 1):
+        write_bag(load_sequence(generated / f"agent_{k}"), folder / f"agent_{k}.bag", "ros1")
+    ds = load_bag_dataset(folder)
+    assert [s.name for s in ds.agents] == ["agent_0", "agent_1"]
+
+
+def test_topics_given_found_and_ambiguous(generated, tmp_path):
+    seqs = {f"/cam{k}": load_sequence(generated / f"agent_{k}") for k in (0, 1)}  # two cameras, no robot namespace
+    path = write_bag(seqs, tmp_path / "two.bag", "ros1")
+    with pytest.raises(InputError, match=r"several color topics could be meant: /cam0/color/image_raw .*--topics"):
+        load_bag_sequence(path)
+    given = parse_topics("color=/cam1/color/image_raw,depth=/cam1/depth/image_raw,info=/cam1/color/camera_info")
+    bag = load_bag_sequence(path, topics=given)
+    _same_frames(seqs["/cam1"], bag, order=[0, 7])
+    with pytest.raises(InputError, match=r"topic '/nope' \(--topics depth=\) is not in the bag"):
+        load_bag_sequence(path, topics={"depth": "/nope"})
+    with pytest.raises(InputError, match="--topics: expected ROLE=TOPIC"):
+        parse_topics("colour=/x")
+
+
+def test_reading_a_long_bag_keeps_memory_flat(generated, tmp_path):
+    """Frames stream: the memory held while reading every frame in turn is a few frames, not the bag."""
+    seq = load_sequence(generated / "agent_0")
+
+    class Looped:  # the 8 generated frames, 30 times over, stamped 1/30 s apart
+        camera, gt_poses, odometry, depth_scale, is_rgbd = seq.camera, None, None, 5000.0, True
+
+        def __len__(self):
+            return 240
+
+        def __getitem__(self, i):
+            f = seq[i % len(seq)]
+            f.timestamp = i / 30.0
+            return f
+
+    bag = load_bag_sequence(write_bag(Looped(), tmp_path / "long", "mcap"))
+    frame_bytes = seq.camera.width * seq.camera.height * (3 + 4)
+    tracemalloc.start()
+    for i in range(len(bag)):
+        bag[i]
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert len(bag) == 240 and peak < 40 * frame_bytes, (peak, frame_bytes)  # the bag is 240 frames
+
+
+def _raw_bag(path: Path, messages):
+    """A ROS 2 bag of hand-made messages: [(topic, msgtype, make(types, header)), ...], 3 frames."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {topic: w.add_connection(topic, ty, typestore=store) for topic, ty, _ in messages}
+        for i in range(3):
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=i, nanosec=0), frame_id="c")
+            for topic, ty, make in messages:
+                msg = make(T, hdr)
+                w.write(conns[topic], i * 10**9 + 1, store.serialize_cdr(msg, ty))
+    return path
+
+
+def _image(encoding, w, h, channels, dtype=np.uint8):
+    def make(T, hdr):
+        data = np.zeros((h, w, channels), dtype=dtype).view(np.uint8).reshape(-1)
+        return T["sensor_msgs/msg/Image"](header=hdr, height=h, width=w, encoding=encoding, is_bigendian=0,
+                                          step=w * channels * np.dtype(dtype).itemsize, data=data)
+    return make
+
+
+def _info(w, h):
+    def make(T, hdr):
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return T["sensor_msgs/msg/CameraInfo"](header=hdr, height=h, width=w, distortion_model="plumb_bob",
+                                               d=np.zeros(5), k=np.array([50.0, 0, w / 2, 0, 50.0, h / 2, 0, 0, 1]),
+                                               r=np.eye(3).reshape(-1), p=np.zeros(12), binning_x=0, binning_y=0,
+                                               roi=roi)
+    return make
+
+
+IMG, INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
+
+
+@pytest.mark.parametrize("case, messages, expected", [
+    ("encoding", [("/c/color", IMG, _image("yuv422", 8, 6, 2)), ("/c/info", INFO, _info(8, 6))],
+     r"topic /c/color: colour encoding 'yuv422' is not supported; expected one of rgb8"),
+    ("depth encoding", [("/c/color", IMG, _image("rgb8", 8, 6, 3)), ("/c/depth", IMG, _image("8UC1", 8, 6, 1)),
+                        ("/c/info", INFO, _info(8, 6))],
+     r"topic /c/depth: depth encoding '8UC1' is not supported; expected 16UC1"),
+    ("sizes", [("/c/color", IMG, _image("rgb8", 8, 6, 3)), ("/c/depth", IMG, _image("16UC1", 4, 3, 1, np.uint16)),
+               ("/c/info", INFO, _info(8, 6))],
+     r"colour /c/color is 8x6 but depth /c/depth is 4x3; expected depth registered"),
+    ("no info", [("/c/color", IMG, _image("rgb8", 8, 6, 3))], r"no camera_info topic for /c/color"),
+    ("info size", [("/c/color", IMG, _image("rgb8", 8, 6, 3)), ("/c/info", INFO, _info(16, 12))],
+     r"camera_info is 16x12 but the colour images are 8x6"),
+    ("no colour", [("/c/info", INFO, _info(8, 6))], r"no colour image topic"),
+])
+def test_bad_bags_get_one_line_naming_bag_and_topic(tmp_path, case, messages, expected):
+    path = _raw_bag(tmp_path / "bad", messages)
+    with pytest.raises(InputError, match=expected) as e:
+        load_bag_sequence(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_bag_without_depth_is_monocular_and_a_run_says_it_needs_depth(tmp_path):
+    path = _raw_bag(tmp_path / "mono", [("/c/color", IMG, _image("mono8", 8, 6, 1)), ("/c/info", INFO, _info(8, 6))])
+    bag = load_bag_sequence(path)
+    assert not bag.is_rgbd and bag[1].depth is None and bag[1].color.shape == (6, 8, 3)
+
+
+def test_not_a_bag_and_a_damaged_one(tmp_path):
+    (tmp_path / "x.mcap").write_bytes(b"\x89MCAP0\r\n" + b"\0" * 40)
+    with pytest.raises(InputError, match=r"x.mcap: cannot open as a bag"):
+        load_bag_sequence(tmp_path / "x.mcap")
+    with pytest.raises(InputError, match="not a folder or a bag"):
+        load_sequence(Path(__file__))
+
+
+def test_bag_info_lists_topics_counts_rates_and_the_choice(generated, tmp_path, capsys):
+    from swarmsplat.slam.cli import main
+
+    path = write_bag(load_sequence(generated / "agent_0"), tmp_path / "a.bag", "ros1")
+    info = bag_info(path)
+    rows = {t["topic"]: t for t in info["topics"]}
+    assert rows["/camera/color/image_raw"]["count"] == 8 and rows["/camera/color/image_raw"]["rate_hz"] > 0
+    assert info["format"] == "ros1" and info["agents"]["(one agent)"]["depth"] == "/camera/depth/image_raw"
+    assert main(["bag-info", str(path), "--json", str(tmp_path / "info.json")]) == 0
+    out = capsys.readouterr().out
+    assert "/camera/color/image_raw" in out and "sensor_msgs/msg/Image" in out and "a run takes:" in out
+    assert json.loads((tmp_path / "info.json").read_text())["messages"] == info["messages"]
+    assert main(["bag-info", str(tmp_path / "none.bag")]) == 2
