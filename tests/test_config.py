@@ -226,3 +226,21 @@ the stamp's last entry is the tick it was solved at, which depends on timing).""
     assert main(["swarm", data["MONO"], "--out", str(inproc), "--config", f]) == 0
     ref = json.loads((inproc / "metrics.json").read_text())["estimate_stamp"]
     assert {k: v[:3] for k, v in ref.items()} == {k: v[:3] for k, v in m["estimate_stamp"].items()}
+
+
+# ---- docs/config.md -----------------------------------------------------------------------------------------------
+
+def test_docs_reference_is_in_sync_with_the_models():
+    """docs/config.md's reference part is what `python -m swarmsplat.slam.config.reference` prints (regenerate it
+    after changing a field); every field has a description, none of them a measurement log."""
+    from swarmsplat.slam.config.reference import BEGIN, END, reference_markdown
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "config.md").read_text()
+    assert BEGIN in doc and END in doc
+    part = doc[doc.index(BEGIN): doc.index(END) + len(END)]
+    assert part == reference_markdown(), "docs/config.md is stale: python -m swarmsplat.slam.config.reference"
+    for line in part.splitlines():
+        if line.startswith("| `"):
+            meaning = line.rstrip(" |").rsplit(" | ", 1)[-1]
+            assert meaning and not meaning.startswith("| "), line
+            assert not any(w in meaning.lower() for w in ("measured", " db", "session", "readme")), line

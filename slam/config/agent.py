@@ -17,8 +17,8 @@ class _Section(BaseModel):
 
 
 class ImageConfig(_Section):
-    max_width: int = Field(320, ge=16, description="frames wider than this are downsampled (area) for the whole "
-                                                   "pipeline; 0 keeps the input size")
+    max_width: int = Field(320, ge=16, description="frames wider than this (pixels) are downsampled (area) for "
+                                                   "the whole pipeline")
     min_depth: float = Field(0.1, gt=0, description="depth below this (metres) is treated as invalid")
     max_depth: float = Field(10.0, gt=0, description="depth beyond this (metres) is treated as invalid")
     min_valid_fraction: float = Field(0.05, ge=0, le=1, description="frames with fewer valid depth pixels are "
@@ -26,31 +26,26 @@ class ImageConfig(_Section):
 
 
 class TrackingConfig(_Section):
-    coarse: Literal["rgbd_odometry", "none"] = "rgbd_odometry"
+    coarse: Literal["rgbd_odometry", "none"] = Field("rgbd_odometry", description="coarse frame-to-frame stage: "
+                                                     "hybrid colour-depth odometry, or none (constant velocity)")
     coarse_max_width: int = Field(320, ge=16, description="resolution of the coarse frame-to-frame odometry")
     coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
                                                             "distrusted: constant velocity is used instead")
     refine: bool = Field(True, description="frame-to-model refinement after the coarse stage (§III-C): "
                                           "Gauss-Newton against the active submap rendered at the last keyframe, "
-                                          "with debias_view. On (session 8): tracking-only ATE Redwood 211 10.08 "
-                                          "vs 10.25 mm coarse-only at 1.40x the tracking time; demo agents "
-                                          "6.3 / 2.8 / 5.5 vs 7.4 / 8.0 / 6.0 mm at 1.24-1.28x (README)")
+                                          "with debias_view")
     refine_on_coarse_failure: bool = Field(True, description="run the refinement anyway when the coarse stage "
                                                             "fails (then it starts from constant velocity)")
     method: Literal["gauss_newton", "adam"] = Field(
         "gauss_newton", description="refinement: Gauss-Newton on hybrid point-to-plane + intensity residuals "
                                     "against the submap rendered once per map update, or Adam on eq. 5 through "
                                     "the rasteriser's pose gradient every iteration (slam.dense.tracking.tracker)")
-    refine_max_width: int = Field(320, ge=16, description="resolution of the frame-to-model refinement "
-                                                          "(the model view is rendered at this width; 160 "
-                                                          "measured 7.2 vs 4.4 mm ATE at 320)")
+    refine_max_width: int = Field(320, ge=16, description="width (pixels) of the frame-to-model refinement; the "
+                                                          "model view is rendered at this width")
     pyramid_levels: int = Field(1, ge=1, le=4, description="refinement pyramid (each level halves the width)")
-    iterations: int = Field(3, ge=0, description="Gauss-Newton steps per pyramid level (0 = no refinement); 3 "
-                                               "measured as good as 5 (5.48 vs 5.59 mm on generated data)")
+    iterations: int = Field(3, ge=0, description="Gauss-Newton steps per pyramid level (0 = no refinement)")
     step_tolerance: float = Field(1e-4, gt=0, description="Gauss-Newton: stop a level when a step moves less "
-                                  "than this (m and rad); 1e-4 (0.1 mm / 0.1 mrad): demo agents 6.33 / 2.84 / 5.54 "
-                                  "mm at 1.24-1.28x the coarse tracking time, 1e-5: 6.30 / 2.84 / 5.65 mm at "
-                                  "1.29-1.47x")
+                                  "than this (m and rad)")
     photometric_weight: float = Field(0.3, ge=0, description="Gauss-Newton: intensity term weight (intensity in "
                                                              "[0, 1] against metres)")
     max_distance: float = Field(0.05, gt=0, description="Gauss-Newton: correspondence gate (m)")
@@ -65,11 +60,7 @@ class TrackingConfig(_Section):
     max_inlier_loss: float = Field(0.1, ge=0, le=1, description="Gauss-Newton: ... and keeps at least 1 - this of "
                                    "the coarse pose's correspondences")
     debias_view: bool = Field(True, description="Gauss-Newton: place each model view where its own keyframe "
-                              "aligns to it (removes the view's offset from its keyframe, up to max_view_bias). "
-                              "Without it the refinement was worse than coarse-only on generated data (60 frames "
-                              "8.83 vs 6.90 mm; debiased 3.24) and on demo agent 2 (8.12 vs 5.96 mm; debiased "
-                              "5.54): each view's millimetre offset from its keyframe chains from keyframe to "
-                              "keyframe")
+                              "aligns to it (removes the view's offset from its keyframe, up to max_view_bias)")
     max_view_bias: float = Field(0.005, gt=0, description="Gauss-Newton: a model view is not used when its own "
                                  "keyframe, aligned to it, moves more than this (m): the map disagrees with it")
     adam_iterations: int = Field(20, ge=1, description="Adam: maximum iterations at the finest level")
@@ -80,12 +71,11 @@ class TrackingConfig(_Section):
     alpha_min: float = Field(0.9, ge=0, le=1, description="pixels rendered with alpha below this are ignored")
     inlier_k: float = Field(20.0, gt=0, description="Adam: M_in drops pixels whose error exceeds k x median error")
     normalise_by_alpha: bool = Field(False, description="Adam: compare colour / alpha and depth / alpha with the "
-                                     "input. Off: mapping fits the un-normalised renders, and depth / alpha lies "
-                                     "(1/alpha - 1) x depth behind the surface (+13.5 mm on Redwood, README)")
+                                     "input instead of the un-normalised renders")
     converge_rot: float = Field(2e-5, gt=0, description="Adam: stop when a step rotates less than this (rad) ...")
     converge_trans: float = Field(2e-5, gt=0, description="... and translates less than this (m) for `patience` "
                                                           "steps")
-    patience: int = Field(3, ge=1)
+    patience: int = Field(3, ge=1, description="Adam: steps below the convergence thresholds before stopping")
     min_relative_gain: float = Field(0.1, ge=0, lt=1, description="Adam: keep the coarse pose unless the refined "
                                      "one lowers the tracking loss by this fraction")
 
@@ -104,61 +94,52 @@ class MappingConfig(_Section):
     first_iterations: int = Field(100, ge=0, description="iterations for a submap's first keyframe")
     current_keyframe_fraction: float = Field(0.4, ge=0, le=1, description="share of iterations on the newest keyframe")
     alpha_seed: float = Field(0.95, ge=0, le=1, description="α_min: seed Gaussians where rendered alpha is below "
-                                                           "this (0.95 measured +2 dB PSNR over 0.6 for +6 % Gaussians)")
+                                                           "this")
     seed_stride: int = Field(1, ge=1, description="one seed per stride x stride pixels in sparse regions")
     seed_without_depth: bool = Field(True, description="also seed the large regions without valid depth (windows, "
                                      "sky, beyond the sensor's range) at the farthest valid depth nearby or of the "
-                                     "frame (slam.dense.mapping.mapper.fallback_depth); off leaves them empty, rendered black")
+                                     "frame (slam.dense.mapping.mapper.fallback_depth); off leaves them empty, "
+                                     "rendered black")
     no_depth_min_region: float = Field(0.01, ge=0, le=1, description="... regions (>= 3 px across) covering at "
                                        "least this fraction of the image; smaller holes are left to the "
                                        "Gaussians around them")
-    max_new_gaussians: int = Field(30000, ge=1)
-    init_opacity: float = Field(0.5, gt=0, lt=1)
-    init_scale_factor: float = Field(2.0, gt=0, description="initial radius = factor x stride x pixel footprint / 2. "
-                                     "2 (was 1) measured on Redwood at 320 px: 31.4 vs 28.1 dB, 100k vs 166k "
-                                     "Gaussians, and an opaque map (median alpha 0.996 vs 0.953)")
+    max_new_gaussians: int = Field(30000, ge=1, description="at most this many Gaussians seeded per keyframe")
+    init_opacity: float = Field(0.5, gt=0, lt=1, description="opacity of a new Gaussian")
+    init_scale_factor: float = Field(2.0, gt=0, description="initial radius = factor x stride x pixel footprint / "
+                                                            "2 (metres at the pixel's depth)")
     lambda_color: float = Field(0.5, ge=0, le=1, description="λ_c of eq. 3")
     alpha_power: float = Field(0.0, ge=0, description="soft alpha mask M_α = alpha^p (0 = no mask)")
     inlier_k: float = Field(50.0, gt=0, description="M_in: drop pixels whose error exceeds k x median error")
     lr_means: float = Field(5e-4, gt=0, description="metres per step (scaled by the scene depth)")
-    lr_log_scales: float = Field(5e-3, gt=0)
-    lr_quats: float = Field(1e-3, gt=0)
-    lr_opacities: float = Field(5e-2, gt=0)
-    lr_colors: float = Field(2e-2, gt=0)
-    prune_min_opacity: float = Field(0.05, ge=0, lt=1)
-    prune_max_scale: float = Field(0.5, gt=0, description="metres")
+    lr_log_scales: float = Field(5e-3, gt=0, description="Adam step on the log scales")
+    lr_quats: float = Field(1e-3, gt=0, description="Adam step on the rotation quaternions")
+    lr_opacities: float = Field(5e-2, gt=0, description="Adam step on the opacity logits")
+    lr_colors: float = Field(2e-2, gt=0, description="Adam step on the colours (RGB in [0, 1])")
+    prune_min_opacity: float = Field(0.05, ge=0, lt=1, description="Gaussians below this opacity are removed")
+    prune_max_scale: float = Field(0.5, gt=0, description="Gaussians larger than this (m) are removed")
     isotropic_regulariser: float = Field(10.0, ge=0, description="penalty on scales far from their mean")
-    seed: int = 0
+    seed: int = Field(0, description="seed of the keyframe sampling")
 
 
 class MapRefineConfig(_Section):
     """Server-side refinement of each component's merged map after the final pose-graph optimisation
-    (slam.dense.mapping.refine_merged). Measured on the demo data: submaps overlap, and the merged map renders ~6 dB below each
-    submap alone until it is optimised jointly over all keyframes."""
+    (slam.dense.mapping.refine_merged): the merged map optimised jointly over all keyframes."""
 
     iterations_per_keyframe: int = Field(16, ge=0, description="optimisation steps per keyframe of the component "
-                                         "(one keyframe per step); 0 disables refinement. 16 against 8 (session "
-                                         "8): Redwood 211 merged map 30.07 vs 29.19 dB at 320x240 for 46 vs 22 s, "
-                                         "a generated agent 27.81 vs 27.24 dB for 23 vs 11 s, rgbd5 34.41 vs 33.79 "
-                                         "dB; 24 (Redwood, capped at max_iterations): 30.40 dB for 59 s")
+                                         "(one keyframe per step); 0 disables refinement")
     max_iterations: int = Field(1000, ge=0, description="cap on the steps per component (bounds the time)")
-    lr_scale: float = Field(1.0, gt=0, description="learning rates start at mapping's lr_* times this (until "
-                                                    "session 11: 0.5, constant)")
+    lr_scale: float = Field(1.0, gt=0, description="learning rates start at mapping's lr_* times this")
     lr_final_scale: float = Field(0.3, gt=0, le=1, description="the learning rates decay geometrically to this "
-                                  "fraction of their start over the refinement's steps (1 = constant). Measured "
-                                  "with lr_scale 1: +0.6 dB on the demo, +0.4 dB on Redwood 211 (42 of 43 views) "
-                                  "against 0.5 constant")
-    lambda_color: float = Field(0.9, ge=0, le=1, description="λ_c of eq. 3 here: geometry is settled by mapping; "
-                                                             "the noisy depth term mostly fights colour detail")
-    isotropic_regulariser: float = Field(0.0, ge=0, description="mapping's penalty on anisotropic scales; off "
-                                                                "here so Gaussians can follow texture edges")
+                                  "fraction of their start over the refinement's steps (1 = constant)")
+    lambda_color: float = Field(0.9, ge=0, le=1, description="λ_c of eq. 3 in the refinement")
+    isotropic_regulariser: float = Field(0.0, ge=0, description="mapping's penalty on anisotropic scales (0 = "
+                                                                "off)")
     min_contribution: float = Field(0.2, ge=0, description="first drop Gaussians whose total blending weight is "
                                     "below this many pixels in every keyframe (copies hidden behind another "
                                     "submap's surface); 0 keeps all")
     overlap_cull: bool = Field(True, description="before refining, keep each surface point in one submap only: "
                                "the one whose keyframe observed it on its depth surface from closest "
-                               "(slam.dense.mapping.overlap_cull). Measured on Redwood 211: 256k -> 108k Gaussians, 27.26 dB "
-                               "after refinement against 27.09, in 57 s against 100 s")
+                               "(slam.dense.mapping.overlap_cull)")
     overlap_depth_tolerance: float = Field(0.03, ge=0, description="a keyframe observes a Gaussian's centre when "
                                            "it lies within max(this (m), overlap_depth_tolerance_rel x depth) of "
                                            "the keyframe's depth at its pixel")
@@ -170,23 +151,18 @@ class MapRefineConfig(_Section):
                                                "w x h x 7 bytes per keyframe), 'small' = the loop-closure copies "
                                                "(submaps.keep_keyframe_width): faster, blurrier above that width")
     single_agent: bool = Field(True, description="`swarmsplat run` refines its one agent's merged map the same "
-                               "way after the last frame (its submaps overlap as a team's do). Measured with the "
-                               "overlap cull: Redwood 211 psnr_merged 23.3 -> 27.3 dB (320x240) for 56 s, a "
-                               "generated agent 21.1 -> 25.1 dB for 25 s; false skips it")
+                               "way after the last frame (its submaps overlap as a team's do); false skips it")
     refine_poses: bool = Field(False, description="also refine each keyframe's pose with the map (photometric "
                                "bundle adjustment; each agent's first keyframe holds its gauge); the keyframes and "
                                "the frames tracked after them then follow the refined poses "
-                               "(Keyframe.T_local_refined). Measured: merged map +1.0 dB on the demo, +0.66 dB on "
-                               "Redwood 211, but the demo's team ATE 0.30 -> 0.38 cm, so off by default")
+                               "(Keyframe.T_local_refined)")
     lr_pose_rotation: float = Field(1e-3, gt=0, description="Adam step on a keyframe's rotation (rad)")
-    lr_pose_translation: float = Field(3e-4, gt=0, description="Adam step on a keyframe's translation (m); 1e-3 "
-                                       "measured team ATE 0.40 against 0.38 cm on the demo")
+    lr_pose_translation: float = Field(3e-4, gt=0, description="Adam step on a keyframe's translation (m)")
     optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "
                                                     "Gaussians of each step's view only, with per-Gaussian bias "
                                                     "correction (slam.dense.mapping.selective_adam); 'adam': torch's Adam over "
-                                                    "the whole merged map every step. Measured equal (demo 26.89 "
-                                                    "vs 26.91 dB, Redwood 27.04 vs 27.05 dB, same time within 8 %)")
-    seed: int = 0
+                                                    "the whole merged map every step")
+    seed: int = Field(0, description="seed of the keyframe order")
 
 
 class SubmapConfig(_Section):
@@ -197,11 +173,11 @@ class SubmapConfig(_Section):
 
 
 class LoopClosureConfig(_Section):
-    enabled: bool = True
+    enabled: bool = Field(True, description="look for loop closures (a team: the server looks for them)")
     descriptor: Literal["thumbnail", "bow", "vlad", "xfeat-vlad", "auto"] = Field(
         "thumbnail", description="keyframe descriptor from registration.place_recognition; 'thumbnail' needs no "
                                  "weights or vocabulary, 'bow'/'vlad' need `vocabulary`; 'xfeat-vlad' (VLAD over "
-                                 "XFeat, recall@1 0.96 vs 0.50 thumbnail on Redwood revisits) takes `vocabulary` "
+                                 "XFeat) takes `vocabulary` "
                                  "or trains one from the agent's first `vocabulary_keyframes` keyframes; "
                                  "'auto' = thumbnail")
     vocabulary: str | None = Field(None, description="BoW/VLAD vocabulary (.npz) for descriptor bow/vlad/xfeat-vlad")
@@ -216,8 +192,7 @@ class LoopClosureConfig(_Section):
     pose_max_angle_deg: float = Field(45.0, gt=0, le=180, description="... and viewing directions at most this apart")
     pose_min_overlap: float = Field(0.3, ge=0, le=1, description="... and at least this fraction of the query's "
                                     "depth pixels reprojected into the match with consistent depth")
-    tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate (measured on generated data: "
-                                                          "revisits 0.90-0.98, other views <= 0.77)")
+    tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate of a descriptor candidate")
     min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
     min_baseline: float = Field(0.0, ge=0, description="optional spatial gap between keyframe poses (m)")
     fitness_min: float = Field(0.5, ge=0, le=1, description="τ_f: accept when ICP fitness is above")
@@ -243,8 +218,7 @@ class LoopClosureConfig(_Section):
 
 
 class KernelsConfig(_Section):
-    backend: Literal["warp", "taichi"] = "warp"
-    device: Literal["cpu", "cuda", "vulkan"] = "cpu"
-    torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default). The per-call "
-                                                    "tensors are small, so one thread avoids costly thread "
-                                                    "hand-offs; the kernels bring their own parallelism")
+    backend: Literal["warp", "taichi"] = Field("warp", description="kernel backend (--kernels)")
+    device: Literal["cpu", "cuda", "vulkan"] = Field("cpu", description="kernel device (--device; vulkan: taichi "
+                                                                        "only)")
+    torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default)")

@@ -1,4 +1,5 @@
-"""The team server's settings (slam.dense.team.server.Server; the `server` section of a team run's server.yaml)."""
+"""The `server` section: the GRAND-SLAM team server's settings (slam.dense.team.server.Server); a team run writes
+it as server.yaml too."""
 
 from __future__ import annotations
 
@@ -26,15 +27,11 @@ class ServerConfig(BaseModel):
     coarse: Literal["learned", "fpfh"] = Field(
         "learned", description="coarse start for agents not yet in one frame: 'learned' = XFeat + LighterGlue "
                                "matches lifted with depth and a RANSAC rigid fit (slam.dense.loops.learned_coarse; each "
-                               "keyframe encoded once), 'fpfh' = FPFH + RANSAC (global_fallback). Measured on "
-                               "40 demo cross-agent pairs at keyframe size (160x120): a usable start (< 3 deg / "
-                               "10 cm) for 13 vs 2, at 0.11 vs ~2.6 s CPU per pair")
+                               "keyframe encoded once), 'fpfh' = FPFH + RANSAC (global_fallback)")
     learned_fallback: bool = Field(False, description="coarse learned: try FPFH + RANSAC when the learned guess "
-                                                      "is not found (measured: it solved no pair the learned "
-                                                      "guess missed, at ~25x the time)")
+                                                      "is not found")
     same_frame_fallback: bool = Field(False, description="FPFH + RANSAC restart also for agents already in one "
-                                      "frame when the start from their relative pose fails (demo replay: off "
-                                      "saved 172 s of 544 s with the same ATE and joins)")
+                                      "frame when the start from their relative pose fails")
     tau_sim: float = Field(0.85, ge=-1, le=1, description="inter-agent cosine similarity gate")
     top_k: int = Field(2, ge=1, description="inter-agent candidates checked per new keyframe (best first)")
     global_fallback: bool = Field(True, description="FPFH + RANSAC start when agents are not yet in one frame "
