@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
 
-from ..datasets._sequence import _row, poses_at
+from ..datasets._sequence import FramesBase, _row, poses_at
 from ..datasets.associate import associate_unique
 from ..datasets.base import Frame
 from .decode import camera_from_info, decode_color, decode_depth, pose_of, stamp_of
@@ -47,7 +46,7 @@ def open_reader(path: Path):
     return reader
 
 
-class BagSequence:
+class BagSequence(FramesBase):
     """A `Sequence` (slam.io.datasets.base) over one agent's topics of a bag."""
 
     def __init__(self, path: str | Path, topics: TopicChoice, *, name: str | None = None,
@@ -172,18 +171,9 @@ class BagSequence:
         self._stream[1] = i + 1
         return {k[0]: self._stash.pop(k) for k in keys}
 
-    def __len__(self) -> int:
-        return len(self._t)
-
     def __getitem__(self, i: int) -> Frame:
-        n = len(self)
-        if not isinstance(i, (int, np.integer)):
-            raise TypeError(f"frame index must be an integer, got {type(i).__name__}")
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError(f"frame {i} out of range for bag sequence '{self.name}' of {n} frames")
-        msgs = self._messages(int(i))
+        i = self._checked_index(i)
+        msgs = self._messages(i)
         conn, raw = msgs[self.topics.color]
         color = decode_color(self._reader.deserialize(raw, conn.msgtype), conn.msgtype, self._where(conn.topic))
         self._check_size(color, self.topics.color)
@@ -202,25 +192,9 @@ class BagSequence:
             raise InputError(f"{self._where(topic)}: image is {img.shape[1]}x{img.shape[0]}, expected "
                              f"{self.camera.width}x{self.camera.height} (camera_info)")
 
-    def __iter__(self) -> Iterator[Frame]:
-        for i in range(len(self)):
-            yield self[i]
-
     @property
     def is_rgbd(self) -> bool:
         return self._depth_conn is not None
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._t
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        return self._gt
-
-    @property
-    def odometry(self) -> np.ndarray | None:
-        return self._odom
 
     def close(self) -> None:
         if self._reader is not None:

@@ -14,7 +14,46 @@ from ._images import check_size, read_color, read_depth
 from .base import Frame
 
 
-class ImageSequence:
+class FramesBase:
+    """What every concrete `Sequence` shares: stamps `_t` [N], poses `_gt` / `_odom` [N, 4, 4] or None, iteration
+    and the checked frame index."""
+
+    name: str
+    _t: np.ndarray
+    _gt: np.ndarray | None
+    _odom: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def _checked_index(self, i) -> int:
+        n = len(self)
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError(f"frame index must be an integer, got {type(i).__name__}")
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i} out of range for sequence '{self.name}' of {n} frames")
+        return int(i)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._t
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        return self._gt
+
+    @property
+    def odometry(self) -> np.ndarray | None:
+        return self._odom
+
+
+class ImageSequence(FramesBase):
     """One agent's recording. Poses are T_world_cam [N, 4, 4]; a NaN row means "unknown for this frame"
     (e.g. EuRoC frames before motion capture starts)."""
 
@@ -51,17 +90,8 @@ class ImageSequence:
     def is_rgbd(self) -> bool:
         return self.depth_paths is not None
 
-    def __len__(self) -> int:
-        return len(self.color_paths)
-
     def __getitem__(self, i: int) -> Frame:
-        n = len(self)
-        if not isinstance(i, (int, np.integer)):
-            raise TypeError(f"frame index must be an integer, got {type(i).__name__}")
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError(f"frame {i} out of range for sequence '{self.name}' of {n} frames")
+        i = self._checked_index(i)
         cam = self.camera
         cp = self.color_paths[i]
         color = read_color(cp)
@@ -80,22 +110,6 @@ class ImageSequence:
             T_world_cam_gt=_row(self._gt, i),
             T_world_cam_odom=_row(self._odom, i),
         )
-
-    def __iter__(self) -> Iterator[Frame]:
-        for i in range(len(self)):
-            yield self[i]
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._t
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        return self._gt
-
-    @property
-    def odometry(self) -> np.ndarray | None:
-        return self._odom
 
     def __repr__(self) -> str:
         kind = "rgbd" if self.is_rgbd else "mono"
