@@ -265,8 +265,14 @@ def test_warp_equals_taichi():
         ((out.color * wts).sum() + out.depth.sum() + out.alpha.sum()).backward()
         results[name] = (out, {k: v.grad for k, v in p.items()}, vm.grad)
     (ow, gw, vw), (ot, gt, vt) = results["warp"], results["taichi"]
-    for f in ("color", "depth", "alpha"):
+    # The backends round differently (their own power expression, exp and, per CPU, FMA contraction): each layer's
+    # alpha differs by a few float32 roundings (~1e-6 relative after the cancelling quadratic form), and a pixel
+    # composites tens of layers, so alpha and colour (both <= 1) differ by up to ~100 roundings, 1e-5 (3.5e-6 and
+    # 1.7e-6 measured). Depth = sum of w_i z_i carries the same weights' error times z: its bound is 1e-5 of the
+    # farthest depth, not an absolute 1e-5 (1.1e-5 measured at 1.1 m, with depths to 3.9 m).
+    for f in ("color", "alpha"):
         assert torch.allclose(getattr(ow, f), getattr(ot, f), atol=1e-5), f
+    assert torch.allclose(ow.depth, ot.depth, atol=1e-5 * float(ot.depth.max()))
     assert torch.equal(ow.radii, ot.radii) and torch.equal(ow.n_touched, ot.n_touched)
     for k in gw:
         assert torch.allclose(gw[k], gt[k], rtol=1e-4, atol=1e-4 * gt[k].abs().max().item()), k
