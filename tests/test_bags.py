@@ -216,3 +216,30 @@ def test_bag_info_lists_topics_counts_rates_and_the_choice(generated, tmp_path, 
     assert "/camera/color/image_raw" in out and "sensor_msgs/msg/Image" in out and "a run takes:" in out
     assert json.loads((tmp_path / "info.json").read_text())["messages"] == info["messages"]
     assert main(["bag-info", str(tmp_path / "none.bag")]) == 2
+
+
+def test_an_mcap_cut_short_is_read_to_its_last_complete_message(generated, tmp_path):
+    """A recorder killed mid-write leaves no summary and no footer: the complete chunks are read, with a warning.
+    (rosbags' writer closes a chunk past 1 MiB: 40 frames of 160x120 RGB-D make several.)"""
+    seq = load_sequence(generated / "agent_0")
+
+    class Looped:
+        camera, gt_poses, odometry, depth_scale, is_rgbd = seq.camera, None, None, 5000.0, True
+
+        def __len__(self):
+            return 40
+
+        def __getitem__(self, i):
+            f = seq[i % len(seq)]
+            f.timestamp = i / 30.0
+            return f
+
+    (whole,) = write_bag(Looped(), tmp_path / "whole", "mcap").glob("*.mcap")
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.7)])
+    with pytest.warns(UserWarning, match=r"cut.mcap: the file ends mid-record \(a recording cut short\); read its"):
+        bag = load_bag_sequence(cut)
+    assert 10 <= len(bag) < 40
+    for i in (0, len(bag) - 1):
+        assert np.array_equal(bag[i].color, seq[i % len(seq)].color)

@@ -33,7 +33,7 @@ def is_bag(path: str | Path) -> bool:
 
 
 def _types(path: Path) -> dict[str, str]:
-    reader = open_reader(path)
+    reader = open_reader(path, warn=False)  # the sequence's own opening warns
     try:
         return {name: info.msgtype for name, info in reader.topics.items()}
     finally:
