@@ -105,22 +105,27 @@ def test_topics_given_found_and_ambiguous(generated, tmp_path):
         parse_topics("colour=/x")
 
 
+class _Looped:
+    """A sequence's frames over and over, `n` in all, stamped 1/30 s apart (no poses)."""
+
+    def __init__(self, seq, n: int):
+        self.seq, self.n = seq, n
+        self.camera, self.gt_poses, self.odometry, self.is_rgbd = seq.camera, None, None, True
+        self.depth_scale = seq.depth_scale
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, i):
+        f = self.seq[i % len(self.seq)]
+        f.timestamp = i / 30.0
+        return f
+
+
 def test_reading_a_long_bag_keeps_memory_flat(generated, tmp_path):
     """Frames stream: the memory held while reading every frame in turn is a few frames, not the bag."""
     seq = load_sequence(generated / "agent_0")
-
-    class Looped:  # the 8 generated frames, 30 times over, stamped 1/30 s apart
-        camera, gt_poses, odometry, depth_scale, is_rgbd = seq.camera, None, None, 5000.0, True
-
-        def __len__(self):
-            return 240
-
-        def __getitem__(self, i):
-            f = seq[i % len(seq)]
-            f.timestamp = i / 30.0
-            return f
-
-    bag = load_bag_sequence(write_bag(Looped(), tmp_path / "long", "mcap"))
+    bag = load_bag_sequence(write_bag(_Looped(seq, 240), tmp_path / "long", "mcap"))
     frame_bytes = seq.camera.width * seq.camera.height * (3 + 4)
     tracemalloc.start()
     for i in range(len(bag)):
@@ -222,19 +227,7 @@ def test_an_mcap_cut_short_is_read_to_its_last_complete_message(generated, tmp_p
     """A recorder killed mid-write leaves no summary and no footer: the complete chunks are read, with a warning.
     (rosbags' writer closes a chunk past 1 MiB: 40 frames of 160x120 RGB-D make several.)"""
     seq = load_sequence(generated / "agent_0")
-
-    class Looped:
-        camera, gt_poses, odometry, depth_scale, is_rgbd = seq.camera, None, None, 5000.0, True
-
-        def __len__(self):
-            return 40
-
-        def __getitem__(self, i):
-            f = seq[i % len(seq)]
-            f.timestamp = i / 30.0
-            return f
-
-    (whole,) = write_bag(Looped(), tmp_path / "whole", "mcap").glob("*.mcap")
+    (whole,) = write_bag(_Looped(seq, 40), tmp_path / "whole", "mcap").glob("*.mcap")
     data = whole.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.7)])
