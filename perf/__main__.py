@@ -29,6 +29,7 @@ SUBJECTS = {
     "loops-real": ".loops_real",
     "realpairs": ".real_pairs",
     "placerec": ".place_recognition",
+    "bags": ".bags",
 }
 
 
