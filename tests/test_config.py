@@ -93,9 +93,10 @@ def test_preset_then_file_then_overrides(tmp_path):
 BAD = {  # file text, the error after "FILE"
     "section": ("bogus: {a: 1}\n", ": field 'bogus': unknown section or key; expected one of image, tracking, "
                                    "keyframes, mapping, map_refine, submaps, loop_closure, kernels, max_frames, "
-                                   "server, team, swarm, demo"),
+                                   "server, team, swarm, pairs, demo"),
     "key": ("swarm:\n  strides: 2\n", ": field 'swarm.strides': unknown key of section 'swarm'; expected one of "
-                                      "stride, schedule, strict,"),
+                                      "strict, place, place_checkpoint, backend, checkpoint, device, r_thr, k, "
+                                      "stride, schedule,"),
     "value": ("server:\n  tau_sim: 3\n", ": field 'server.tau_sim': expected a number <= 1, got 3"),
     "choice": ("swarm: {formulation: xx}\n", ": field 'swarm.formulation': expected one of 'is', 'ss', 'base' or "
                                              "'shared', got 'xx'"),
@@ -108,6 +109,7 @@ COMMANDS = {
     "demo": "demo --out NEW --preset tiny",
     "swarm": "swarm MONO --out NEW",
     "robot": "robot --id 0 MONO --out NEW --start-time 0",
+    "pairs": "pairs MONO --out NEW",
 }
 
 
@@ -202,6 +204,17 @@ def test_swarm_preset(data, tmp_path):
                  "--schedule", data["SCHEDULE"]]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert (m["formulation"], m["solver"], m["uniform_noise"]) == ("base", "gnc", True)
+
+
+def test_pairs_reads_the_file_flags_override_it_and_the_config_is_written(data, tmp_path):
+    from swarmsplat.slam.run.pairs import config_path, metrics_path
+
+    f = _write(tmp_path / "c.yaml", "pairs:\n  stride: 3\n  top_k: 2\n")
+    out = tmp_path / "p" / "pairs.csv"
+    assert main(["pairs", data["MONO"], "--out", str(out), "--config", f, "--stride", "2", "--quiet"]) == 0
+    used = SlamConfig.from_yaml(config_path(out))
+    assert (used.pairs.stride, used.pairs.top_k) == (2, 2) and config_path(out).name == "pairs.config.yaml"
+    assert json.loads(metrics_path(out).read_text())["n_keyframes"] == 6  # 2 agents x frames 0, 2, 4
 
 
 @pytest.mark.slow

@@ -30,3 +30,8 @@ def load_config(config: str | None, flags: dict[str, tuple[str, Any]], preset: s
             update = {key: update}
         cfg = cfg.override(update, where=f"{flag} {value}" if not isinstance(value, bool) else flag)
     return cfg
+
+
+def section_flags(args, section: str, keys) -> dict[str, tuple[str, Any]]:
+    """`load_config`'s flags for options named after keys of `section`: --a-b sets section.a_b."""
+    return {f"--{key.replace('_', '-')}": (f"{section}.{key}", getattr(args, key)) for key in keys}

@@ -35,11 +35,10 @@ def add_swarm_options(p) -> None:
 
 def swarm_config(args):
     """The config tree of `swarm` / `robot`: --preset, then --config, then the swarm flags given."""
-    from swarmsplat.slam.cli.config_flags import load_config
+    from swarmsplat.slam.cli.config_flags import load_config, section_flags
 
-    flags = {f"--{name.replace('_', '-')}": (f"swarm.{name}", getattr(args, name))
-             for name in ("formulation", "solver", "uniform_noise", "schedule", "stride", "place",
-                          "place_checkpoint", "backend", "r_thr", "k", "strict", "port_base")}
+    flags = section_flags(args, "swarm", ("formulation", "solver", "uniform_noise", "schedule", "stride", "place",
+                                          "place_checkpoint", "backend", "r_thr", "k", "strict", "port_base"))
     return load_config(args.config, flags, preset=args.preset)
 
 

@@ -1,13 +1,13 @@
 """One validated config tree for every command: the agent pipeline's sections, the team server's, a team run's,
-the swarm's and the demo's (slam.config.tree.SlamConfig); presets are YAML files in configs/."""
+the swarm's, the pairs command's and the demo's (slam.config.tree.SlamConfig); presets are YAML files in configs/."""
 
 from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfig, MapRefineConfig, MappingConfig,
                     SubmapConfig, TrackingConfig)
 from .load import preset_names
 from .server import ServerConfig
-from .swarm import SwarmConfig
-from .tree import DemoConfig, SlamConfig, TeamConfig
+from .swarm import PairsConfig, SwarmConfig
+from .tree import DemoConfig, SlamConfig, TeamConfig, with_section
 
 __all__ = ["DemoConfig", "ImageConfig", "KernelsConfig", "KeyframeConfig", "LoopClosureConfig", "MapRefineConfig",
-           "MappingConfig", "ServerConfig", "SlamConfig", "SubmapConfig", "SwarmConfig", "TeamConfig",
-           "TrackingConfig", "preset_names"]
+           "MappingConfig", "PairsConfig", "ServerConfig", "SlamConfig", "SubmapConfig", "SwarmConfig", "TeamConfig",
+           "TrackingConfig", "preset_names", "with_section"]

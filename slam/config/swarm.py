@@ -1,5 +1,6 @@
 """The `swarm` section: FLOCC-SLAM's decentralised loop closing over the robots of a monocular dataset
-(`swarmsplat swarm` and `swarmsplat robot`; slam.run.swarm builds the robots' NodeConfig and SolveConfig from it)."""
+(`swarmsplat swarm` and `swarmsplat robot`; slam.run.swarm builds the robots' NodeConfig and SolveConfig from it);
+and the `pairs` section: the same front-end over every keyframe pair of a dataset (`swarmsplat pairs`)."""
 
 from __future__ import annotations
 
@@ -8,16 +9,13 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 
-class SwarmConfig(BaseModel):
+class _FrontEnd(BaseModel):
+    """Place recognition and image-pair registration (slam.flocc.frontend), shared by `swarm` and `pairs`."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    # keyframes and schedule
-    stride: int = Field(4, ge=1, description="every stride-th frame of a robot is a keyframe")
-    schedule: str | None = Field(None, description="rendezvous schedule YAML (slam.flocc.swarm.rendezvous); "
-                                                   "null: pairs meet while recording, everyone at the end")
-    strict: bool = Field(False, description="stop at the first unreadable keyframe image; false skips it with a "
-                                            "warning and lists it under skipped_frames in metrics.json")
-    # front-end: place recognition and pair registration
+    strict: bool = Field(False, description="stop at the first unreadable keyframe image; false leaves it out with "
+                                            "a warning and lists it under skipped_frames in the metrics")
     place: str = Field("bow", description="place recognition: bow, vlad, xfeat-vlad, cosplace or netvlad")
     place_checkpoint: str | None = Field(None, description="weights of cosplace / netvlad, or a bow / vlad "
                                                            "vocabulary .npz; null trains the vocabulary on the "
@@ -25,10 +23,18 @@ class SwarmConfig(BaseModel):
     backend: str = Field("classical", description="pair registration: classical, xfeat, mast3r or lightglue")
     checkpoint: str | None = Field(None, description="weights of the pair backend (mast3r)")
     device: Literal["cpu", "cuda"] = Field("cpu", description="torch device of the learned backends")
-    threshold: float = Field(0.1, ge=-1, le=1, description="cosine similarity a loop candidate needs")
     r_thr: float | None = Field(None, ge=0, description="correspondence-ratio gate R_thr of eq. 1; null: the pair "
                                                        "backend's default (slam.flocc.frontend.default_r_thr)")
     k: float | None = Field(None, gt=0, description="logistic steepness k of eq. 2; null: the graph's default")
+
+
+class SwarmConfig(_FrontEnd):
+    """FLOCC-SLAM's robots: keyframes, schedule, front-end, network and pose graph."""
+
+    stride: int = Field(4, ge=1, description="every stride-th frame of a robot is a keyframe")
+    schedule: str | None = Field(None, description="rendezvous schedule YAML (slam.flocc.swarm.rendezvous); "
+                                                   "null: pairs meet while recording, everyone at the end")
+    threshold: float = Field(0.1, ge=-1, le=1, description="cosine similarity a loop candidate needs")
     # network
     neighbour_timeout: int = Field(3, ge=1, description="ticks without a hello before a robot counts as out of "
                                                         "range")
@@ -47,3 +53,13 @@ class SwarmConfig(BaseModel):
     loop_sigma_rot: float = Field(0.05, gt=0, description="loop edge std at confidence 1 (rad)")
     loop_sigma_trans: float = Field(0.1, gt=0, description="loop edge std at confidence 1 (m, unit-scale "
                                                            "translation)")
+
+
+class PairsConfig(_FrontEnd):
+    """`swarmsplat pairs`: every keyframe's nearest neighbours among the other agents' keyframes, registered and
+    scored."""
+
+    stride: int = Field(1, ge=1, description="every stride-th frame of an agent is a keyframe")
+    threshold: float | None = Field(0.1, ge=-1, le=1, description="cosine similarity a candidate needs; null: "
+                                                                 "every nearest neighbour")
+    top_k: int = Field(1, ge=1, description="neighbours per keyframe")

@@ -1,5 +1,6 @@
 """The one config tree every command reads: the agent pipeline's sections at the top level (as in every existing
-YAML file), then `server` (the GRAND-SLAM team server), `team` (a team run), `swarm` (FLOCC-SLAM) and `demo`.
+YAML file), then `server` (the GRAND-SLAM team server), `team` (a team run), `swarm` (FLOCC-SLAM), `pairs` (the
+front-end over a dataset's keyframe pairs) and `demo`.
 
     cfg = SlamConfig.from_yaml("my.yaml")                    # defaults, then the file
     cfg = SlamConfig.from_yaml("my.yaml", preset="demo")     # configs/demo.yaml, then the file
@@ -15,13 +16,13 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfig, MapRefineConfig, MappingConfig,
                     SubmapConfig, TrackingConfig, _Section)
 from .load import deep_merge, preset_path, read_yaml, validate
 from .server import ServerConfig
-from .swarm import SwarmConfig
+from .swarm import PairsConfig, SwarmConfig
 
 
 class TeamConfig(_Section):
@@ -53,6 +54,7 @@ class SlamConfig(_Section):
     server: ServerConfig = ServerConfig()
     team: TeamConfig = TeamConfig()
     swarm: SwarmConfig = SwarmConfig()
+    pairs: PairsConfig = PairsConfig()
     demo: DemoConfig = DemoConfig()
 
     @model_validator(mode="after")
@@ -92,3 +94,13 @@ class SlamConfig(_Section):
             data = deep_merge(data, read_yaml(path))
         cfg = validate(SlamConfig, data, where)
         return cfg.override(overrides) if overrides else cfg
+
+
+def with_section(config: SlamConfig | BaseModel | None, section: str, options: dict[str, Any],
+                 where: str | None = None) -> SlamConfig:
+    """The tree `config` (None: the defaults; a lone section model takes its place in them) with `options`
+    overriding its `section` (validated; errors start with `where`, default "<section> options")."""
+    if config is not None and not isinstance(config, SlamConfig):
+        config = SlamConfig().model_copy(update={section: config})
+    cfg = config or SlamConfig()
+    return cfg.override({section: options}, where=where or f"{section} options") if options else cfg

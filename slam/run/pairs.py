@@ -19,7 +19,7 @@ from swarmsplat.kernels import se3
 from swarmsplat.kernels.errors import InputError
 from swarmsplat.kernels.fileio import atomic_write_text, output_file
 from swarmsplat.registration.pair.base import direction_error_deg, rotation_error_deg
-
+from swarmsplat.slam.config import PairsConfig, SlamConfig, with_section
 from swarmsplat.slam.io.jsonio import write_json
 from swarmsplat.slam.run.guard import SkipLog, guarded, keep, read_frame
 
@@ -53,6 +53,12 @@ class PairsSummary:
                 f"{self.mean_encoding_bytes:.0f} B per keyframe -> {self.out}")
 
 
+def config_path(out: str | Path) -> Path:
+    """The config tree the run used, beside the candidates CSV (pairs.csv -> pairs.config.yaml)."""
+    out = Path(out)
+    return out.with_name(out.stem + ".config.yaml")
+
+
 def metrics_path(out: str | Path) -> Path:
     """The JSON beside the candidates CSV: status, counts and skipped_frames (pairs.csv -> pairs.metrics.json)."""
     out = Path(out)
@@ -70,22 +76,21 @@ def gt_errors(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
 
 
 @guarded("pairs")
-def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical", place: str = "bow",
-              checkpoint: str | None = None, place_checkpoint: str | None = None, threshold: float | None = 0.1,
-              top_k: int = 1, stride: int = 1, r_thr: float | None = None, k: float | None = None,
-              vocabulary_out: str | None = None, device: str = "cpu", trust_checkpoint: bool = False,
-              progress: bool = True, strict: bool = False) -> PairsSummary:
-    """Run the front-end over `dataset` and write one CSV row per candidate to `out` (atomically), and the run's
-    status, counts and skipped keyframes to `metrics_path(out)`.
+def run_pairs(dataset: str | Path, out: str | Path, config: SlamConfig | PairsConfig | None = None, *,
+              vocabulary_out: str | None = None, trust_checkpoint: bool = False, progress: bool = True,
+              **options) -> PairsSummary:
+    """Run the front-end over `dataset` and write one CSV row per candidate to `out` (atomically), the run's
+    status, counts and skipped keyframes to `metrics_path(out)`, and the config tree used to `config_path(out)`.
 
+    config: the tree (or its pairs section); options: PairsConfig fields overriding it —
     backend: pair registration (classical | xfeat | mast3r | lightglue); checkpoint: its weights (mast3r).
     place: bow | vlad | xfeat-vlad | cosplace | netvlad; place_checkpoint: its weights (or a vocabulary .npz). Without a
         vocabulary, one is trained on the dataset's keyframes (deterministic) and saved to `vocabulary_out` if given.
     threshold: cosine similarity threshold (None: every nearest neighbour); top_k: neighbours per keyframe;
     stride: use every stride-th frame as a keyframe. r_thr, k: the gate and logistic of eqs. (1)-(2).
-    trust_checkpoint: let the MASt3R loader unpickle more than tensors (only for files from a trusted source).
     strict: stop at an unreadable keyframe image (default: leave it out with a warning). An interrupt or a failure
     writes the rows registered so far with status "interrupted" / "failed" and re-raises.
+    trust_checkpoint: let the MASt3R loader unpickle more than tensors (only for files from a trusted source).
     """
     from swarmsplat.graph.confidence import K_DEFAULT
     from swarmsplat.registration.pair import make_registrar
@@ -94,10 +99,9 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     from swarmsplat.slam.flocc.frontend import LoopFrontend
     from swarmsplat.slam.io.progress import bar as progress_bar
 
-    if stride < 1 or top_k < 1:
-        raise InputError(f"stride and top_k must be >= 1, got stride={stride}, top_k={top_k}")
-    if threshold is not None and not -1.0 <= threshold <= 1.0:
-        raise InputError(f"threshold is a cosine similarity in [-1, 1], got {threshold}")
+    cfg = with_section(config, "pairs", options)
+    p = cfg.pairs
+    backend, place, device, stride, strict, k = p.backend, p.place, p.device, p.stride, p.strict, p.k
     output_file(out, "--out")
     ds = load_dataset(dataset)
     if len(ds.agents) < 2:
@@ -108,12 +112,12 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
     seqs = dict(zip(names, ds.agents))
     kf = {a: list(range(0, len(s), stride)) for a, s in seqs.items()}  # keyframe index -> frame index
     extra = {"trust_checkpoint": True} if (trust_checkpoint and backend == "mast3r") else {}
-    registrar = make_registrar(backend, checkpoint=checkpoint, device=device, **extra)  # fail fast (no weights, ...)
+    registrar = make_registrar(backend, checkpoint=p.checkpoint, device=device, **extra)  # fail fast (no weights, ...)
 
     def image_of(agent: str, i: int) -> np.ndarray:
         return seqs[agent][kf[agent][i]].color
 
-    recognizer = make_recognizer(place, checkpoint=place_checkpoint, device=device)
+    recognizer = make_recognizer(place, checkpoint=p.place_checkpoint, device=device)
     if place in VOCABULARY_BACKENDS and not recognizer.trained:
         every = [(a, i) for a in names for i in range(len(kf[a]))]
         pick = every[:: max(1, len(every) // 60)]  # up to ~60 training images, spread over all agents
@@ -146,14 +150,14 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
         for b in names:
             if b == a:
                 continue
-            for m in db.candidates(a, range(len(kf[a])), desc[a], threshold=threshold, k=top_k, agents=[b]):
+            for m in db.candidates(a, range(len(kf[a])), desc[a], threshold=p.threshold, k=p.top_k, agents=[b]):
                 key = frozenset([(m.query_agent, m.query_index), (m.agent, m.index)])
                 if key not in seen:
                     seen.add(key)
                     cands.append(m)
 
     front = LoopFrontend(registrar, image_of, lambda a: seqs[a].camera, lambda a: len(kf[a]),
-                         k=K_DEFAULT if k is None else k, r_thr=r_thr)
+                         k=K_DEFAULT if k is None else k, r_thr=p.r_thr)
     n_reg, n_acc, n_in = 0, 0, 0
     have_gt = all(s.gt_poses is not None for s in seqs.values())
     with progress_bar(len(cands), "[pairs] register", unit="pair", enabled=progress) as reg_bar:
@@ -174,6 +178,7 @@ def run_pairs(dataset: str | Path, out: str | Path, *, backend: str = "classical
                            float(np.mean(enc_bytes)) if enc_bytes else 0.0, ap,
                            [r for s in skips.values() for r in s.rows])
     write_json(metrics_path(out), {"status": "complete", **asdict(summary), "out": str(out)})
+    atomic_write_text(config_path(out), cfg.to_yaml())
     return summary
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from swarmsplat.kernels.errors import InputError
 from swarmsplat.kernels.fileio import output_dir
-from swarmsplat.slam.config import SlamConfig, SwarmConfig
+from swarmsplat.slam.config import SlamConfig, SwarmConfig, with_section
 from swarmsplat.slam.run.guard import SkipLog, guarded, keep, read_frame
 
 from swarmsplat.slam.flocc.swarm.node import NodeConfig, RobotNode
@@ -44,10 +44,7 @@ class SwarmSetup:
 def swarm_config(config: SlamConfig | SwarmConfig | None = None, **options) -> SlamConfig:
     """The config tree of a swarm run: `config` (a whole tree, or only its swarm section; None: the defaults) with
     `options` (SwarmConfig's fields, e.g. stride=2, formulation="ss") overriding its swarm section (validated)."""
-    if isinstance(config, SwarmConfig):
-        config = SlamConfig().model_copy(update={"swarm": config})
-    cfg = config or SlamConfig()
-    return cfg.override({"swarm": options}, where="swarm options") if options else cfg
+    return with_section(config, "swarm", options)
 
 
 def node_config(sw: SwarmConfig) -> NodeConfig:
