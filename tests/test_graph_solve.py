@@ -83,10 +83,15 @@ def test_graph_where_gtsam_initialisation_fails_still_solves():
     with pytest.raises(RuntimeError, match="Indeterminate"):
         gtsam.InitializePose3.initialize(nfg)  # the second robot has no anchor
     assert len(ab.components()) == 2
-    res = levenberg_marquardt(build_problem(ab, initial_poses=chordal_initialization(ab)), **TIGHT)
-    from_file = levenberg_marquardt(build_problem(ab), **TIGHT)
+    # Both starts must reach the same minimum. With TIGHT's relative decrease test (1e-10) LM stops in this flat
+    # valley 2.3e-7 and 4.6e-7 above it (after 66 and 190 steps), where a step rejected by one rounding more or
+    # less on another CPU stops it elsewhere; run to a decrease at float64 rounding of the cost (1e-14) instead,
+    # where the two agree to 1.2e-10 (the minimum is 40.3268243), far inside the bound.
+    converged = dict(relative_tol=1e-14, absolute_tol=1e-14, max_iterations=1000)
+    res = levenberg_marquardt(build_problem(ab, initial_poses=chordal_initialization(ab)), **converged)
+    from_file = levenberg_marquardt(build_problem(ab), **converged)
     assert np.isfinite(res.final_error)
-    assert res.final_error == pytest.approx(from_file.final_error, rel=1e-6)
+    assert res.final_error == pytest.approx(from_file.final_error, rel=1e-8)
 
 
 @pytest.fixture(scope="module")
