@@ -24,6 +24,7 @@ COMMANDS = [
     "pairs_cmd",
     "swarm_cmd",
     "robot_cmd",
+    "agent_cmd",
     "bag_info_cmd",
     "bench_cmd",
     "view_cmd",

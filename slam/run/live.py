@@ -1,0 +1,139 @@
+"""One agent on a live robot: RGB-D frames from ROS 2 topics over Zenoh (slam.io.live), each frame's pose published
+back as it is tracked, the run's results written when it ends — what `swarmsplat agent --source zenoh/...` runs.
+
+The run ends at `max_frames`, after `idle_timeout` seconds without a sample, or on Ctrl-C / SIGTERM (the normal
+end of a live run: status "complete", reason "stopped"); a second interrupt ends it at once. It writes
+trajectory.txt / trajectory_no_lc.txt / keyframes.txt (TUM), map.ply, loops.csv, config.yaml and metrics.json with
+the pose latency (arrival of the frame's later message -> pose published: p50 / p95 / max; it includes the time a
+frame waits while the agent works on earlier ones), the overhead (decoding and publishing, i.e. the latency less
+the queue wait and the agent's step) and what the source saw (samples per topic, frames, unpaired, dropped). There is no ground truth live: `swarmsplat eval` scores
+trajectory.txt later against one.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+
+from swarmsplat.kernels.fileio import atomic_write_text, output_dir
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.agent import Agent
+
+from .guard import guarded, keep
+from .partial_results import agent_counts, write_partial_agent
+from .runtime import kernels_record
+
+
+def _latency_ms(values: list[float]) -> dict:
+    if not values:
+        return {"p50": None, "p95": None, "max": None, "count": 0}
+    v = np.asarray(values) * 1e3
+    return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)), "max": float(v.max()),
+            "count": len(v)}
+
+
+class _Stop:
+    """Ctrl-C / SIGTERM end the frame loop (a live run's normal end); a second one raises as usual."""
+
+    def __init__(self):
+        self.requested = False
+        self._old = {}
+
+    def __enter__(self):
+        def handler(signum, frame):
+            if self.requested:
+                raise KeyboardInterrupt(f"signal {signum}")
+            self.requested = True
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self._old[sig] = signal.signal(sig, handler)
+            except ValueError:  # not the main thread: the caller stops the source instead
+                pass
+        return self
+
+    def __exit__(self, *exc):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+@guarded("agent")
+def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, publisher=None,
+             max_frames: int = 0, idle_timeout: float = 0.0, camera_timeout: float = 30.0,
+             silent_warning: float = 5.0, progress: bool = True) -> dict:
+    """Track and map the frames of a live `source` (slam.io.live.ZenohRos2Source) until it ends; publish each pose
+    with `publisher` (slam.io.live.PosePublisher) if given. Returns the metrics written to out_dir/metrics.json."""
+    from swarmsplat.slam.dense.ply import save_ply
+    from swarmsplat.slam.io.jsonio import write_json
+    from swarmsplat.slam.io.progress import bar
+    from swarmsplat.slam.io.trajectory import write_tum
+
+    from .runtime import use_kernels
+    from .sequence import _write_loops_csv
+
+    cfg = config or SlamConfig()
+    use_kernels(cfg.kernels)
+    out = output_dir(out_dir, "--out")
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())
+    camera = source.wait_camera(camera_timeout)
+    agent = Agent(camera, cfg, name=source.name)
+    latency: list[float] = []
+    overhead: list[float] = []
+    t0 = time.perf_counter()
+    keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason,
+                                                    n_frames=len(agent.poses), wall_s=time.perf_counter() - t0))
+    optimisations = 0
+    reason = "source ended"
+    with _Stop() as stop, bar(max_frames or None, f"[{source.name}] live frames", unit="frame",
+                              enabled=progress) as b:
+        for frame, arrival, taken in source.frames(max_frames=max_frames, idle_timeout=idle_timeout,
+                                            silent_warning=silent_warning, stop=lambda: stop.requested):
+            t_step = time.monotonic()
+            rec = agent.step(frame.index, frame.timestamp, frame.color, frame.depth)
+            step = time.monotonic() - t_step
+            if rec is not None and publisher is not None:
+                T = agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
+                publisher.pose(frame.timestamp, T)
+                done = time.monotonic()
+                latency.append(done - arrival)
+                overhead.append(done - taken - step)  # decoding and publishing: what the agent adds to the tracker
+                if agent.loops.optimisations != optimisations and agent.keyframes:
+                    optimisations = agent.loops.optimisations
+                    publisher.path(np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
+            b.update(1, f"{len(agent.gmap)} Gaussians")
+        if stop.requested:
+            reason = "stopped"
+        elif max_frames and len(agent.poses) + len(agent.skipped_frames()) >= max_frames:
+            reason = "max_frames"
+        elif idle_timeout:
+            reason = f"no sample for {idle_timeout:g} s"
+    wall = time.perf_counter() - t0
+    stamps, T_est = agent.trajectory()
+    if len(stamps):
+        write_tum(out / "trajectory.txt", stamps, T_est)
+        write_tum(out / "trajectory_no_lc.txt", stamps, agent.trajectory_no_lc()[1])
+    if agent.keyframes:
+        write_tum(out / "keyframes.txt", np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
+    if agent.gmap.submaps:
+        save_ply(out / "map.ply", agent.gmap.merged())
+    _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
+    st = source.stats
+    t = agent.time
+    metrics = {
+        "status": "complete", "reason": reason, "agent": agent.name, "source": getattr(source, "describe", lambda: "")(),
+        **agent_counts(agent),
+        "loop_candidates": len(agent.loops.log), "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
+        "pose_graph_optimisations": agent.loops.optimisations,
+        "pose_latency_ms": _latency_ms(latency), "pose_overhead_ms": _latency_ms(overhead),
+        "poses_published": getattr(publisher, "published", 0),
+        "live": {"samples": dict(st.samples), "frames": st.frames, "unpaired": st.unpaired, "dropped": st.dropped,
+                 "undecodable": st.undecodable},
+        "fps": len(agent.poses) / wall if wall > 0 else float("nan"),
+        "time_s": {"total": wall, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
+        "kernels": kernels_record(cfg.kernels),
+    }
+    write_json(out / "metrics.json", metrics)
+    return metrics
