@@ -11,6 +11,7 @@ poisoned (NaN / -7) before each run, so an unwritten pixel or entry shows up.
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 import pytest
@@ -79,6 +80,57 @@ def viewmat_translation(seed: int) -> torch.Tensor:
 
 def viewmat_rotated() -> torch.Tensor:
     return torch.tensor(se3.exp(np.array([0.08, -0.12, 0.05, 0.1, 0.05, -0.2])), dtype=torch.float32)
+
+
+def _near_cutoffs(s, viewmat, K, w, h, rel=1e-5):
+    """Where float32 rounding may decide a discontinuity of the compositing rules, found with the float64 twin's
+    projection: pixels [H, W] where some Gaussian's power lies within `rel` of the 1/255 cut-off log(1/255 / o)
+    or the transmittance within `rel` of the 1e-4 floor, per-Gaussian counts [N] of such pixels, and the
+    Gaussians whose radius 3 sqrt(lambda_max) lies within `rel` of an integer. `rel` is relative to the power's
+    largest term times the conic's condition kappa = (AC + B^2) / (AC - B^2) (the conic inverts a cancelling
+    determinant, so two codes' conics differ by ~kappa roundings): 1e-5 is > 100 float32 roundings of them.
+    Two float32 codes may disagree there (a Gaussian composited or not: colour and alpha move by up to 1/255),
+    by CPU; everywhere else they agree to rounding."""
+    from swarmsplat.kernels._ref_raster import ALPHA_MAX, ALPHA_MIN, T_MIN, project_reference
+
+    p = {k: v.double() for k, v in s.items()}
+    mean2d, conic, z, radius, rect, vis = project_reference(p["means"], p["quats"], p["scales"], viewmat.double(),
+                                                             K.double(), w, h, 0.01, 100.0)
+    A, B, C = conic[:, 0, 0], conic[:, 0, 1], conic[:, 1, 1]
+    kappa = ((A * C + B * B) / (A * C - B * B)).abs()
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    dx, dy = xs.reshape(-1, 1) - mean2d[:, 0], ys.reshape(-1, 1) - mean2d[:, 1]
+    quad, cross = 0.5 * (A * dx * dx + C * dy * dy), B * dx * dy
+    power = -quad - cross
+    tol = rel * kappa * (quad.abs() + cross.abs() + 1.0)
+    lo = torch.log(ALPHA_MIN / p["opacities"])
+    near = vis & ((power - lo).abs() < tol)  # [P, N]
+    alpha = torch.where(vis & (power >= lo), (p["opacities"] * torch.exp(power.clamp(max=0))).clamp(max=ALPHA_MAX), 0)
+    order = torch.sort(torch.where(vis, z, torch.full_like(z, math.inf)), stable=True).indices
+    t = torch.cumprod(1 - alpha[:, order], dim=1)
+    near_t = ((t / T_MIN - 1).abs() < rel * (torch.arange(len(z)) + 1)).any(1)  # each layer's rounding adds up
+    pixels = (near.any(1) | near_t).reshape(h, w)
+    cov = torch.linalg.inv(conic)
+    mid = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+    r3 = 3 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - torch.linalg.det(cov), min=0.1)))
+    radius_near = vis & ((r3 - r3.round()).abs() < rel * kappa * r3)
+    return pixels, near.sum(0), radius_near
+
+
+def _assert_equal_but_cutoff_flips(a, b, hazard, pairs, depth_atol, rtol=0.0, atol=1e-5):
+    """Two renders of one scene by two float32 codes: colour, alpha within atol (+ rtol) and depth within depth_atol
+    outside `hazard` (see _near_cutoffs); at hazard pixels within the cut-off's bound, a Gaussian of alpha <= 1/255
+    composited or not (it and the transmittance it takes from those behind: 2 / 255 of colour, alpha, and of the
+    farthest depth); per Gaussian, n_touched differs by at most its hazard pixels."""
+    from swarmsplat.kernels._ref_raster import ALPHA_MIN
+
+    ok = ~hazard
+    for f, tol in (("color", atol), ("alpha", atol), ("depth", depth_atol)):
+        x, y = getattr(a, f), getattr(b, f)
+        assert torch.allclose(x[ok], y[ok], atol=tol, rtol=rtol), f
+        bound = 2 * ALPHA_MIN * (float(y.max()) if f == "depth" else 1.0)
+        assert bool(((x - y).abs()[hazard] <= bound).all()), f
+    assert bool(((a.n_touched - b.n_touched).abs() <= pairs).all())
 
 
 def render_both(s, viewmat, background=None):
@@ -255,14 +307,19 @@ def test_warp_equals_taichi():
     params = dict(means=means, quats=torch.randn(n, 4, generator=g), scales=0.01 + 0.1 * torch.rand(n, 3, generator=g),
                   opacities=torch.rand(n, generator=g), colors=torch.rand(n, 3, generator=g))
     Kb = torch.tensor([[60.0, 0, 39.5], [0, 60.0, 27.5], [0, 0, 1]])
+    # The few pixels where rounding decides whether a Gaussian is composited (3 of 4480 here) are left out of the
+    # loss and held to the cut-off's bound only; no radius is within rounding of an integer, so radii are equal.
+    hazard, pairs, radius_near = _near_cutoffs(params, viewmat_rotated(), Kb, w, h)
+    assert hazard.float().mean() < 0.01 and not radius_near.any()
+    keep = (~hazard).float()
     results = {}
     for name in ("warp", "taichi"):
         kernels.use(name, "cpu")
         p = {k: v.clone().requires_grad_(True) for k, v in params.items()}
         vm = viewmat_rotated().requires_grad_(True)
         out = kernels.rasterize(**p, viewmat=vm, K=Kb, width=w, height=h, background=torch.tensor([0.5, 0.5, 0.5]))
-        wts = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1))
-        ((out.color * wts).sum() + out.depth.sum() + out.alpha.sum()).backward()
+        wts = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1)) * keep[..., None]
+        ((out.color * wts).sum() + (out.depth * keep).sum() + (out.alpha * keep).sum()).backward()
         results[name] = (out, {k: v.grad for k, v in p.items()}, vm.grad)
     (ow, gw, vw), (ot, gt, vt) = results["warp"], results["taichi"]
     # The backends round differently (their own power expression, exp and, per CPU, FMA contraction): each layer's
@@ -270,10 +327,8 @@ def test_warp_equals_taichi():
     # composites tens of layers, so alpha and colour (both <= 1) differ by up to ~100 roundings, 1e-5 (3.5e-6 and
     # 1.7e-6 measured). Depth = sum of w_i z_i carries the same weights' error times z: its bound is 1e-5 of the
     # farthest depth, not an absolute 1e-5 (1.1e-5 measured at 1.1 m, with depths to 3.9 m).
-    for f in ("color", "alpha"):
-        assert torch.allclose(getattr(ow, f), getattr(ot, f), atol=1e-5), f
-    assert torch.allclose(ow.depth, ot.depth, atol=1e-5 * float(ot.depth.max()))
-    assert torch.equal(ow.radii, ot.radii) and torch.equal(ow.n_touched, ot.n_touched)
+    _assert_equal_but_cutoff_flips(ow, ot, hazard, pairs, depth_atol=1e-5 * float(ot.depth.max()))
+    assert torch.equal(ow.radii, ot.radii)
     for k in gw:
         assert torch.allclose(gw[k], gt[k], rtol=1e-4, atol=1e-4 * gt[k].abs().max().item()), k
     assert torch.allclose(vw, vt, rtol=1e-4, atol=1e-4 * vt.abs().max().item())
@@ -290,6 +345,13 @@ def test_cpu_vector_kernels_equal_scalar(monkeypatch, name, n_plain, w, h):
     backend_raster = importlib.import_module(f"swarmsplat.kernels._{name}.raster")
     s = scene(5, n_plain=n_plain, hard=True)
     Kr = torch.tensor([[36.0, 0.0, w / 2 - 0.7], [0.0, 35.0, h / 2 + 0.4], [0.0, 0.0, 1.0]])
+    # The vector code has its own exp (a polynomial, 1.2e-7) and grouping of the power, so at the few pixels where
+    # rounding decides the 1/255 cut-off or the transmittance floor (3 and 43 here) the two may composite different
+    # Gaussians: those pixels are left out of the loss and held to the cut-off's bound (the projection, sort and
+    # radii are shared code).
+    hazard, pairs, _ = _near_cutoffs(s, viewmat_rotated(), Kr, w, h)
+    assert hazard.float().mean() < 0.05
+    keep = (~hazard).float()
     kernels.use(name, "cpu")
     results = {}
     for mode in ("scalar", "vector"):
@@ -297,15 +359,17 @@ def test_cpu_vector_kernels_equal_scalar(monkeypatch, name, n_plain, w, h):
         p = {k: v.clone().requires_grad_(True) for k, v in s.items()}
         vm = viewmat_rotated().requires_grad_(True)
         out = kernels.rasterize(**p, viewmat=vm, K=Kr, width=w, height=h, background=torch.tensor([0.2, 0.5, 0.9]))
-        wts = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(2))
-        ((out.color * wts).sum() + 0.3 * out.depth.sum() - out.alpha.sum()
-         + 0.2 * out.depth_normalised.sum()).backward()
+        wts = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(2)) * keep[..., None]
+        ((out.color * wts).sum() + 0.3 * (out.depth * keep).sum() - (out.alpha * keep).sum()
+         + 0.2 * (out.depth_normalised * keep).sum()).backward()
         results[mode] = (out, {k: v.grad for k, v in p.items()}, vm.grad)
     (o_s, g_s, v_s), (o_v, g_v, v_v) = results["scalar"], results["vector"]
-    assert o_s.n_touched.sum() > 0 and torch.equal(o_s.n_touched, o_v.n_touched)
+    assert o_s.n_touched.sum() > 0
     for f in ("color", "depth", "alpha", "depth_normalised"):
         assert torch.isfinite(getattr(o_v, f)).all(), f
-        assert torch.allclose(getattr(o_v, f), getattr(o_s, f), atol=2e-5, rtol=1e-5), f
+    # Outside those pixels: a few roundings per layer (2e-5 is ~100 of them at colour / depth ~1).
+    _assert_equal_but_cutoff_flips(o_v, o_s, hazard, pairs, depth_atol=2e-5, rtol=1e-5, atol=2e-5)
+    assert torch.allclose(o_v.depth_normalised[~hazard], o_s.depth_normalised[~hazard], atol=2e-5, rtol=1e-5)
     for k in g_s:
         assert torch.allclose(g_v[k], g_s[k], rtol=1e-4, atol=1e-4 * g_s[k].abs().max().item()), k
     assert torch.allclose(v_v, v_s, rtol=1e-4, atol=1e-4 * v_s.abs().max().item())
