@@ -236,3 +236,19 @@ def test_an_mcap_cut_short_is_read_to_its_last_complete_message(generated, tmp_p
     assert 10 <= len(bag) < 40
     for i in (0, len(bag) - 1):
         assert np.array_equal(bag[i].color, seq[i % len(seq)].color)
+
+
+def test_run_takes_a_bag_and_its_topics(generated, tmp_path, capsys):
+    from swarmsplat.slam.cli import main
+
+    path = write_bag(load_sequence(generated / "agent_0"), tmp_path / "a.bag", "ros1")
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("max_frames: 3\nmapping: {iterations: 2, first_iterations: 4}\n"
+                   "map_refine: {iterations_per_keyframe: 0}\n")
+    args = ["run", str(path), "--config", str(cfg), "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "o"), "--topics", "depth=/camera/depth/image_raw"]) == 0
+    assert len((tmp_path / "o" / "trajectory.txt").read_text().splitlines()) == 1 + 3
+    assert main([*args, "--out", str(tmp_path / "p"), "--topics", "color=/nope"]) == 2
+    assert "topic '/nope' (--topics color=) is not in the bag" in capsys.readouterr().err
+    assert main(["run", str(generated / "agent_0"), "--out", str(tmp_path / "q"), "--topics", "color=/x"]) == 2
+    assert "--topics chooses a bag's topics" in capsys.readouterr().err

@@ -19,11 +19,17 @@ def register(sub) -> None:
                                    "--kernels/--device override the config file's kernels section; a team run "
                                    "also reads its server and team sections.")
     p.add_argument("dataset", help="sequence folder (our format, TUM RGB-D, Redwood / ICL-NUIM, Replica, ScanNet "
-                                   "export, 7-Scenes seq-NN) or a multi-agent dataset (dataset.yaml, Multiagent "
-                                   "Replica, a 7-Scenes scene with several sequences), which runs as a team")
+                                   "export, 7-Scenes seq-NN), a bag (ROS 1 .bag, ROS 2 bag folder, .mcap, .db3) "
+                                   "or a multi-agent dataset (dataset.yaml, Multiagent Replica, a 7-Scenes scene "
+                                   "with several sequences, a bag with /robotN/ namespaces, a folder of bags), "
+                                   "which runs as a team")
     p.add_argument("--out", required=True, help="output folder")
     add_config_flags(p)
     p.add_argument("--frames", type=int, help="process at most N frames (per agent)")
+    p.add_argument("--topics", metavar="ROLE=TOPIC,...",
+                   help="a bag's topics, any of color, depth, info, odometry, gt (e.g. color=/cam/color/image_raw,"
+                        "depth=/cam/aligned_depth_to_color/image_raw); the rest are found (swarmsplat bag-info "
+                        "shows the choice)")
     p.add_argument("--split", metavar="RANGES",
                    help="run one sequence as a team: comma-separated half-open frame ranges START:STOP, one agent "
                         "each, e.g. 0:3,3:5 (agent_0 frames 0-2, agent_1 frames 3-4; ranges may overlap, an empty "
@@ -58,7 +64,18 @@ def run(args) -> int:
                                     "--device": ("kernels.device", args.device)}, preset=args.preset)
     from swarmsplat.slam.io.datasets import load_dataset
 
-    ds = load_dataset(args.dataset)
+    if args.topics:
+        from swarmsplat.slam.io.bags import is_bag, parse_topics
+
+        from pathlib import Path
+
+        topics = parse_topics(args.topics)
+        root = Path(args.dataset)
+        if not (is_bag(root) or (root.is_dir() and any(is_bag(q) for q in root.iterdir()))):
+            raise InputError(f"--topics chooses a bag's topics, but {args.dataset} is not a bag")
+        ds = load_dataset(args.dataset, topics=topics)
+    else:
+        ds = load_dataset(args.dataset)
     live = live_view(args)  # a taken port fails before the run starts
     if ranges is not None:
         if len(ds) != 1:
