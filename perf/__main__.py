@@ -30,6 +30,7 @@ SUBJECTS = {
     "realpairs": ".real_pairs",
     "placerec": ".place_recognition",
     "bags": ".bags",
+    "live": ".live",
 }
 
 
