@@ -223,19 +223,22 @@ def test_bag_info_lists_topics_counts_rates_and_the_choice(generated, tmp_path, 
     assert main(["bag-info", str(tmp_path / "none.bag")]) == 2
 
 
-def test_an_mcap_cut_short_is_read_to_its_last_complete_message(generated, tmp_path):
-    """A recorder killed mid-write leaves no summary and no footer: the complete chunks are read, with a warning.
-    (rosbags' writer closes a chunk past 1 MiB: 40 frames of 160x120 RGB-D make several.)"""
+@pytest.mark.parametrize("fmt", ["mcap", "ros1"])
+def test_a_bag_cut_short_is_read_to_its_last_complete_message(generated, tmp_path, fmt):
+    """A recorder killed mid-write leaves no index (ROS 1) or no summary and footer (MCAP): the complete chunks are
+    read, with a warning. (rosbags' writers close a chunk past ~1 MiB: 40 frames of 160x120 RGB-D make several.)"""
     seq = load_sequence(generated / "agent_0")
-    (whole,) = write_bag(_Looped(seq, 40), tmp_path / "whole", "mcap").glob("*.mcap")
+    path = write_bag(_Looped(seq, 40), tmp_path / ("whole.bag" if fmt == "ros1" else "whole"), fmt)
+    whole = path if fmt == "ros1" else next(path.glob("*.mcap"))
     data = whole.read_bytes()
-    cut = tmp_path / "cut.mcap"
+    cut = tmp_path / f"cut{whole.suffix}"
     cut.write_bytes(data[: int(len(data) * 0.7)])
-    with pytest.warns(UserWarning, match=r"cut.mcap: the file ends mid-record \(a recording cut short\); read its"):
+    with pytest.warns(UserWarning, match=rf"cut{whole.suffix}: the file ends mid-record \(a recording cut short\)"):
         bag = load_bag_sequence(cut)
     assert 10 <= len(bag) < 40
     for i in (0, len(bag) - 1):
         assert np.array_equal(bag[i].color, seq[i % len(seq)].color)
+        assert np.array_equal(bag[i].depth, seq[i % len(seq)].depth)
 
 
 def test_run_takes_a_bag_and_its_topics(generated, tmp_path, capsys):

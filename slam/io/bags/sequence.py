@@ -31,8 +31,8 @@ _AHEAD = 32  # messages kept from the stream for later frames before it is resta
 
 
 def open_reader(path: Path, *, warn: bool = True):
-    """An opened rosbags AnyReader on `path` (ROS 1 .bag, ROS 2 folder, bare .mcap / .db3). A bare .mcap cut short
-    is read up to its last complete record, with a warning (warn=False: silently)."""
+    """An opened rosbags AnyReader on `path` (ROS 1 .bag, ROS 2 folder, bare .mcap / .db3). A ROS 1 bag or a bare
+    .mcap cut short is read up to its last complete record, with a warning (warn=False: silently)."""
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
 
@@ -41,14 +41,13 @@ def open_reader(path: Path, *, warn: bool = True):
     ros1 = path.suffix == ".bag"
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     try:
-        if path.suffix == ".mcap":
+        if path.suffix in (".mcap", ".bag"):
             reader = tolerant_reader(path, store)
         else:
             reader = AnyReader([path], default_typestore=store)
         reader.open()
     except (AnyReaderError, ValueError, KeyError, OSError) as e:
-        hint = " (a ROS 1 bag cut short has no index: `rosbag reindex` it first)" if ros1 else ""
-        raise InputError(f"{path}: cannot open as a bag: {e}{hint}") from None
+        raise InputError(f"{path}: cannot open as a bag: {e}") from None
     at = truncation_of(reader)
     if at is not None and warn:
         warnings.warn(f"{path}: the file ends mid-record (a recording cut short); read its {reader.message_count} "

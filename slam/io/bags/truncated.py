@@ -1,9 +1,14 @@
-"""An MCAP file cut short (a recorder killed mid-write: no summary, no footer, often half a record at the end),
-read up to its last complete record.
+"""A bag cut short (a recorder killed mid-write), read up to its last complete record.
 
-rosbags reads MCAP files without a summary section by scanning them, but refuses a file whose end magic is
-missing. `TolerantMcapReader` finds the last complete record itself (each record is an opcode byte and a u64
-length) and hands rosbags' scan that end; `tolerant_reader(path)` plugs it into an AnyReader for a bare .mcap.
+MCAP: rosbags reads files without a summary section by scanning them, but refuses one whose end magic is missing.
+`TolerantMcapReader` finds the last complete record itself (each record is an opcode byte and a u64 length) and
+hands rosbags' scan that end.
+
+ROS 1: a bag is read through the index at its end, which a recording killed mid-write never wrote (`index_pos` 0,
+or pointing past the end). `TolerantReader1` then rebuilds the index by one pass over the chunks — connection and
+message records inside each complete chunk — which is what `rosbag reindex` does, without ROS.
+
+`tolerant_reader(path, store)` plugs either into an AnyReader; `truncation_of(reader)` says where a bag was cut.
 """
 
 from __future__ import annotations
@@ -11,6 +16,12 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+from collections import defaultdict
+from io import BytesIO
+
+from rosbags.rosbag1.reader import (Chunk, ChunkInfo, Header, IndexData, ReaderError, RecordType, decompressors,
+                                    read_uint32)
+from rosbags.rosbag1.reader import Reader as Reader1
 from rosbags.rosbag2.reader import Reader as Reader2
 from rosbags.rosbag2.storage_mcap import McapReader
 
@@ -65,19 +76,96 @@ class _TolerantReader2(Reader2):
     STORAGE_PLUGINS = {**Reader2.STORAGE_PLUGINS, ".mcap": TolerantMcapReader}
 
 
+class TolerantReader1(Reader1):
+    """rosbags' ROS 1 reader, which rebuilds a missing or damaged index from the complete chunks."""
+
+    truncated_at: int | None = None
+
+    def open(self) -> None:
+        try:
+            super().open()
+            return
+        except ReaderError as e:
+            if "not indexed" not in str(e) and "index looks damaged" not in str(e):
+                raise
+        self.bio = self.path.open("rb")
+        try:
+            self._scan()
+        except BaseException:
+            self.bio.close()
+            self.bio = None
+            raise
+
+    def _scan(self) -> None:
+        bio, size = self.bio, self.path.stat().st_size
+        bio.readline()  # the magic line, checked by the indexed open
+        Header.read(bio, RecordType.BAGHEADER)
+        bio.seek(read_uint32(bio), 1)
+        conns, indexes, end = {}, defaultdict(list), bio.tell()
+        while True:
+            pos = bio.tell()
+            try:
+                header = Header.read(bio)
+                n = read_uint32(bio)
+            except ReaderError:
+                break
+            if bio.tell() + n > size:
+                break
+            if header.get_uint8("op") != RecordType.CHUNK:
+                bio.seek(n, 1)  # index data and connection records after the chunks: rebuilt below
+                end = bio.tell()
+                continue
+            compression = header.get_string("compression")
+            datapos = bio.tell()
+            raw = decompressors[compression](bio.read(n))
+            self.chunks[pos] = Chunk(n, datapos, decompressors[compression])
+            counts, t_min, t_max = self._scan_chunk(BytesIO(raw), len(raw), pos, conns, indexes)
+            self.chunk_infos.append(ChunkInfo(pos, t_min, t_max + 1, counts))
+            end = bio.tell()
+        self.truncated_at = end
+        self.indexes = {cid: sorted(indexes[cid]) for cid in conns}
+        self.connections = [c._replace(msgcount=len(self.indexes[c.id])) for c in conns.values()]
+
+    def _scan_chunk(self, chunk: BytesIO, size: int, pos: int, conns: dict, indexes) -> tuple[dict, int, int]:
+        counts: dict[int, int] = defaultdict(int)
+        t_min, t_max = 2**63 - 1, 0
+        while chunk.tell() < size:
+            offset = chunk.tell()
+            header = Header.read(chunk)
+            op = header.get_uint8("op")
+            if op == RecordType.CONNECTION:
+                bio, self.bio = self.bio, chunk  # read_connection reads its record from self.bio
+                try:
+                    chunk.seek(offset)
+                    conn = self.read_connection()
+                finally:
+                    self.bio = bio
+                conns.setdefault(conn.id, conn)
+                continue
+            n = read_uint32(chunk)
+            if op == RecordType.MSGDATA:
+                cid, t = header.get_uint32("conn"), header.get_time("time")
+                indexes[cid].append(IndexData(t, pos, offset))
+                counts[cid] += 1
+                t_min, t_max = min(t_min, t), max(t_max, t)
+            chunk.seek(n, 1)
+        return dict(counts), t_min, t_max
+
+
 def tolerant_reader(path: Path, default_typestore):
-    """An unopened AnyReader on a bare .mcap whose storage reader tolerates a missing end."""
+    """An unopened AnyReader on a ROS 1 bag or a bare .mcap whose reader tolerates a missing end."""
     from rosbags.highlevel import AnyReader
 
     reader = AnyReader([path], default_typestore=default_typestore)
-    reader.readers = [_TolerantReader2(path)]
+    reader.readers = [TolerantReader1(path) if path.suffix == ".bag" else _TolerantReader2(path)]
     return reader
 
 
 def truncation_of(reader) -> int | None:
     """Where the bag behind an opened AnyReader was cut (bytes read), or None when it ends properly."""
     for r in getattr(reader, "readers", []):
-        at = getattr(getattr(r, "storage", None), "truncated_at", None)
-        if at is not None:
-            return at
+        for part in (r, getattr(r, "storage", None)):  # ROS 1: the reader; ROS 2: its storage plugin
+            at = getattr(part, "truncated_at", None)
+            if at is not None:
+                return at
     return None
