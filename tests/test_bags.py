@@ -194,10 +194,16 @@ def test_bad_bags_get_one_line_naming_bag_and_topic(tmp_path, case, messages, ex
     assert str(path) in str(e.value) and "\n" not in str(e.value)
 
 
-def test_a_bag_without_depth_is_monocular_and_a_run_says_it_needs_depth(tmp_path):
+def test_a_bag_without_depth_is_monocular_and_a_run_says_it_needs_depth(tmp_path, capsys):
+    from swarmsplat.slam.cli import main
+
     path = _raw_bag(tmp_path / "mono", [("/c/color", IMG, _image("mono8", 8, 6, 1)), ("/c/info", INFO, _info(8, 6))])
     bag = load_bag_sequence(path)
     assert not bag.is_rgbd and bag[1].depth is None and bag[1].color.shape == (6, 8, 3)
+    assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "[mono] topics: color /c/color, info /c/info" in err
+    assert f"{path}: no depth topic next to /c/color" in err and "--topics depth=TOPIC" in err
 
 
 def test_not_a_bag_and_a_damaged_one(tmp_path):

@@ -76,6 +76,16 @@ def run(args) -> int:
         ds = load_dataset(args.dataset, topics=topics)
     else:
         ds = load_dataset(args.dataset)
+    if ds.meta.get("layout") == "bag":  # the topics taken, found or given: say which
+        import sys
+
+        for seq, chosen in zip(ds.agents, ds.meta["topics"]):
+            if not args.quiet:
+                print(f"[{seq.name}] topics: " + ", ".join(f"{k} {v}" for k, v in chosen.items()), file=sys.stderr)
+            if not seq.is_rgbd:
+                raise InputError(f"{args.dataset}: no depth topic next to {chosen['color']} (a sensor_msgs/Image "
+                                 "with 'depth' in its name); GRAND-SLAM needs RGB-D: give one with --topics "
+                                 "depth=TOPIC (swarmsplat bag-info lists the topics)")
     live = live_view(args)  # a taken port fails before the run starts
     if ranges is not None:
         if len(ds) != 1:
