@@ -108,16 +108,17 @@ def test_a_bad_interval_setting_is_named(monkeypatch):
 
 
 @pytest.mark.parametrize("quiet", [False, True])
-def test_generate_and_pairs_in_a_log_print_lines_and_nothing_when_quiet(tmp_path, capsys, monkeypatch, quiet):
-    """`generate` and `pairs` report through the same module: plain lines in a log (no carriage returns), nothing
-    with --quiet."""
+def test_generate_pairs_and_swarm_in_a_log_print_lines_and_nothing_when_quiet(tmp_path, capsys, monkeypatch, quiet):
+    """`generate`, `pairs` and `swarm` report through the same module: plain lines in a log (no carriage returns),
+    nothing with --quiet."""
     from swarmsplat.slam.cli import main
 
     monkeypatch.setenv("SWARMSPLAT_PROGRESS_INTERVAL", "0")
     flag = ["--quiet"] if quiet else []
     assert main(["generate", "--preset", "tiny", "--mono", "--frames", "4", "--out", str(tmp_path / "m"), *flag]) == 0
     assert main(["pairs", str(tmp_path / "m"), "--out", str(tmp_path / "p.csv"), "--stride", "2", *flag]) == 0
+    assert main(["swarm", str(tmp_path / "m"), "--out", str(tmp_path / "s"), "--stride", "2", *flag]) == 0
     err = capsys.readouterr().err
     assert "\r" not in err
-    for head in ("[generate] mono frames", "[pairs] describe", "[pairs] register"):
+    for head in ("[generate] mono frames", "[pairs] describe", "[pairs] register", "[swarm] ticks"):
         assert (head in err) is not quiet, (head, err[-500:])

@@ -46,6 +46,7 @@ def register(sub) -> None:
     p = sub.add_parser("swarm", help="decentralised FLOCC-SLAM loop closing over all robots of a mono dataset")
     add_swarm_options(p)
     p.add_argument("--processes", action="store_true", help="one robot process each, over Zenoh on this machine")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
@@ -58,7 +59,7 @@ def run(args) -> int:
     else:
         from swarmsplat.slam.run.swarm import run_swarm
 
-        m = run_swarm(args.dataset, args.out, cfg)
+        m = run_swarm(args.dataset, args.out, cfg, progress=not args.quiet)
     ate, odo = m.get("ate", {}), m.get("odometry_only_ate", {})
     loops = m.get("loop_closures", {}).get("count", 0)
     sent = {k: v["sent_total"] for k, v in m["bytes"].items()}

@@ -122,21 +122,23 @@ def make_nodes(setup: SwarmSetup, network: InProcessNetwork) -> tuple[list[Robot
 def simulate(setup: SwarmSetup, *, faults: Faults | None = None, progress: bool = False, on_tick=None):
     """Run every tick of the schedule in-process. `on_tick(tick, network, nodes, feeders)` runs before each
     tick (tests inject kills and link changes there). Returns (nodes, network, feeders)."""
-    from tqdm import tqdm
+    from swarmsplat.slam.io.progress import bar
 
     robots = list(range(len(setup.dataset.agents)))
     net = InProcessNetwork(robots, setup.schedule, faults)
     nodes, feeders = make_nodes(setup, net)
     keep(lambda status, reason: write_partial_swarm(setup, nodes, feeders, status=status, reason=reason))
-    for tick in tqdm(range(setup.schedule.ticks), desc="swarm", disable=not progress, leave=False):
-        if on_tick is not None:
-            on_tick(tick, net, nodes, feeders)
-        net.advance(tick)
-        for r in robots:
-            if r in net.killed:
-                continue
-            feeders[r].feed(nodes[r], setup.schedule.frames_at(tick))
-            nodes[r].step(tick)
+    with bar(setup.schedule.ticks, "[swarm] ticks", unit="tick", enabled=progress) as b:
+        for tick in range(setup.schedule.ticks):
+            if on_tick is not None:
+                on_tick(tick, net, nodes, feeders)
+            net.advance(tick)
+            for r in robots:
+                if r in net.killed:
+                    continue
+                feeders[r].feed(nodes[r], setup.schedule.frames_at(tick))
+                nodes[r].step(tick)
+            b.update(1, f"{sum(len(n.timestamps) for n in nodes)} keyframes")
     return nodes, net, feeders
 
 

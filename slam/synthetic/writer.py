@@ -59,7 +59,7 @@ def generate(out_dir: str | os.PathLike, config: GeneratorConfig | None = None, 
              progress: Callable[[int], None] | None = None) -> Path:
     """Write the dataset described by `config` to `out_dir` and return its path.
 
-    progress: called with the number of frames just finished (e.g. a tqdm bar's `update`).
+    progress: called with the number of frames just finished (e.g. a progress bar's `update`, slam.io.progress).
     Raises InputError if `out_dir` is a file or a non-empty folder that is not a dataset.
     """
     config = config or GeneratorConfig()
