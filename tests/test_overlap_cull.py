@@ -132,7 +132,7 @@ def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
         kfs = [Keyframe(i, i, float(i), i, se3.inverse(refine_view(z).viewmat.double().numpy()), None, None)
                for i, z in enumerate((1.0, 1.6))]
         st = _refine_parts([(s0, np.eye(4)), (s1, np.eye(4))], [refine_view(1.0), refine_view(1.6)],
-                           [(s0, kfs[0]), (s1, kfs[1])], cfg, MappingConfig(), False)
+                           [(s0, kfs[0]), (s1, kfs[1])], cfg, MappingConfig())
         assert st["overlap_dropped"] == dropped and st["gaussians"] == 800 and st["iterations"] == 4
         assert len(s0) == 400 and len(s1) == 400 - dropped
         # refine_poses: each keyframe gets a refined pose; the first view holds the gauge
