@@ -25,7 +25,7 @@ COMMANDS = [
     "swarm_cmd",
     "robot_cmd",
     "agent_cmd",
-    "bag_info_cmd",
+    "ros_cmd",
     "bench_cmd",
     "view_cmd",
 ]
