@@ -6,9 +6,10 @@ backward kernels and no per-Gaussian torch operations in between:
    with the 0.3 px low-pass, its inverse (conic), 3-sigma radius, the 16x16-tile rectangle, the number of tiles
    and the exp() skip threshold of every Gaussian; culls outside near/far, off-screen and degenerate ones and
    flags invalid input values (non-finite, zero quaternion, opacity outside [0, 1]);
-2. binning (kernels/_<backend>/sort.py, one serial thread; Warp on the CPU lists the tiles in one part per core):
-   a stable radix sort of the visible Gaussians by depth, then a counting sort into per-tile lists that keeps the
-   depth order, plus where every Gaussian's entries are;
+2. binning (kernels/_<backend>/sort.py): per-tile lists of the visible Gaussians in depth order (ties by index),
+   plus where every Gaussian's entries are. On the CPU a serial radix sort by depth and a counting sort by tile
+   (Warp lists the tiles in one part per core); on the GPU devices the parallel steps of kernels/binning.py (tile
+   counts, prefix sum, key scatter, one stable sort of (tile, depth) keys), the same lists bit for bit;
 3. compositing (kernels/_<backend>/raster.py, one thread per tile): front to back over the tile's list, only
    the pixels of each Gaussian's alpha >= 1/255 ellipse; writes colour, depth, depth / alpha and alpha;
 4. per-Gaussian hit counts (n_touched).

@@ -429,7 +429,7 @@ def _binning(s, viewmat, w, h):
 def test_binning_lists_every_tile_front_to_back(backend, tiny_capacity):
     # Per tile: exactly the Gaussians whose tile rectangle covers it, by camera depth with ties by index (many
     # exact ties here), and emit_pos finds every entry of every Gaussian. tiny_capacity forces the regrow path.
-    if backend.device != "cpu":
+    if backend.torch_device != "cpu":
         pytest.skip("reads the lists on the host")
     s = scene(13, n_plain=120, hard=True)
     s["means"][::3, 2] = 2.5  # a third of them at exactly the same depth
@@ -450,8 +450,35 @@ def test_binning_lists_every_tile_front_to_back(backend, tiny_capacity):
             assert int(entries[emit_pos[emit_start[g] + k]]) == g
 
 
+@pytest.mark.parametrize("name", ["warp", "taichi"])
+@pytest.mark.parametrize("tiny_capacity", [False, True])
+def test_gpu_binning_equals_the_cpu_binning(monkeypatch, name, tiny_capacity):
+    """The GPU archs' parallel binning (kernels/binning.py around each backend's key scatter), run on the CPU,
+    against the backend's own CPU binning: the same status, scan, lists and entry positions bit for bit, with
+    many exact depth ties (the stable order decides) and through the buffer-regrow path."""
+    from swarmsplat.kernels._taichi import sort as taichi_sort
+    from swarmsplat.kernels._warp import sort as warp_sort
+
+    kernels.use(name, "cpu")
+    s = scene(15, n_plain=400, hard=True)
+    s["means"][::3, 2] = 2.5
+    w, h = 80, 56
+    out = {}
+    for mode in ("cpu", "gpu"):
+        monkeypatch.setattr(warp_sort, "CPU_SORT", "native" if mode == "cpu" else "warp")
+        monkeypatch.setattr(taichi_sort, "CPU_BIN", "serial" if mode == "cpu" else "parallel")
+        if tiny_capacity:
+            raster._capacity[(s["means"].shape[0], 5, 4)] = 1
+        _, _, _, n_entries, n_bad, tile_start, entries, emit_start, emit_pos = _binning(s, torch.eye(4), w, h)
+        n = s["means"].shape[0]
+        out[mode] = (n_entries, n_bad, tile_start, entries[:n_entries], emit_start[:n], emit_pos[:n_entries])
+    assert out["cpu"][0] > 0 and out["cpu"][1] == 0
+    for a, b in zip(out["cpu"], out["gpu"]):
+        assert a == b if isinstance(a, int) else torch.equal(a, b)
+
+
 def test_binning_counts_invalid_gaussians(backend):
-    if backend.device != "cpu":
+    if backend.torch_device != "cpu":
         pytest.skip("reads the status on the host")
     s = scene(14, n_plain=20, hard=False)
     s["scales"][3, 1] = float("inf")

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from swarmsplat import kernels
+from swarmsplat.kernels._ref_raster import ALPHA_MIN
 from swarmsplat.kernels.errors import BackendError
 
 VULKAN = kernels.Backend("taichi", "vulkan")
@@ -84,22 +85,83 @@ def test_device_flag_and_config_accept_vulkan(command):
         kernels.use(cfg.kernels.backend, cfg.kernels.device)
 
 
-@pytest.mark.xfail(strict=True, reason="kernels/_taichi/sort.py on Taichi-SPIR-V + lavapipe: the one-thread binning "
-                   "runs past lavapipe's limit of 65535 loop iterations per invocation at a working size (the "
-                   "block_dim=1 dispatch error and the stale `+=` reads are fixed); a parallel binning is the cure, "
-                   "docs/gpu.md")
-def test_raster_on_vulkan_equals_the_cpu_at_a_working_size():
-    """A realistic tile load (320x240, 10k Gaussians: ~26k tile entries, 300 tiles), where the tiny twin scenes
-    of test_raster.py do not reach: taichi-vulkan must render what taichi-cpu renders."""
+def _hazard_per_tile(s, w: int, h: int, rel: float = 1e-5):
+    """tests/test_raster.py's `_near_cutoffs`, tile by tile (its dense [pixels, N] form does not fit at a working
+    size): pixels [H, W] where float32 rounding may decide whether a Gaussian is composited — its power within
+    `rel` x kappa x (the power's terms) of the 1/255 cut-off, or a transmittance within `rel` per layer of the 1e-4
+    floor, found with the float64 twin's projection over each tile's own Gaussians (those whose tile rectangle
+    covers it, front to back) — and per Gaussian the number of such pixels. Elsewhere two float32 codes agree to
+    rounding; at those pixels a Gaussian of alpha <= 1/255 is composited or not (bound: 2/255)."""
+    from swarmsplat.kernels._ref_raster import ALPHA_MAX, ALPHA_MIN, T_MIN, project_reference
+
+    p = {k: s[k].double() for k in ("means", "quats", "scales", "opacities")}
+    mean2d, conic, z, _radius, rect, vis = project_reference(p["means"], p["quats"], p["scales"],
+                                                             s["viewmat"].double(), s["K"].double(), w, h, 0.01, 100.0)
+    A, B, C = conic[:, 0, 0], conic[:, 0, 1], conic[:, 1, 1]
+    kappa = ((A * C + B * B) / (A * C - B * B)).abs()
+    lo = torch.log(ALPHA_MIN / p["opacities"])
+    pixels = torch.zeros(h, w, dtype=torch.bool)
+    pairs = torch.zeros(len(z), dtype=torch.int64)
+    for ty in range((h + 15) // 16):
+        for tx in range((w + 15) // 16):
+            on = vis & (rect[:, 0] <= tx) & (tx < rect[:, 2]) & (rect[:, 1] <= ty) & (ty < rect[:, 3])
+            idx = on.nonzero().flatten()
+            idx = idx[torch.sort(z[idx], stable=True).indices]  # front to back, ties by index
+            if len(idx) == 0:
+                continue
+            y0, x0 = 16 * ty, 16 * tx
+            ys, xs = torch.meshgrid(torch.arange(y0, min(y0 + 16, h), dtype=torch.float64),
+                                    torch.arange(x0, min(x0 + 16, w), dtype=torch.float64), indexing="ij")
+            dx, dy = xs.reshape(-1, 1) - mean2d[idx, 0], ys.reshape(-1, 1) - mean2d[idx, 1]
+            quad, cross = 0.5 * (A[idx] * dx * dx + C[idx] * dy * dy), B[idx] * dx * dy
+            power = -quad - cross
+            near = (power - lo[idx]).abs() < rel * kappa[idx] * (quad.abs() + cross.abs() + 1.0)
+            alpha = torch.where(power >= lo[idx], (p["opacities"][idx] * torch.exp(power.clamp(max=0)))
+                                .clamp(max=ALPHA_MAX), torch.zeros_like(power))
+            t = torch.cumprod(1 - alpha, dim=1)
+            near_t = ((t / T_MIN - 1).abs() < rel * (torch.arange(len(idx)) + 1)).any(1)
+            pixels[y0:y0 + 16, x0:x0 + 16] = (near.any(1) | near_t).reshape(ys.shape)
+            pairs.index_add_(0, idx, near.sum(0))
+    return pixels, pairs
+
+
+@pytest.mark.parametrize("n", [10_000, 60_000])
+def test_raster_on_vulkan_equals_the_cpu_at_a_working_size(n):
+    """Realistic tile loads (320x240 with 10k Gaussians: ~26k tile entries over 300 tiles; with 60k: ~150k), where
+    the tiny twin scenes of test_raster.py do not reach, forward and backward: taichi-vulkan (the GPU binning and
+    compositing kernels) against taichi-cpu, outside the few pixels where float32 rounding decides a 1/255 cut-off
+    (held to that cut-off's bound)."""
     if VULKAN not in kernels.devices():
         pytest.skip("no Vulkan driver loads on this machine")
     from swarmsplat.perf.raster import make_scene
 
-    scene = make_scene(10_000, 320, 240)
-    out = {}
+    scene = make_scene(n, 320, 240)
+    hazard, pairs = _hazard_per_tile(scene, 320, 240)
+    assert hazard.float().mean() < 0.01
+    keep = (~hazard).float()
+    wts = torch.rand(240, 320, 3, generator=torch.Generator().manual_seed(1)) * keep[..., None]
+    out, grads = {}, {}
     for device in ("cpu", "vulkan"):
         kernels.use("taichi", device)
-        out[device] = kernels.rasterize(**scene)
+        p = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "colors")}
+        vm = scene["viewmat"].clone().requires_grad_(True)
+        o = kernels.rasterize(**p, viewmat=vm, K=scene["K"], width=320, height=240)
+        ((o.color * wts).sum() + (o.depth * keep).sum() + (o.alpha * keep).sum()).backward()
+        out[device], grads[device] = o, {**{k: v.grad for k, v in p.items()}, "viewmat": vm.grad}
     a, b = out["cpu"], out["vulkan"]
-    assert torch.equal(a.n_touched, b.n_touched) and torch.equal(a.radii, b.radii)
-    assert (a.color - b.color).abs().max() < 1e-4 and (a.depth - b.depth).abs().max() < 1e-3
+    assert torch.equal(a.radii, b.radii)
+    # Both run Taichi's float32 code, the CPU its row-vector compositing, Vulkan the GPU kernels through a
+    # different compiler (exp, FMA contraction): each layer's alpha differs by a few roundings and a pixel
+    # composites up to a few hundred layers here, so colour and alpha (<= 1) within 1e-4, depth 1e-4 of the
+    # farthest depth (measured: colour 1.5e-5 / 9.4e-6, depth 5.5e-5 / 2.2e-5 m at 10k / 60k, with 17 / 431 hazard
+    # pixels left out).
+    ok = ~hazard
+    for f, tol in (("color", 1e-4), ("alpha", 1e-4), ("depth", 1e-4 * float(a.depth.detach().max()))):
+        x, y = getattr(a, f).detach(), getattr(b, f).detach()
+        assert (x[ok] - y[ok]).abs().max() <= tol, f
+        bound = 2 * ALPHA_MIN * (float(y.max()) if f == "depth" else 1.0)
+        assert bool(((x - y).abs()[hazard] <= bound).all()), f
+    assert bool(((a.n_touched - b.n_touched).abs() <= pairs).all())
+    for k, ga in grads["cpu"].items():
+        gb = grads["vulkan"][k]
+        assert torch.allclose(ga, gb, rtol=1e-4, atol=1e-4 * ga.abs().max().item()), k
