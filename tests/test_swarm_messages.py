@@ -90,6 +90,12 @@ def test_rejects_wrong_fields_types_and_shapes():
     _bad(_rebuild(desc, lambda h: h["a"][1].__setitem__(2, [3, 9])))  # shape claims more bytes
     _bad(_rebuild(desc, lambda h: h["a"][1].__setitem__(2, [24])))  # wrong ndim
     _bad(_rebuild(est, lambda h: h["a"][1].__setitem__(2, [3])))  # counts disagree with robots
+    _bad(_rebuild(desc, lambda h: h["a"][1].pop()))  # an array spec without its shape
+    _bad(_rebuild(desc, lambda h: h.update(a=[["indices"], ["descriptors"]])))  # names only
+    _bad(_rebuild(est, lambda h: h["s"].update(stamp=[True, 1])))  # a bool is not a stamp integer
+    deep = b"[" * 100_000  # nested past the JSON decoder's recursion limit
+    payload = struct.pack("<I", len(deep)) + deep
+    _bad(M.encode(hello, 1, 1)[:M.HEADER_BYTES - 4] + struct.pack("<I", len(payload)) + payload)
 
 
 def test_rejects_bad_values():

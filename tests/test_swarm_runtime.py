@@ -2,6 +2,9 @@
 estimates must equal the fault-free run's (nothing corrupted), killed robots must not stop the others, and a
 returning robot must catch up. Uses the exact stand-in front-end of `swarm_fakes` (fast and deterministic)."""
 
+import json
+import struct
+
 import numpy as np
 import pytest
 from swarm_fakes import CAMERA, FakeRecognizer, FakeRegistrar, scenario
@@ -190,11 +193,20 @@ def test_malformed_bytes_are_dropped():
         if tick in (2, 13):
             net.inject(0, b"\x00garbage")
             net.inject(1, M.encode(M.EncodingRequest(owner=1), 2, 1)[:-3])
-            # valid bytes from a robot with another place-recognition model: accepted as a message, not stored
+            # valid bytes from a robot of another team (id 9): foreign, dropped and counted
             net.inject(0, M.encode(M.Descriptors(owner=9, indices=np.arange(2),
-                                                 descriptors=np.ones((2, 5), np.float32)), 9, 1))
+                                                 descriptors=np.ones((2, 12), np.float32)), 9, 1))
+            # a team robot's descriptors of another place-recognition model (dimension 5): not stored
+            net.inject(0, M.encode(M.Descriptors(owner=2, indices=np.arange(2),
+                                                 descriptors=np.ones((2, 5), np.float32)), 2, 1))
+            # garbage that used to crash the decoder: absurdly nested JSON, an array spec without its shape
+            net.inject(1, M._HEADER.pack(M.MAGIC, M.SCHEMA_VERSION, 1, 2, 1, 4 + 50000) + struct.pack("<I", 50000)
+                       + b"[" * 50000)
+            head = json.dumps({"s": {"owner": 1}, "a": [["indices"]]}).encode()
+            body = struct.pack("<I", len(head)) + head
+            net.inject(1, M._HEADER.pack(M.MAGIC, M.SCHEMA_VERSION, 3, 2, 1, len(body)) + body)
 
     nodes, _ = run(on_tick=hook)
-    assert 9 not in nodes[0].desc
-    assert nodes[0].tx.stats.rejected == 2 and nodes[1].tx.stats.rejected == 2
+    assert 9 not in nodes[0].desc and nodes[0].desc[2][0].shape == (12,)
+    assert nodes[0].tx.stats.rejected == 4 and nodes[1].tx.stats.rejected == 6
     assert nodes[0].estimate is not None and nodes[0].estimate.robots.tolist() == [0, 1, 2]

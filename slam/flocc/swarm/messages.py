@@ -66,6 +66,10 @@ def _check_poses(T: np.ndarray, what: str) -> None:
             raise MessageError(f"{what}: poses are not rigid transforms")
 
 
+def _ints(xs) -> bool:
+    return all(isinstance(x, int) and not isinstance(x, bool) for x in xs)
+
+
 def _i64(x) -> np.ndarray:
     return np.asarray(x, dtype=np.int64).reshape(-1)
 
@@ -93,9 +97,8 @@ class Hello(Message):
     estimate_stamp: list = field(default_factory=list)
 
     def validate(self) -> None:
-        ints = lambda xs: all(isinstance(x, int) and not isinstance(x, bool) for x in xs)  # noqa: E731
-        ok = ints(self.have_desc.values()) and ints(self.loops_with.values()) and ints(self.graph_version) \
-            and ints(self.estimate_stamp) and all(isinstance(v, list) and ints(v) for v in self.graphs_held.values())
+        ok = _ints(self.have_desc.values()) and _ints(self.loops_with.values()) and _ints(self.graph_version) \
+            and _ints(self.estimate_stamp) and all(isinstance(v, list) and _ints(v) for v in self.graphs_held.values())
         keys = list(self.have_desc) + list(self.loops_with) + list(self.graphs_held)
         if not ok or not all(k.isdigit() and len(k) < 4 for k in keys):
             raise MessageError("Hello: maps must be robot id -> integer(s)")
@@ -255,7 +258,7 @@ class Estimate(Message):
                 int(self.counts.sum()) != len(self.poses) or self.poses.shape[1:] != (4, 4):
             raise MessageError("Estimate: robots, counts and poses disagree")
         _check_poses(self.poses, "Estimate")
-        if not all(isinstance(x, int) for x in self.stamp):
+        if not _ints(self.stamp):
             raise MessageError("Estimate: stamp must be a list of integers")
 
 
@@ -310,7 +313,7 @@ def decode(data: bytes) -> tuple[Header, Message]:
     try:
         head = json.loads(body[4: 4 + n].decode("utf-8"))
         scalars, specs = head["s"], head["a"]
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+    except (ValueError, KeyError, TypeError, RecursionError):  # RecursionError: absurdly nested JSON
         raise MessageError(f"{cls.__name__}: corrupt JSON header") from None
     if not isinstance(scalars, dict) or set(scalars) != set(cls.SCALARS):
         raise MessageError(f"{cls.__name__}: expected fields {sorted(cls.SCALARS)}")
@@ -320,7 +323,8 @@ def decode(data: bytes) -> tuple[Header, Message]:
         if not isinstance(v, typ) or (typ is int and isinstance(v, bool)):
             raise MessageError(f"{cls.__name__}.{k}: expected {typ.__name__}, got {type(v).__name__}")
         kw[k] = v
-    if not isinstance(specs, list) or [s[0] if isinstance(s, list) and s else None for s in specs] != list(cls.ARRAYS):
+    if not isinstance(specs, list) or [s[0] if isinstance(s, list) and len(s) == 3 else None for s in specs] \
+            != list(cls.ARRAYS):
         raise MessageError(f"{cls.__name__}: expected arrays {list(cls.ARRAYS)}")
     off = 4 + n
     for (name, dt, shape), (want_dt, ndim) in zip(specs, cls.ARRAYS.values()):

@@ -187,8 +187,8 @@ class RobotNode:
                 self.hello[sender] = msg
             self.last_seen[sender] = max(self.last_seen.get(sender, -1), self.tick)
         elif isinstance(msg, M.Descriptors):
-            if msg.owner == self.id or msg.descriptors.shape[1] != int(self.recognizer.dim):
-                return  # another place-recognition model: not comparable
+            if msg.owner != sender or msg.descriptors.shape[1] != int(self.recognizer.dim):
+                return  # relayed (only the owner sends its descriptors) or another place-recognition model
             d = self.desc.setdefault(msg.owner, {})
             new = [int(i) for i in msg.indices if int(i) not in d]
             for i, v in zip(msg.indices.tolist(), msg.descriptors):
@@ -202,7 +202,7 @@ class RobotNode:
                 items = {i: self.front.encoding((self.char, i)).to_bytes() for i in idx}
                 self.tx.send(sender, M.EncodingReply.pack(self.id, [c.fx, c.fy, c.cx, c.cy, c.width, c.height], items))
         elif isinstance(msg, M.EncodingReply):
-            self._on_encodings(msg)
+            self._on_encodings(sender, msg)
         elif isinstance(msg, M.LoopBatch):
             if sender < self.id and list(msg.version) > self.loops_version.get(sender, []):
                 rows = [(k, lp) for k, lp in _lb_rows(msg) if k[0] == sender and k[2] == self.id]
@@ -216,10 +216,10 @@ class RobotNode:
         elif isinstance(msg, M.Estimate):
             self._offer_estimate(msg)
 
-    def _on_encodings(self, msg: M.EncodingReply) -> None:
+    def _on_encodings(self, sender: int, msg: M.EncodingReply) -> None:
         from swarmsplat.registration.pair.base import Encoding
 
-        if msg.owner == self.id:
+        if msg.owner != sender:  # only a keyframe's own robot encodes it
             return
         fx, fy, cx, cy, w, h = msg.camera
         self.cameras[msg.owner] = PinholeCamera(fx, fy, cx, cy, int(w), int(h))

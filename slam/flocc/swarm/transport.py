@@ -52,6 +52,7 @@ class Transport(ABC):
     def __init__(self, robot: int):
         self.robot = int(robot)
         self.stats = ByteCounter()
+        self.team: set[int] | None = None  # the robots of this run (a subclass sets it): others' messages are foreign
         self._seq = 0
 
     def send(self, dest: int | None, msg: M.Message) -> int:
@@ -63,7 +64,8 @@ class Transport(ABC):
         return len(data)
 
     def poll(self) -> list[tuple[M.Header, M.Message]]:
-        """Valid messages received since the last poll, in arrival order; invalid buffers are counted and dropped."""
+        """Valid messages received since the last poll, in arrival order; invalid buffers and messages from robots
+        outside the team are counted (`stats.rejected`) and dropped."""
         out = []
         for data in self._receive_bytes():
             try:
@@ -72,6 +74,9 @@ class Transport(ABC):
                 self.stats.rejected += 1
                 continue
             if h.sender == self.robot:
+                continue
+            if self.team is not None and h.sender not in self.team:  # another team's robot: foreign
+                self.stats.rejected += 1
                 continue
             self.stats.on_recv(msg.kind, len(data))
             out.append((h, msg))
@@ -201,6 +206,7 @@ class InProcessTransport(Transport):
     def __init__(self, network: InProcessNetwork, robot: int):
         super().__init__(robot)
         self.network = network
+        self.team = set(network.robots)
 
     def neighbours(self) -> list[int]:
         return [] if self.robot in self.network.killed else self.network.neighbours(self.robot)

@@ -39,6 +39,7 @@ class ZenohTransport(Transport):
         except ImportError:
             raise InputError("the Zenoh transport needs eclipse-zenoh: pip install eclipse-zenoh") from None
         self.robots = sorted(int(r) for r in robots)
+        self.team = set(self.robots)
         self.schedule, self.clock = schedule, clock or (lambda: 0)
         self.prefix = f"swarmsplat/{run}"
         conf = zenoh.Config()
@@ -101,7 +102,7 @@ class ZenohTransport(Transport):
             except M.MessageError:
                 out.append(data)  # let poll() count it as rejected
                 continue
-            if self._linked(sender):
+            if sender not in self.team or self._linked(sender):  # poll() counts a foreign robot's message
                 out.append(data)
 
     def close(self) -> None:
