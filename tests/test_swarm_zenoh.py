@@ -1,6 +1,8 @@
 """Zenoh transport on loopback: delivery, rendezvous gating on both ends, rejection of foreign bytes; three robot
-processes (peer-to-peer, no broker) reach the in-process run's estimates. Skipped without eclipse-zenoh."""
+processes (peer-to-peer, no broker) reach the in-process run's estimates through the end protocol, and finish
+without a robot that vanished. Skipped without eclipse-zenoh."""
 
+import json
 import os
 import socket
 import subprocess
@@ -73,15 +75,13 @@ def test_delivery_and_schedule_gating():
         b.close()
 
 
-def test_robot_processes_match_in_process(tmp_path):
-    """Three robot nodes, one process each, on 0.1 s ticks of the runtime tests' schedule: the final estimates
-    equal the in-process run's (the same graphs reach the optimiser, whatever the timing)."""
-    from test_swarm_runtime import run
-
+def _robots(tmp_path, extra=((), (), ())):
+    """Run the three robot processes of `swarm_zenoh_robot.py` (extra arguments per robot) from a common tick 0;
+    returns their saved results and their stderr."""
     here = Path(__file__).parent
     base = _free_port_base(3)
     procs = [subprocess.Popen([sys.executable, str(here / "swarm_zenoh_robot.py"), str(r), str(base),
-                               str(tmp_path / f"r{r}.npz"), f"r{os.getpid()}"],
+                               str(tmp_path / f"r{r}.npz"), f"r{os.getpid()}", *map(str, extra[r])],
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for r in range(3)]
     try:
@@ -100,8 +100,66 @@ def test_robot_processes_match_in_process(tmp_path):
         for p in procs:
             if p.poll() is None:
                 p.kill()
+    return {r: dict(np.load(tmp_path / f"r{r}.npz")) for r in range(3) if (tmp_path / f"r{r}.npz").exists()}, logs
+
+
+def test_robot_processes_match_in_process(tmp_path):
+    """Three robot nodes, one process each, on 0.1 s ticks of a schedule that brings everyone together only at
+    its last tick: nothing can be exchanged in time, so the team merges in the end protocol, and every robot ends
+    with the estimate of the in-process run that had 28 ticks together (the same graphs reach the optimiser,
+    whatever the timing)."""
+    from test_swarm_runtime import run
+
+    got, logs = _robots(tmp_path)
     ref, _ = run()
     for r in range(3):
-        got = np.load(tmp_path / f"r{r}.npz")
-        assert got["robots"].tolist() == ref[r].estimate.robots.tolist(), logs
-        np.testing.assert_allclose(got["poses"], ref[r].estimate.poses, atol=1e-6)
+        assert json.loads(str(got[r]["end"]))["status"] == "complete", logs
+        assert got[r]["robots"].tolist() == ref[r].estimate.robots.tolist(), logs
+        np.testing.assert_allclose(got[r]["poses"], ref[r].estimate.poses, atol=1e-6)
+    assert got[0]["stamp"].tolist() == got[1]["stamp"].tolist() == got[2]["stamp"].tolist(), logs
+
+
+def test_vanished_robot_process(tmp_path):
+    """Robot 2 exits without a word before the team meets: robots 0 and 1 finish when the end protocol times
+    out (3 s), report robot 2 missing, and hold the same estimate of the two of them."""
+    got, logs = _robots(tmp_path, ((3.0,), (3.0,), (3.0, 12)))
+    assert set(got) == {0, 1}
+    for r in (0, 1):
+        end = json.loads(str(got[r]["end"]))
+        assert end["status"] == "timeout" and end["missing"] == [2], logs
+        assert float(got[r]["seconds"]) < 1.6 + 3.0 + 3.0, logs  # the schedule, the timeout, some slack
+    assert got[0]["robots"].tolist() == got[1]["robots"].tolist() == [0, 1], logs
+    np.testing.assert_array_equal(got[0]["poses"], got[1]["poses"])
+
+
+LATE = "ticks: 16\nframes_per_tick: 2\ntick_seconds: 0.1\nwindows:\n  - {start: 15, end: 16, robots: [0, 1, 2]}\n"
+
+
+def test_swarm_processes_give_the_in_process_result(tmp_path):
+    """`swarm --processes` on a small generated team, three times, against the in-process run on the same
+    schedule. The robots meet only at the schedule's last tick (0.1 s ticks), so descriptors, encodings, loops,
+    graphs and the final estimate all travel in the end protocol: every run must end with the in-process loops
+    and trajectories, every robot holding the same final estimate."""
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.run.swarm import run_swarm
+    from swarmsplat.slam.run.swarm_processes import launch
+
+    data = tmp_path / "data"
+    assert main(["generate", "--out", str(data), "--preset", "tiny", "--agents", "3", "--frames", "30", "--mono",
+                 "--quiet"]) == 0
+    (tmp_path / "late.yaml").write_text(LATE)
+    opts = {"stride": 2, "schedule": str(tmp_path / "late.yaml")}
+    ref = run_swarm(data, tmp_path / "inproc", progress=False, **opts)
+    loops = ref["loop_closures"]["count"]
+    assert loops > 10 and ref["ate"]["merged_rmse"] < 0.8 * ref["odometry_only_ate"]["merged_rmse"]
+    assert all(e["status"] == "complete" for e in ref["end"].values())
+    for k in range(3):
+        out = tmp_path / f"zenoh{k}"
+        m = launch(data, out, port_base=_free_port_base(3), **opts)
+        assert m["loop_closures"]["count"] == loops, (k, m["end"])
+        assert all(e["status"] == "complete" for e in m["end"].values()), (k, m["end"])
+        assert len({tuple(s) for s in m["estimate_stamp"].values()}) == 1, (k, m["estimate_stamp"])
+        assert abs(m["ate"]["merged_rmse"] - ref["ate"]["merged_rmse"]) <= 0.1 * ref["ate"]["merged_rmse"], k
+        for name in ("agent_0", "agent_1", "agent_2"):
+            np.testing.assert_allclose(np.loadtxt(out / f"{name}.txt"), np.loadtxt(tmp_path / "inproc" / f"{name}.txt"),
+                                       atol=1e-6)

@@ -66,5 +66,9 @@ def run(args) -> int:
     if ate:
         print(f"merged ATE {ate['merged_rmse']:.4f} m (odometry only {odo['merged_rmse']:.4f} m), {loops} loops")
     print("bytes sent per robot: " + ", ".join(f"{k} {v}" for k, v in sent.items()))
+    for name, end in (m.get("end") or {}).items():
+        if end and end["status"] != "complete":
+            print(f"{name}: the end protocol timed out (swarm.end_timeout); robots not heard from: "
+                  f"{end['missing'] or 'none'}")
     print(f"wrote {args.out}")
     return 0

@@ -39,6 +39,10 @@ class SwarmConfig(_FrontEnd):
     neighbour_timeout: int = Field(3, ge=1, description="ticks without a hello before a robot counts as out of "
                                                         "range")
     resend: int = Field(4, ge=1, description="ticks before something a neighbour still lacks is sent again")
+    end_timeout: float = Field(60.0, gt=0, description="seconds the end protocol may run after the schedule's last "
+                                                      "tick (robots go on exchanging until every robot in range "
+                                                      "holds the final estimate); past it they stop and report the "
+                                                      "robots not heard from")
     port_base: int = Field(17447, description="Zenoh runs: robot K listens on TCP port port_base + K")
     # back-end
     formulation: Literal["is", "ss", "base", "shared"] = Field(

@@ -20,6 +20,7 @@ from swarmsplat.kernels.fileio import output_dir
 from swarmsplat.slam.config import SlamConfig, SwarmConfig, with_section
 from swarmsplat.slam.run.guard import SkipLog, guarded, keep, read_frame
 
+from swarmsplat.slam.flocc.swarm.ending import MissionEnd
 from swarmsplat.slam.flocc.swarm.node import NodeConfig, RobotNode
 from swarmsplat.slam.flocc.swarm.optimiser import SolveConfig
 from swarmsplat.slam.flocc.swarm.rendezvous import Schedule
@@ -53,7 +54,7 @@ def node_config(sw: SwarmConfig) -> NodeConfig:
                         odo_sigma_rot=sw.odo_sigma_rot, odo_sigma_trans=sw.odo_sigma_trans,
                         loop_sigma_rot=sw.loop_sigma_rot, loop_sigma_trans=sw.loop_sigma_trans)
     return NodeConfig(threshold=sw.threshold, r_thr=sw.r_thr, k=sw.k, neighbour_timeout=sw.neighbour_timeout,
-                      resend=sw.resend, solve=solve)
+                      resend=sw.resend, end_timeout=sw.end_timeout, solve=solve)
 
 
 def prepare(dataset: str | Path, config: SlamConfig | SwarmConfig | None = None, *,
@@ -120,46 +121,57 @@ def make_nodes(setup: SwarmSetup, network: InProcessNetwork) -> tuple[list[Robot
 
 
 def simulate(setup: SwarmSetup, *, faults: Faults | None = None, progress: bool = False, on_tick=None):
-    """Run every tick of the schedule in-process. `on_tick(tick, network, nodes, feeders)` runs before each
-    tick (tests inject kills and link changes there). Returns (nodes, network, feeders)."""
+    """Run every tick of the schedule in-process, then the end protocol (`MissionEnd`) until every robot has
+    stopped. `on_tick(tick, network, nodes, feeders)` runs before each tick (tests inject kills and link changes
+    there). Returns (nodes, network, feeders, ends): `ends[r]` is robot r's end protocol."""
     from swarmsplat.slam.io.progress import bar
 
     robots = list(range(len(setup.dataset.agents)))
     net = InProcessNetwork(robots, setup.schedule, faults)
     nodes, feeders = make_nodes(setup, net)
-    keep(lambda status, reason: write_partial_swarm(setup, nodes, feeders, status=status, reason=reason))
-    with bar(setup.schedule.ticks, "[swarm] ticks", unit="tick", enabled=progress) as b:
-        for tick in range(setup.schedule.ticks):
+    sched = setup.schedule
+    ends = [MissionEnd.on_schedule(n, sched, robots) for n in nodes]
+    stopped: set[int] = set()
+    keep(lambda status, reason: write_partial_swarm(setup, nodes, feeders, ends, status=status, reason=reason))
+    with bar(sched.ticks, "[swarm] ticks", unit="tick", enabled=progress) as b:
+        for tick in range(sched.ticks + max(e.timeout_ticks for e in ends) + 1):
+            if tick >= sched.ticks and set(robots) <= stopped | net.killed:
+                break
             if on_tick is not None:
                 on_tick(tick, net, nodes, feeders)
             net.advance(tick)
             for r in robots:
-                if r in net.killed:
+                if r in net.killed or r in stopped:
                     continue
-                feeders[r].feed(nodes[r], setup.schedule.frames_at(tick))
+                feeders[r].feed(nodes[r], sched.frames_at(tick))
                 nodes[r].step(tick)
-            b.update(1, f"{sum(len(n.timestamps) for n in nodes)} keyframes")
-    return nodes, net, feeders
+                if tick >= sched.ticks - 1 and ends[r].step(tick):
+                    stopped.add(r)
+            if tick < sched.ticks:
+                b.update(1, f"{sum(len(n.timestamps) for n in nodes)} keyframes")
+    return nodes, net, feeders, ends
 
 
-def robot_results(nodes) -> tuple[dict, dict]:
-    """(robot id -> what outputs.write_outputs needs, the final graphs: those of the lowest-id robot that solved)."""
+def robot_results(nodes, ends=None) -> tuple[dict, dict]:
+    """(robot id -> what outputs.write_outputs needs, the final graphs: those of the lowest-id robot that solved).
+    ends: each robot's end protocol (its report goes with the robot's results)."""
     robots = {r: {"trajectory": n.trajectory(), "odometry": np.array(n.odometry), "timestamps": np.array(n.timestamps),
-                  "bytes": n.tx.stats.to_dict(), "estimate": n.estimate, "n_solves": n.n_solves}
+                  "bytes": n.tx.stats.to_dict(), "estimate": n.estimate, "n_solves": n.n_solves,
+                  "end": ends[r].report() if ends else None}
               for r, n in enumerate(nodes)}
     leader = min((n for n in nodes if n.last_solution is not None), key=lambda n: n.id, default=None)
     final = {int(r): leader.subs[int(r)] for r in leader.solved_basis} if leader else {}
     return robots, final
 
 
-def write_partial_swarm(setup: SwarmSetup, nodes, feeders, *, status: str, reason: str) -> Path | None:
+def write_partial_swarm(setup: SwarmSetup, nodes, feeders, ends=None, *, status: str, reason: str) -> Path | None:
     """A swarm run cut short: every robot's keyframe trajectory so far and the outputs of `write_outputs` without
     the re-solved alternatives, metrics.json with `status` and `reason`."""
     from swarmsplat.slam.run.swarm_results import write_outputs
 
     if setup.out is None:
         return None
-    robots, final = robot_results(nodes)
+    robots, final = robot_results(nodes, ends)
     write_outputs(setup.out, setup, robots, final, mode="in-process", status=status, reason=reason,
                   skipped=[row for f in feeders for row in f.skipped.rows])
     return setup.out
@@ -179,7 +191,7 @@ def run_swarm(dataset: str | Path, out: str | Path, config: SlamConfig | SwarmCo
     out = output_dir(out, "--out")
     setup = prepare(dataset, config, vocabulary_out=out / "vocabulary.npz", **options)
     setup.out = out
-    nodes, net, feeders = simulate(setup, progress=progress)
-    robots, final = robot_results(nodes)
+    nodes, net, feeders, ends = simulate(setup, progress=progress)
+    robots, final = robot_results(nodes, ends)
     return write_outputs(out, setup, robots, final, mode="in-process",
                          skipped=[row for f in feeders for row in f.skipped.rows])

@@ -30,7 +30,8 @@ from swarmsplat.slam.flocc.swarm import messages as M
 @guarded("robot")
 def run_robot(dataset: str | Path, robot: int, out: str | Path, config: SlamConfig | SwarmConfig | None = None, *,
               start_time: float | None = None, run: str = "swarmsplat", **options) -> Path:
-    """Run robot `robot` of `dataset` on Zenoh until the schedule ends; write its outputs under `out`.
+    """Run robot `robot` of `dataset` on Zenoh until the schedule and then the end protocol (`MissionEnd`: every
+    robot in range holds the final estimate, or swarm.end_timeout) are over; write its outputs under `out`.
 
     config: the config tree (or its swarm section) every robot of the run shares; options: SwarmConfig fields
     overriding its swarm section (port_base, stride, schedule, place, place_checkpoint, formulation, ...).
@@ -39,6 +40,7 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, config: SlamConf
     Interrupted (SIGINT / SIGTERM, e.g. from `launch`) or failing, it writes its state so far and re-raises.
     """
     from swarmsplat.slam.flocc.swarm.clocked import TickClock, run_clocked
+    from swarmsplat.slam.flocc.swarm.ending import MissionEnd
     from swarmsplat.slam.flocc.swarm.node import RobotNode
     from swarmsplat.slam.flocc.swarm.optimiser import warm_up
     from swarmsplat.slam.run.swarm import KeyframeFeeder, prepare, swarm_config
@@ -66,24 +68,30 @@ def run_robot(dataset: str | Path, robot: int, out: str | Path, config: SlamConf
     warm_up()
     tx.wait_for_peers(60.0)
     d = Path(out) / "robots" / seq.name
-    keep(lambda status, reason: _write_state(d, robot, node, tx, feeder, None, status=status, reason=reason))
+    sched = setup.schedule
+    end = MissionEnd.on_schedule(node, sched, range(n))
+    keep(lambda status, reason: _write_state(d, robot, node, tx, feeder, None, end, status=status, reason=reason))
     if start_time is None:
         print("ready", flush=True)
         start_time = float(sys.stdin.readline())
 
-    def step(tick: int) -> None:
-        feeder.feed(node, setup.schedule.frames_at(tick))
+    def step(tick: int) -> bool:
+        feeder.feed(node, sched.frames_at(tick))
         node.step(tick)
+        return tick >= sched.ticks - 1 and end.step(tick)
 
-    try:
-        skipped = run_clocked(step, setup.schedule.ticks, start_time, setup.schedule.tick_seconds, clock)
+    try:  # the schedule, then the end protocol: at most end.timeout_ticks more ticks
+        skipped = run_clocked(step, sched.ticks + end.timeout_ticks, start_time, sched.tick_seconds, clock)
     finally:
         tx.close()
-    return _write_state(d, robot, node, tx, feeder, skipped)
+    if end.status != "complete":
+        print(f"robot {robot}: the end protocol timed out after {end.report()['ticks']} ticks; missing robots "
+              f"{end.report()['missing']}", file=sys.stderr, flush=True)
+    return _write_state(d, robot, node, tx, feeder, skipped, end)
 
 
-def _write_state(d: Path, robot: int, node, tx, feeder, skipped_ticks: int | None, *, status: str = "complete",
-                 reason: str | None = None) -> Path:
+def _write_state(d: Path, robot: int, node, tx, feeder, skipped_ticks: int | None, end=None, *,
+                 status: str = "complete", reason: str | None = None) -> Path:
     """A robot process's outputs (the module docstring), each written atomically; bytes.json last, so a robot
     folder with bytes.json is whole."""
     d.mkdir(parents=True, exist_ok=True)
@@ -97,7 +105,8 @@ def _write_state(d: Path, robot: int, node, tx, feeder, skipped_ticks: int | Non
             atomic_write_bytes(d / f"graph_{int(r)}.msg", M.encode(node.subs[int(r)], int(r), 0))
     atomic_write_text(d / "bytes.json", json.dumps({**tx.stats.to_dict(), "n_solves": node.n_solves,
                                                    "skipped_ticks": skipped_ticks, "status": status,
-                                                   "reason": reason, "skipped_frames": feeder.skipped.rows}))
+                                                   "reason": reason, "skipped_frames": feeder.skipped.rows,
+                                                   "end": end.report() if end is not None else None}))
     return d
 
 
@@ -115,8 +124,9 @@ def launch(dataset: str | Path, out: str | Path, config: SlamConfig | SwarmConfi
     config tree (or its swarm section); options: SwarmConfig fields overriding it (port_base, stride, schedule,
     place, backend, formulation, solver, uniform_noise, ...). The robots read the tree from `out/config.yaml`,
     with the schedule (`out/schedule.yaml`) and the shared vocabulary filled in.
-    An interrupt is passed on to the robots (SIGINT), which write their state; the outputs are then gathered from
-    the robots that did, with metrics.json "status" "interrupted" / "failed"."""
+    An interrupt is passed on to the robots (SIGINT), which write their state; a robot process that dies leaves
+    the others to finish without it (their end protocol reports it missing). The outputs are then gathered from
+    the robots that wrote their state, with metrics.json "status" "interrupted" / "failed"."""
     from swarmsplat.slam.run.swarm import prepare, swarm_config
 
     cfg = swarm_config(config, **{k: v for k, v in options.items() if k != "schedule"})
@@ -158,11 +168,14 @@ def launch(dataset: str | Path, out: str | Path, config: SlamConfig | SwarmConfi
         for p in procs:
             p.stdin.write(f"{start}\n")
             p.stdin.flush()
-        limit = timeout or setup.schedule.ticks * setup.schedule.tick_seconds * 3 + 120
-        for r, p in enumerate(procs):
+        limit = timeout or setup.schedule.ticks * setup.schedule.tick_seconds * 3 + cfg.swarm.end_timeout + 120
+        failed = []
+        for r, p in enumerate(procs):  # a robot that dies does not stop the others: they finish without it
             _, err = p.communicate(timeout=limit)
             if p.returncode != 0:
-                raise SwarmsplatError(f"robot {r} failed (exit {p.returncode}): {err[-800:]}")
+                failed.append(f"robot {r} failed (exit {p.returncode}): {err[-800:]}")
+        if failed:  # the outputs of the robots that finished are gathered (status "failed")
+            raise SwarmsplatError("; ".join(failed))
     except BaseException:
         _stop(procs)
         raise
@@ -200,9 +213,10 @@ def gather(out: Path, setup, *, status: str = "complete", reason: str | None = N
         b = json.loads((d / "bytes.json").read_text())
         skipped += b.pop("skipped_frames", [])
         b.pop("status", None), b.pop("reason", None)
+        end = b.pop("end", None)
         est = M.decode((d / "estimate.msg").read_bytes())[1] if (d / "estimate.msg").exists() else None
         robots[r] = {"trajectory": st["trajectory"], "odometry": st["odometry"], "timestamps": st["timestamps"],
-                     "bytes": b, "estimate": est, "n_solves": b.get("n_solves", 0)}
+                     "bytes": b, "estimate": est, "n_solves": b.get("n_solves", 0), "end": end}
         graphs = sorted(d.glob("graph_*.msg"))
         if graphs and not final:  # the lowest robot that optimised: its last solve is the team's
             final = {int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs}

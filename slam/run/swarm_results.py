@@ -5,7 +5,8 @@
     odometry/<agent>.txt     each robot's own odometry at its keyframes (the no-collaboration reference)
     pose_graph_optimized.g2o the final global graph, solved as configured (vertices = optimised poses)
     metrics.json             ATE per robot and merged (one alignment) for the run, for odometry only and for the
-                             other formulations re-solved on the same final graphs; loops; bytes per message type
+                             other formulations re-solved on the same final graphs; loops; bytes per message type;
+                             how each robot's end protocol ended (`end`: status, ticks, group, missing robots)
     trajectories.png         every robot against ground truth after the merged alignment
 """
 
@@ -93,7 +94,7 @@ def _public(d: dict) -> dict:
 
 def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *, mode: str,
                   status: str = "complete", reason: str | None = None, skipped: list | None = None) -> dict:
-    """robots: id -> {trajectory, odometry, timestamps, bytes, estimate, n_solves}; final_subs: the graphs of
+    """robots: id -> {trajectory, odometry, timestamps, bytes, estimate, n_solves, end}; final_subs: the graphs of
     the optimiser's last solve (robot id -> GraphSubmission), re-solved here for the comparison and the g2o.
     status: "complete", or "interrupted" / "failed" (with `reason`) for a run cut short, which skips the other
     formulations' re-solves and the plot; skipped: {"agent", "frame", "reason"} of unreadable keyframes."""
@@ -151,6 +152,7 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
     metrics["n_solves"] = {names[r]: d["n_solves"] for r, d in robots.items()}
     metrics["estimate_stamp"] = {names[r]: (list(d["estimate"].stamp) if d["estimate"] is not None else None)
                                  for r, d in robots.items()}
+    metrics["end"] = {names[r]: d.get("end") for r, d in robots.items()}
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=float))
     if complete and run.get("_result") is not None:
         _plot(out / "trajectories.png", run["_result"])

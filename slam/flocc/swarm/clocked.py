@@ -22,10 +22,10 @@ class TickClock:
         return self.tick
 
 
-def run_clocked(step: Callable[[int], None], ticks: int, start_time: float, tick_seconds: float,
+def run_clocked(step: Callable[[int], bool | None], ticks: int, start_time: float, tick_seconds: float,
                 clock: TickClock | None = None) -> int:
-    """Call `step(tick)` at the wall-clock start of each tick in 0 .. ticks-1, skipping ticks already over
-    (the last tick always runs). Returns the number of ticks skipped."""
+    """Call `step(tick)` at the wall-clock start of each tick in 0 .. ticks-1 until it returns True, skipping
+    ticks already over (the last tick always runs). Returns the number of ticks skipped."""
     tick, skipped = 0, 0
     while tick < ticks:
         wait = start_time + tick * tick_seconds - time.time()
@@ -36,6 +36,7 @@ def run_clocked(step: Callable[[int], None], ticks: int, start_time: float, tick
         tick = now
         if clock is not None:
             clock.tick = tick
-        step(tick)
+        if step(tick):
+            break
         tick += 1
     return skipped

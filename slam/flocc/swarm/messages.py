@@ -23,7 +23,7 @@ import numpy as np
 from swarmsplat.kernels.errors import InputError
 
 MAGIC = b"SWRM"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: the end protocol (Finish); a robot without it would hold the others to the timeout
 _HEADER = struct.Struct("<4sBBBQI")
 HEADER_BYTES = _HEADER.size
 MAX_PAYLOAD = 256 << 20  # 256 MiB: refuse absurd lengths before allocating anything
@@ -262,8 +262,34 @@ class Estimate(Message):
             raise MessageError("Estimate: stamp must be a list of integers")
 
 
+@dataclass
+class Finish(Message):
+    """The end protocol (`ending.py`), sent every tick from the schedule's last tick on, next to the hello.
+
+    ready: 1 when the sender has no loop candidate left to verify and has exchanged descriptors and loops with
+    every robot of its group; graph_version: as in Hello; estimate_stamp: the stamp of the estimate it holds;
+    end: from the group's optimiser, the stamp of the final estimate (the mission is over for whoever holds it),
+    from another robot, the same stamp echoed (it holds it and stops); [] until then.
+    """
+
+    TYPE: ClassVar[int] = 8
+    SCALARS: ClassVar[dict] = {"tick": int, "ready": int, "graph_version": list, "estimate_stamp": list,
+                               "end": list}
+    tick: int = 0
+    ready: int = 0
+    graph_version: list = field(default_factory=list)
+    estimate_stamp: list = field(default_factory=list)
+    end: list = field(default_factory=list)
+
+    def validate(self) -> None:
+        if not (_ints(self.graph_version) and _ints(self.estimate_stamp) and _ints(self.end)) \
+                or self.ready not in (0, 1):
+            raise MessageError("Finish: versions and stamps must be lists of integers, ready 0 or 1")
+
+
 MESSAGE_TYPES: dict[int, type[Message]] = {
-    c.TYPE: c for c in (Hello, Descriptors, EncodingRequest, EncodingReply, LoopBatch, GraphSubmission, Estimate)}
+    c.TYPE: c for c in (Hello, Descriptors, EncodingRequest, EncodingReply, LoopBatch, GraphSubmission, Estimate,
+                        Finish)}
 
 
 def encode(msg: Message, sender: int, seq: int) -> bytes:

@@ -43,6 +43,7 @@ class NodeConfig:
     k: float | None = None  # eq. 2 steepness
     neighbour_timeout: int = 3  # ticks without a hello before a robot counts as out of range
     resend: int = 4  # ticks before re-sending something a neighbour still lacks
+    end_timeout: float = 60.0  # seconds the end protocol may run after the schedule's last tick (ending.py)
     solve: SolveConfig = field(default_factory=SolveConfig)
 
 
@@ -97,6 +98,7 @@ class RobotNode:
         self.loops: dict[int, dict[tuple, Loop]] = {}  # peer -> loop key (qa, qi, mb, mj) -> Loop
         self.loops_version: dict[int, list[int]] = {}  # peer (lower id) -> version of the set received
         self.hello: dict[int, M.Hello] = {}
+        self.finish: dict[int, M.Finish] = {}  # robot -> its latest Finish (the end protocol, ending.py)
         self.last_seen: dict[int, int] = {}
         self.subs: dict[int, M.GraphSubmission] = {}  # as optimiser: robot -> latest submission
         self.estimate: M.Estimate | None = None
@@ -215,6 +217,9 @@ class RobotNode:
                     self.subs[msg.robot] = msg
         elif isinstance(msg, M.Estimate):
             self._offer_estimate(msg)
+        elif isinstance(msg, M.Finish):
+            if msg.tick >= self.finish.get(sender, msg).tick:
+                self.finish[sender] = msg
 
     def _on_encodings(self, sender: int, msg: M.EncodingReply) -> None:
         from swarmsplat.registration.pair.base import Encoding

@@ -37,9 +37,11 @@ class Schedule:
     windows: list[Window] = field(default_factory=list)
 
     def linked(self, tick: int, a: int, b: int) -> bool:
-        """True when robots a and b can exchange messages at `tick` (a robot is always linked with itself)."""
+        """True when robots a and b can exchange messages at `tick` (a robot is always linked with itself). Past
+        the last tick (a mission's end protocol, ending.py) the links of the last tick hold."""
         if a == b:
             return True
+        tick = min(tick, self.ticks - 1)
         return any(w.start <= tick < w.end and a in w.robots and b in w.robots for w in self.windows)
 
     def neighbours(self, tick: int, robot: int, robots) -> list[int]:
