@@ -15,12 +15,14 @@ from typing import TYPE_CHECKING
 from . import se3
 from .backend import Backend, active, cuda_available, devices, reference_active, use, use_reference
 from .camera import PinholeCamera
-from .errors import BackendError, GraphError, InputError, RegistrationError, SwarmsplatError
+from .errors import (BackendError, DeviceCheckError, GraphError, InputError, RegistrationError, SanityError,
+                     SwarmsplatError)
 
 __all__ = [
     "use", "use_reference", "reference_active", "active", "devices", "cuda_available", "Backend", "backend_module",
     "PinholeCamera", "se3", "check_tensor", "axpy",
-    "SwarmsplatError", "InputError", "BackendError", "RegistrationError", "GraphError",
+    "SwarmsplatError", "InputError", "BackendError", "DeviceCheckError", "RegistrationError", "GraphError",
+    "SanityError",
 ]
 
 

@@ -100,10 +100,13 @@ def rasterize_reference(
     background: torch.Tensor | None = None,  # [3]
     near: float = 0.01,
     far: float = 100.0,
+    window: tuple[int, int, int, int] | None = None,  # (x0, y0, x1, y1): only these pixels, end exclusive
 ) -> RenderOutput:
     """Dense twin of `kernels.rasterize` (same signature and outputs), differentiable by autograd.
 
     Works in the dtype of `means` (every input is cast to it); memory is O(H W N), so keep scenes small.
+    window: evaluate only the pixels [y0, y1) x [x0, x1) of the width x height image (images [y1-y0, x1-x0],
+    n_touched counting those pixels): a few tiles of a working-size image with the full image's projection.
     """
     dt, dev = means.dtype, means.device
     quats, scales, opacities, colors, viewmat, K = (t.to(dt) for t in (quats, scales, opacities, colors, viewmat, K))
@@ -111,7 +114,8 @@ def rasterize_reference(
     n = means.shape[0]
     mean2d, conic, z, radius, rect, visible = project_reference(means, quats, scales, viewmat, K, width, height, near, far)
 
-    ys, xs = torch.meshgrid(torch.arange(height, device=dev), torch.arange(width, device=dev), indexing="ij")
+    x0, y0, x1, y1 = window if window is not None else (0, 0, width, height)
+    ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev), torch.arange(x0, x1, device=dev), indexing="ij")
     px, py = xs.reshape(-1).to(dt), ys.reshape(-1).to(dt)  # [P]
     tile_x, tile_y = (xs.reshape(-1) // TILE).to(dt), (ys.reshape(-1) // TILE).to(dt)
     in_rect = (
@@ -144,9 +148,9 @@ def rasterize_reference(
     n_touched = torch.zeros(n, dtype=torch.int32, device=dev)
     n_touched[order] = (alpha.detach() > 0).sum(0).to(torch.int32)
     radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
-    depth = depth.reshape(height, width)
-    alpha_img = alpha_img.reshape(height, width)
+    depth = depth.reshape(y1 - y0, x1 - x0)
+    alpha_img = alpha_img.reshape(y1 - y0, x1 - x0)
     return RenderOutput(
-        color=color.reshape(height, width, 3), depth=depth, depth_normalised=finish_depth(depth, alpha_img),
+        color=color.reshape(y1 - y0, x1 - x0, 3), depth=depth, depth_normalised=finish_depth(depth, alpha_img),
         alpha=alpha_img, radii=radii, n_touched=n_touched,
     )

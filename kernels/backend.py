@@ -195,7 +195,8 @@ def devices(run: bool = False) -> list[Backend]:
 
     run=False (cheap, nothing changes): each pair's runtime loads — the CPU always; CUDA when torch sees a CUDA
     device and Warp / Taichi load the CUDA driver; Vulkan when Taichi creates a Vulkan instance with the installed
-    loader and drivers. run=True: additionally selects each pair and runs the axpy probe kernel on it, then
+    loader and drivers. run=True: additionally selects each pair and runs the axpy probe kernel and the device
+    self-check on it (kernels.selfcheck: a 320x240 probe render, forward and backward, against the twin), then
     selects the pair that was active before again (Taichi re-initialises when its arch changes).
     """
     found = []
@@ -218,7 +219,8 @@ def devices(run: bool = False) -> list[Backend]:
 
 
 def _runs(b: Backend) -> bool:
-    """Select `b`, run y <- 2 x + y on it and compare; the previously active pair is selected again after."""
+    """Select `b`, run y <- 2 x + y on it and compare, then the self-check's probe render; the previously active
+    pair is selected again after."""
     global _active
     import torch
 
@@ -230,7 +232,11 @@ def _runs(b: Backend) -> bool:
         x = torch.arange(64, dtype=torch.float32, device=b.torch_device)
         y = torch.ones(64, dtype=torch.float32, device=b.torch_device)
         axpy(2.0, x, y)
-        return bool(torch.equal(y.cpu(), 2.0 * torch.arange(64, dtype=torch.float32) + 1.0))
+        if not torch.equal(y.cpu(), 2.0 * torch.arange(64, dtype=torch.float32) + 1.0):
+            return False
+        from .selfcheck import self_check
+
+        return self_check(b.name, b.device).ok
     except BackendError:
         return False
     finally:

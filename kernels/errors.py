@@ -31,3 +31,13 @@ class RegistrationError(SwarmsplatError, RuntimeError):
 
 class GraphError(SwarmsplatError, RuntimeError):
     """A pose graph that cannot be built or solved."""
+
+
+class DeviceCheckError(BackendError):
+    """A backend/device that loads but fails its self-check: a driver error, or a probe render that differs from
+    the twin (kernels.selfcheck)."""
+
+
+class SanityError(SwarmsplatError, RuntimeError):
+    """A pipeline result that cannot be right: a new submap left empty where the keyframe has valid depth, a render
+    with no alpha where depth is valid, parameters that are not finite."""

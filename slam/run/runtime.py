@@ -25,7 +25,40 @@ def use_kernels(cfg: KernelsConfig) -> None:
         torch.set_num_threads(cfg.torch_threads)
 
 
+def check_device(cfg: KernelsConfig, cameras: list, max_width: int) -> None:
+    """The kernel device's self-check (kernels.selfcheck) at the run's working size — the largest of `cameras`
+    after frames wider than `max_width` are downsampled (slam.dense.frames) — before the first frame: a device
+    that computes wrongly stops the run with one line (DeviceCheckError) instead of mapping garbage. Once per
+    process and size; it renders its own probe scene, so the run's results do not change."""
+    from swarmsplat.kernels import selfcheck
+
+    sizes = []
+    for cam in cameras:
+        w, h = cam.width, cam.height
+        if 0 < max_width < w:
+            w, h = int(max_width), max(1, int(round(h * max_width / w)))
+        sizes.append((w, h))
+    w, h = max(sizes, key=lambda s: s[0] * s[1])
+    selfcheck.require(cfg.backend, cfg.device, w, h)
+
+
 def kernels_record(cfg: KernelsConfig) -> dict:
     """metrics.json's "kernels": the section as configured plus `torch_threads_in_effect`, the thread count torch
     actually ran with (the configured value alone once hid that team runs ignored it)."""
     return {**cfg.model_dump(), "torch_threads_in_effect": torch.get_num_threads()}
+
+
+def check_not_empty(agents: list) -> None:
+    """Raise SanityError when an agent that made keyframes ends with an empty map: never a 'complete' run then."""
+    from swarmsplat.kernels.errors import SanityError
+
+    for ag in agents:
+        if ag.keyframes and len(ag.gmap) == 0:
+            raise SanityError(f"{ag.name}: the map is empty after {len(ag.keyframes)} keyframes; not a result")
+
+
+def guard_warnings(agents: list) -> dict:
+    """metrics.json "warnings", only when there were any: what the pipeline's guards repaired, i.e. the Gaussians
+    removed for non-finite parameters (slam.dense.mapping.mapper)."""
+    dropped = sum(ag.mapper.non_finite_dropped for ag in agents)
+    return {"warnings": {"non_finite_gaussians_dropped": dropped}} if dropped else {}

@@ -20,7 +20,7 @@ from swarmsplat.slam.io.jsonio import write_json
 from swarmsplat.slam.dense.loops.loop_log import count_by_source
 from .partial_results import write_partial_agent
 from swarmsplat.slam.run.guard import guarded, keep, read_frame
-from .runtime import kernels_record
+from .runtime import check_not_empty, guard_warnings, kernels_record
 
 
 @guarded("run")
@@ -36,7 +36,7 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     """
     from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.io.datasets import load_sequence
-    from .runtime import use_kernels
+    from .runtime import check_device, use_kernels
 
     cfg = config or SlamConfig()
     use_kernels(cfg.kernels)
@@ -48,6 +48,7 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
         n = min(n, int(limit))
     if n == 0:
         raise InputError(f"{seq.root}: the sequence has no frames")
+    check_device(cfg.kernels, [seq.camera], cfg.image.max_width)
     out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
@@ -93,6 +94,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
 
     from swarmsplat.slam.dense.ply import save_ply
 
+    check_not_empty([agent])
     stamps, T_est = agent.trajectory()
     _, T_no_lc = agent.trajectory_no_lc()
     if len(stamps):
@@ -124,6 +126,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
         "map_refine": map_refine,
         "kernels": kernels_record(agent.cfg.kernels),
     }
+    metrics.update(guard_warnings([agent]))
     metrics.update(_trajectory_metrics(seq, stamps, T_est, out))
     if metrics.get("ate_rmse") is not None:  # the same run's tracking-only trajectory, aligned the same way
         metrics["ate_rmse_no_lc"] = _trajectory_metrics(seq, stamps, T_no_lc, None)["ate_rmse"]

@@ -171,7 +171,7 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     """
     from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
     from swarmsplat.slam.io.progress import TeamRounds, reporting
-    from .runtime import use_kernels
+    from .runtime import check_device, use_kernels
     from .team_results import render_metrics, write_team_results
 
     cfg = config or SlamConfig()
@@ -181,6 +181,7 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     if ds.kind != "rgbd":
         raise InputError(f"{ds.root}: the GRAND-SLAM team needs RGB-D sequences, this dataset is {ds.kind}")
     use_kernels(cfg.kernels)  # backend, device and torch's thread count, as `swarmsplat run`
+    check_device(cfg.kernels, [s.camera for s in ds.agents], cfg.image.max_width)
     cap = frames if frames is not None else cfg.max_frames
     caps = []
     for a in range(len(ds.agents)):  # the smaller of the global and the agent's own cap; 0 = no cap

@@ -26,7 +26,7 @@ from swarmsplat.kernels.fileio import atomic_write_text
 
 from swarmsplat.slam.io.jsonio import write_json
 from swarmsplat.slam.dense.loops.loop_log import summarise, write_loops_csv
-from .runtime import kernels_record
+from .runtime import check_not_empty, guard_warnings, kernels_record
 
 
 def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, render_views: int = 8,
@@ -41,6 +41,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
     from .report import write_report
     from swarmsplat.slam.io.trajectory import write_tum
 
+    check_not_empty(team.agents)
     t_eval = time.perf_counter()
     srv = team.server
     names = [ag.name for ag in team.agents]
@@ -126,6 +127,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "time_s": {"wall": wall_s, "cpu": cpu_s, "server": dict(srv.time),
                    "evaluation": time.perf_counter() - t_eval},
         "kernels": kernels_record(team.cfg.kernels), "run": run_info or {},
+        **guard_warnings(team.agents),
     }
     metrics["time_s"]["evaluation"] = time.perf_counter() - t_eval
     write_json(out / "metrics.json", metrics)

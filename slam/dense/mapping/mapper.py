@@ -10,12 +10,14 @@ black (on Redwood 211, 77-96 % of the squared colour error of the worst keyframe
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
 
+from swarmsplat.kernels.errors import SanityError
 from swarmsplat.slam.config import MappingConfig
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, Submap
@@ -132,17 +134,46 @@ def make_optimizer(p: GaussianParams, cfg: MappingConfig, lr_scale: float = 1.0)
         return torch.optim.Adam(groups, eps=1e-15)
 
 
+def drop_non_finite(submap: Submap) -> int:
+    """Remove the Gaussians with a NaN or Inf parameter (an optimisation that diverged, or a device that computes
+    wrongly); returns how many. The caller warns and counts them."""
+    p = submap.params
+    with torch.no_grad():
+        ok = torch.ones(len(p), dtype=torch.bool, device=p.means.device)
+        for t in p.tensors():
+            ok &= torch.isfinite(t.reshape(len(p), -1)).all(dim=1)
+    bad = len(p) - int(ok.sum())
+    if bad:
+        submap.params = p.select(ok)
+    return bad
+
+
 class Mapper:
     def __init__(self, cfg: MappingConfig):
         self.cfg = cfg
         self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.non_finite_dropped = 0  # Gaussians removed for NaN / Inf parameters (metrics.json "warnings")
 
     def map(self, gmap: GaussianMap, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> MappingStats:
-        """Seed from the newest keyframe (the last of `keyframes`), optimise, prune."""
+        """Seed from the newest keyframe (the last of `keyframes`), optimise, prune.
+
+        Guards: Gaussians with non-finite parameters are dropped with a warning (counted in `non_finite_dropped`);
+        a new submap left without a Gaussian although its keyframe has valid depth raises SanityError, and so
+        does a render of the newest keyframe with no alpha where its depth is valid (`optimise`)."""
+        was_empty = len(submap.params) == 0
         new = seed_gaussians(submap, keyframes[-1], self.cfg, generator=self.gen)
         added = gmap.add(submap, new)
         first, last, it = self.optimise(submap, keyframes, iterations)
+        bad = drop_non_finite(submap)
+        if bad:
+            self.non_finite_dropped += bad
+            warnings.warn(f"submap {submap.id}: {bad} Gaussians had NaN or Inf parameters after mapping and were "
+                          "removed", RuntimeWarning, stacklevel=2)
         pruned = gmap.prune(submap, min_opacity=self.cfg.prune_min_opacity, max_scale=self.cfg.prune_max_scale)
+        if was_empty and len(submap.params) == 0 and bool((keyframes[-1].rgbd.depth > 0).any()):
+            raise SanityError(f"mapping left the new submap {submap.id} without a Gaussian although its keyframe "
+                              f"has valid depth ({added} seeded, {bad} non-finite, {pruned} pruned); the kernel "
+                              "device computes wrongly? (swarmsplat devices runs its self-check)")
         return MappingStats(added, pruned, it, first, last)
 
     def optimise(self, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> tuple[float, float, int]:
@@ -157,6 +188,8 @@ class Mapper:
         targets = [(viewmat_from_pose(k.T_local_cam), k.rgbd.color_tensor(), k.rgbd.depth_tensor(), k.rgbd.camera)
                    for k in keyframes]
         losses = []
+        newest = len(targets) - 1
+        checked = False
         for _ in range(iterations):
             if len(targets) == 1 or float(torch.rand(1, generator=self.gen)) < cfg.current_keyframe_fraction:
                 j = len(targets) - 1
@@ -166,9 +199,23 @@ class Mapper:
             opt.zero_grad(set_to_none=True)
             act = activate(p)
             out = render(p, vm, cam, activated=act)
+            if j == newest and not checked:
+                _check_alpha(out.alpha, depth, submap.id)
+                checked = True
             loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser, act)
             loss.backward()
             opt.step()
             losses.append(float(loss.detach()))
         submap.params = p.detached()
         return losses[0], float(np.mean(losses[-5:])), iterations
+
+
+def _check_alpha(alpha: torch.Tensor, depth: torch.Tensor, submap_id: int) -> None:
+    """The newest keyframe was just seeded (or was already covered): a render of it with no alpha at all where its
+    depth is valid cannot be right."""
+    with torch.no_grad():
+        valid = depth > 0
+        if bool(valid.any()) and not bool((alpha.detach()[valid] > 0).any()):
+            raise SanityError(f"submap {submap_id}: the render of its newest keyframe is empty (alpha 0) wherever "
+                              "the keyframe has valid depth; the kernel device computes wrongly? (swarmsplat devices "
+                              "runs its self-check)")
