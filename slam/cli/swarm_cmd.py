@@ -21,7 +21,7 @@ def add_swarm_options(p) -> None:
     p.add_argument("--schedule", metavar="YAML", help="rendezvous schedule (default: pairs meet while recording, "
                                                        "everyone at the end)")
     p.add_argument("--stride", type=int, help="every stride-th frame is a keyframe (default: 4)")
-    p.add_argument("--place", help="place recognition: bow, vlad, cosplace, netvlad (default: bow)")
+    p.add_argument("--place", help="place recognition: bow, vlad, xfeat-vlad, cosplace, netvlad (default: bow)")
     p.add_argument("--place-checkpoint", metavar="PATH", help="weights, or a bow/vlad vocabulary .npz")
     p.add_argument("--backend", help="pair registration: classical, xfeat, mast3r, lightglue (default: classical)")
     p.add_argument("--r-thr", type=float, help="correspondence-ratio gate R_thr of eq. 1 (default per pair backend: "
