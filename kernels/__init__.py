@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-from . import se3
+from . import se3, selfcheck
 from .backend import Backend, active, cuda_available, devices, reference_active, use, use_reference
 from .camera import PinholeCamera
 from .errors import (BackendError, DeviceCheckError, GraphError, InputError, RegistrationError, SanityError,
@@ -20,7 +20,7 @@ from .errors import (BackendError, DeviceCheckError, GraphError, InputError, Reg
 
 __all__ = [
     "use", "use_reference", "reference_active", "active", "devices", "cuda_available", "Backend", "backend_module",
-    "PinholeCamera", "se3", "check_tensor", "axpy",
+    "PinholeCamera", "se3", "selfcheck", "check_tensor", "axpy",
     "SwarmsplatError", "InputError", "BackendError", "DeviceCheckError", "RegistrationError", "GraphError",
     "SanityError",
 ]

@@ -1,14 +1,20 @@
-"""`python -m perf device-check [--device cuda|vulkan|cpu] [--subjects ...] [--no-tests] [--no-bench] [--out F]`
-(or `make device-check DEVICE=cuda`): everything this project can check on one real device, in one command.
+"""`python -m perf device-check [--device cuda|vulkan|cpu] [--subjects ...] [--no-tests] [--no-bench]
+[--real-frames N] [--out F]` (or `make device-check DEVICE=cuda`): everything this project can check on one real
+device, in one command.
 
-1. Which backend/device pairs work here (`kernels.devices(run=True)`: each one runs the axpy probe).
+1. Which backend/device pairs work here (`kernels.devices(run=True)`: each one runs the axpy probe and the device
+   self-check, kernels/selfcheck.py).
 2. The device's cases of the test suite (`pytest -k <device>`: every `backend`-matrix case on that device — the
    kernels against their twins and finite differences — plus, for cuda, tests/test_gpu_codegen.py and, for
    vulkan, tests/test_vulkan.py), counted from pytest's JUnit XML.
 3. A short benchmark (`--quick`) of every perf subject on the device, one subprocess each, so one failing
    subject does not hide the others.
+4. Real data on every pair: the first `--real-frames` (60; 0: skip) frames of the shared Redwood sequence through
+   `swarmsplat run` on warp-cpu, taichi-cpu and the device's pairs, whose ATE and PSNR must agree with warp-cpu's
+   (within 2 % and 0.3 dB: perf/device_agreement.py).
 Writes one JSON (default perf/results/device-check-<device>.json): machine, versions, device pairs, test counts
-and failures, per-subject results or errors. Exit status 1 when a test or a subject failed.
+and failures, per-subject results or errors, the real runs. Exit status 1 when a test or a subject failed or the
+real runs disagree.
 """
 
 from __future__ import annotations
@@ -132,6 +138,8 @@ def main(argv: list[str] | None = None, *, prog: str = "python -m perf device-ch
     p.add_argument("--no-tests", action="store_true", help="skip the test-suite cases")
     p.add_argument("--no-bench", action="store_true", help="skip the benchmarks")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per pytest run / per subject")
+    p.add_argument("--real-frames", type=int, default=60, help="frames of the shared Redwood sequence per pair "
+                                                                "(0: skip the real runs)")
     p.add_argument("--out", help="JSON report (default: perf/results/device-check-<device>.json)")
     args = p.parse_args(argv)
 
@@ -153,11 +161,21 @@ def main(argv: list[str] | None = None, *, prog: str = "python -m perf device-ch
         print(f"[device-check] tests: {report['tests'].get('counts', report['tests'].get('error'))}", file=sys.stderr)
     if not args.no_bench:
         report["bench"] = run_bench(args.device, args.subjects, args.timeout)
+    if args.real_frames > 0:
+        from .device_agreement import DATA, pairs_for, run_real
+
+        if DATA.exists():
+            report["real"] = run_real(DATA, args.real_frames, pairs_for(args.device), args.timeout)
+            print(f"[device-check] real data agrees: {report['real']['agree']} {report['real']['reasons']}",
+                  file=sys.stderr)
+        else:
+            report["real"] = {"skipped": f"{DATA} not present"}
     report["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     write_results(str(out), None, report)
     print(f"[device-check] wrote {out}", file=sys.stderr)
     failed = bool(report.get("tests", {}).get("failures")) or "error" in report.get("tests", {})
     failed = failed or any("error" in v for v in report.get("bench", {}).values())
+    failed = failed or report.get("real", {}).get("agree") is False
     return 1 if failed else 0
 
 
