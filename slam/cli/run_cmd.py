@@ -14,7 +14,9 @@ def register(sub) -> None:
     p = sub.add_parser("run", help="run RGB-D Gaussian-splatting SLAM on a sequence (one agent) or a team",
                        description="One agent's GRAND-SLAM over one RGB-D sequence: writes trajectory.txt and "
                                    "trajectory_no_lc.txt (TUM), keyframes.txt, map.ply (3DGS), metrics.json, "
-                                   "loops.csv, trajectory.png and config.yaml to --out. "
+                                   "loops.csv, trajectory.png and config.yaml to --out; while it runs, "
+                                   "progress/poses.tum (every frame up to the last keyframe, appended and "
+                                   "fsync'd at each keyframe; per agent progress/<agent>.tum in a team). "
                                    "A multi-agent dataset, or a sequence cut into agents with --split, runs as a "
                                    "team (inter-agent loops, one global pose graph, merged map). "
                                    "--kernels/--device override the config file's kernels section; a team run "

@@ -22,6 +22,8 @@ from .partial_results import write_partial_agent
 from swarmsplat.slam.run.guard import guarded, keep, read_frame
 from .runtime import check_not_empty, guard_warnings, kernels_record
 
+JOURNAL = Path("progress") / "poses.tum"  # slam.run.checkpoint.PoseJournal
+
 
 @guarded("run")
 def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
@@ -33,9 +35,11 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     also written to `out_dir/metrics.json`. observer: called with the agent after every frame (slam.view.live).
     An unreadable frame is skipped with a warning (strict: the run stops with its error); an interrupt or a
     failure mid-run writes what was done so far (slam.run.guard, slam.run.partial_results) and re-raises.
+    As it goes the run appends each keyframe's frames to out_dir/progress/poses.tum (slam.run.checkpoint).
     """
     from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.io.datasets import load_sequence
+    from .checkpoint import PoseJournal
     from .runtime import check_device, use_kernels
 
     cfg = config or SlamConfig()
@@ -56,14 +60,16 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     rc = cfg.map_refine
     refine = rc.single_agent and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
     agent.keep_keyframe_images = refine and rc.views == "mapping"  # the refinement's views, after submaps retire
+    journal = PoseJournal(out / JOURNAL)
     t0 = time.perf_counter()
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason, n_frames=n,
                                                     wall_s=time.perf_counter() - t0))
-    with bar(n, f"[{seq.name}] frames", unit="frame", enabled=progress) as b:
+    with journal, bar(n, f"[{seq.name}] frames", unit="frame", enabled=progress) as b:
         for i in range(n):
             f = read_frame(seq, i, agent, strict=strict)
             if f is not None:  # None: unreadable, skipped with a warning
                 agent.step(f.index, f.timestamp, f.color, f.depth)
+                journal.follow(agent)
             b.update(1, f"{len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps")
             if observer is not None:
                 observer(agent)

@@ -57,6 +57,7 @@ class Team:
         self._origins_no_lc: list[list[np.ndarray]] = [[] for _ in self.agents]
         self.rounds = 0
         self.frames_done = [0] * len(self.agents)
+        self.journals: list | None = None  # one slam.run.checkpoint.PoseJournal per agent (run_team sets them)
 
     # ---- running ---------------------------------------------------------------------------------------------
 
@@ -67,6 +68,8 @@ class Team:
         n_kf, n_sm = len(ag.keyframes), len(ag.gmap.submaps)
         ag.step(index, timestamp, color, depth)
         self.frames_done[a] += 1
+        if self.journals:
+            self.journals[a].follow(ag)
         if len(ag.gmap.submaps) > n_sm:
             self._record_origin(a)
         if len(ag.keyframes) > n_kf:
@@ -171,6 +174,7 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     """
     from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
     from swarmsplat.slam.io.progress import TeamRounds, reporting
+    from .checkpoint import PoseJournal
     from .runtime import check_device, use_kernels
     from .team_results import render_metrics, write_team_results
 
@@ -194,8 +198,13 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     keep(lambda status, reason: write_partial_team(team, ds, out, status=status, reason=reason,
                                                    wall_s=time.perf_counter() - t_start,
                                                    run_info={"frame_stride": stride, "frame_caps": caps}))
-    with TeamRounds(team, enabled=progress, observer=observer) as show:
-        wall = team.run(ds.agents, limits=caps, stride=stride, progress=show, strict=strict)
+    team.journals = [PoseJournal(out / "progress" / f"{ag.name}.tum") for ag in team.agents]
+    try:
+        with TeamRounds(team, enabled=progress, observer=observer) as show:
+            wall = team.run(ds.agents, limits=caps, stride=stride, progress=show, strict=strict)
+    finally:
+        for j in team.journals:
+            j.close()
     t_fin = time.perf_counter()
     team.finish()
     wall += time.perf_counter() - t_fin
