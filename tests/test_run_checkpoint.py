@@ -1,10 +1,12 @@
 """A run survives a hard kill: `swarmsplat run` appends every frame up to its last keyframe to progress/poses.tum
-(fsync'd at each keyframe), so SIGKILL loses at most the frames since."""
+(fsync'd at each keyframe), so SIGKILL loses at most the frames since; `--resume` continues from the last
+checkpoint and ends with the uninterrupted run's result; `--resume` on another run's folder names what differs."""
 
 from __future__ import annotations
 
 import json
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -19,7 +21,7 @@ from swarmsplat.slam.config import SlamConfig
 
 REPO = Path(__file__).resolve().parents[1]
 # Tiny images and few iterations (as tests/test_run_guard.py); a keyframe every 3 frames and a submap every 2
-# keyframes; no map refinement (seconds saved, nothing to test there).
+# keyframes, so a short run makes several checkpoints; no map refinement (seconds saved, nothing to test there).
 QUICK = {
     "image": {"max_width": 160},
     "tracking": {"iterations": 8, "refine_max_width": 80, "pyramid_levels": 1, "coarse_max_width": 160},
@@ -55,7 +57,7 @@ def _journal_frames(path: Path) -> int:
     return sum(1 for ln in path.read_text().splitlines() if ln and not ln.startswith("#")) if path.is_file() else 0
 
 
-def test_kill_9_keeps_every_frame_up_to_the_last_keyframe(sequence, tmp_path):
+def test_kill_9_keeps_the_journal_and_resume_finishes_as_the_uninterrupted_run(sequence, tmp_path):
     from swarmsplat.slam.io.datasets import load_sequence
     from swarmsplat.slam.io.trajectory import read_tum
 
@@ -63,16 +65,17 @@ def test_kill_9_keeps_every_frame_up_to_the_last_keyframe(sequence, tmp_path):
     whole = tmp_path / "whole"
     assert main(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet"]) == 0
     m_whole = json.loads((whole / "metrics.json").read_text())
+    assert not (whole / "progress" / "checkpoint.pkl").exists()  # a complete run keeps no checkpoint
     kf_stamps = read_tum(whole / "keyframes.txt")[0]
 
     out = tmp_path / "killed"
-    journal = out / "progress" / "poses.tum"
+    journal, ckpt = out / "progress" / "poses.tum", out / "progress" / "checkpoint.pkl"
     proc = _spawn(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet"])
     t0 = time.time()
-    # mid-run: the journal holds a third of the frames, but not all of them
-    while _journal_frames(journal) < FRAMES // 3:
+    # mid-run: a checkpoint is written and the journal holds a third of the frames, but not all of them
+    while not (ckpt.is_file() and _journal_frames(journal) >= FRAMES // 3):
         assert proc.poll() is None, "the run ended before it could be killed"
-        assert time.time() - t0 < 50, "not a third of the frames within 50 s"
+        assert time.time() - t0 < 50, "no checkpoint within 50 s"
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
     assert proc.wait(timeout=10) == -signal.SIGKILL
@@ -89,6 +92,65 @@ def test_kill_9_keeps_every_frame_up_to_the_last_keyframe(sequence, tmp_path):
     assert whole_journal.startswith(journal.read_bytes()) and journal.read_bytes().endswith(b"\n")
     assert np.all(np.isfinite(T)) and m_whole["frames_tracked"] == FRAMES
     assert main(["eval", "--gt", str(sequence / "groundtruth.txt"), "--est", str(journal)]) == 0  # as it is
+
+    with open(ckpt, "rb") as f:  # the resumed run starts mid-sequence
+        assert 0 < pickle.load(f)["next_frame"] <= len(stamps)
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--resume"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and m["frames_tracked"] == FRAMES and m["keyframes"] == m_whole["keyframes"]
+    # The checkpoint holds the agent's whole state (Gaussians, keyframes, pose graph, tracker, the mapper's random
+    # generator), so the resumed run continues the uninterrupted one: on one machine and backend the result is the
+    # same; 10 % is the margin a different machine's floating-point order may take.
+    assert m["ate_rmse"] == pytest.approx(m_whole["ate_rmse"], rel=0.10)
+    assert m["submaps"] == m_whole["submaps"] and m["gaussians"] == pytest.approx(m_whole["gaussians"], rel=0.10)
+    assert _journal_frames(journal) == _journal_frames(whole / "progress" / "poses.tum")
+    np.testing.assert_allclose(read_tum(journal)[0], read_tum(whole / "progress" / "poses.tum")[0], atol=1e-6)
+    assert not ckpt.exists()
+
+
+def test_resume_names_what_differs(sequence, tmp_path, capsys):
+    cfg = _config(tmp_path, max_frames=12)
+    out = tmp_path / "run"
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet"]) == 0
+    capsys.readouterr()
+    # a complete run has nothing to resume
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--resume"]) == 2
+    assert "holds a complete run" in capsys.readouterr().err
+
+    # a run cut short by an exception keeps its last checkpoint (slam.run.guard writes the partial results too)
+    from swarmsplat.slam.run.checkpoint import run_identity, save_checkpoint
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.io.datasets import load_sequence
+
+    seq = load_sequence(sequence)
+    c = SlamConfig.from_yaml(cfg)
+    save_checkpoint(out, run_identity(seq, c, 12), Agent(seq.camera, c, name=seq.name), next_frame=0,
+                    journal=(0, 0), wall_s=0.0)
+    (tmp_path / "other").mkdir()
+    other = _config(tmp_path / "other", max_frames=12, mapping={"iterations": 9})
+    assert main(["run", str(sequence), "--out", str(out), "--config", other, "--quiet", "--resume"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("swarmsplat run:")]
+    assert len(err) == 1 and "config.mapping.iterations: 8 in the checkpoint, 9 now" in err[0], err
+
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--resume", "--frames", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "frames: 12 in the checkpoint, 10 now" in err, err
+
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    elsewhere = generate(tmp_path / "other_data", GeneratorConfig.preset("tiny", agents=1, frames=14, seed=2))
+    assert main(["run", str(elsewhere / "agent_0"), "--out", str(out), "--config", cfg, "--quiet", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "is a checkpoint of another run: dataset:" in err and "other_data" in err, err
+
+    # the right dataset and config resume (here from the first frame) and complete
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["frames_tracked"] == 12
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["run", str(sequence), "--out", str(empty), "--config", cfg, "--quiet", "--resume"]) == 2
+    assert "holds no run to resume" in capsys.readouterr().err
 
 
 def test_a_team_run_journals_every_agent(sequence, tmp_path):

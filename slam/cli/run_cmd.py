@@ -16,7 +16,9 @@ def register(sub) -> None:
                                    "trajectory_no_lc.txt (TUM), keyframes.txt, map.ply (3DGS), metrics.json, "
                                    "loops.csv, trajectory.png and config.yaml to --out; while it runs, "
                                    "progress/poses.tum (every frame up to the last keyframe, appended and "
-                                   "fsync'd at each keyframe; per agent progress/<agent>.tum in a team). "
+                                   "fsync'd at each keyframe; per agent progress/<agent>.tum in a team) and "
+                                   "progress/checkpoint.pkl (what --resume continues from; removed when the run "
+                                   "completes). "
                                    "A multi-agent dataset, or a sequence cut into agents with --split, runs as a "
                                    "team (inter-agent loops, one global pose graph, merged map). "
                                    "--kernels/--device override the config file's kernels section; a team run "
@@ -38,6 +40,9 @@ def register(sub) -> None:
                         "each, e.g. 0:3,3:5 (agent_0 frames 0-2, agent_1 frames 3-4; ranges may overlap, an empty "
                         "START/STOP means the start/end). Each agent starts in its own frame and joins the "
                         "global frame at its first accepted inter-agent loop")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out that was killed or interrupted, from its last checkpoint "
+                        "(progress/checkpoint.pkl; one agent; the dataset and config must be the run's own)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--strict", action="store_true",
                    help="stop at the first unreadable frame (default: skip it with a warning; metrics.json lists "
@@ -101,6 +106,9 @@ def run(args) -> int:
         except InputError as e:
             raise InputError(f"--split: {e}") from None
     if len(ds) > 1:
+        if args.resume:
+            raise InputError("--resume continues a one-agent run; a team run cannot be resumed yet (its pose "
+                             "journals are in --out/progress/)")
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map.
         from swarmsplat.slam.run.team import run_team
 
@@ -117,7 +125,7 @@ def run(args) -> int:
         print(json.dumps(summary, indent=1))
         return serve_result(live, args.out)
     m = run_sequence(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
-                     strict=args.strict)
+                     strict=args.strict, resume=args.resume)
     keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
     return serve_result(live, args.out)

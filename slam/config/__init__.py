@@ -6,8 +6,8 @@ from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfi
 from .load import preset_names
 from .server import ServerConfig
 from .swarm import PairsConfig, SwarmConfig
-from .tree import DemoConfig, SlamConfig, TeamConfig, with_section
+from .tree import CheckpointConfig, DemoConfig, SlamConfig, TeamConfig, with_section
 
-__all__ = ["DemoConfig", "ImageConfig", "KernelsConfig", "KeyframeConfig", "LoopClosureConfig", "MapRefineConfig",
+__all__ = ["CheckpointConfig", "DemoConfig", "ImageConfig", "KernelsConfig", "KeyframeConfig", "LoopClosureConfig", "MapRefineConfig",
            "MappingConfig", "PairsConfig", "ServerConfig", "SlamConfig", "SubmapConfig", "SwarmConfig", "TeamConfig",
            "TrackingConfig", "preset_names", "with_section"]

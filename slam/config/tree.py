@@ -41,6 +41,17 @@ class DemoConfig(_Section):
     seed: int | None = Field(None, ge=0, description="generator seed; null: the generator preset's")
 
 
+class CheckpointConfig(_Section):
+    """What `swarmsplat run` keeps on disk while it runs (progress/ in the output folder, docs/robustness.md): the
+    pose journal is always written; checkpoints are what `--resume` continues from."""
+
+    every_submaps: int = Field(1, ge=0, description="write a checkpoint of the agent's whole state (submaps, "
+                               "keyframes, pose graph, tracker) each time this many submaps have been finished, "
+                               "and once after the last frame (0 = never; --resume then starts over). A finished "
+                               "submap is frozen, so this bounds both the cost (one write per submap, tens of MB on "
+                               "a 320-pixel run) and the work a kill can lose (the frames of one submap)")
+
+
 class SlamConfig(_Section):
     image: ImageConfig = ImageConfig()
     tracking: TrackingConfig = TrackingConfig()
@@ -56,6 +67,7 @@ class SlamConfig(_Section):
     swarm: SwarmConfig = SwarmConfig()
     pairs: PairsConfig = PairsConfig()
     demo: DemoConfig = DemoConfig()
+    checkpoint: CheckpointConfig = CheckpointConfig()
 
     @model_validator(mode="after")
     def _check(self):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import sys
 import time
 from pathlib import Path
 
@@ -28,18 +29,20 @@ JOURNAL = Path("progress") / "poses.tum"  # slam.run.checkpoint.PoseJournal
 @guarded("run")
 def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
                  frames: int | None = None, progress: bool = True,
-                 observer=None, strict: bool = False) -> dict:
+                 observer=None, strict: bool = False, resume: bool = False) -> dict:
     """Track and map `dataset_path` (any layout `slam.io.datasets.load_sequence` reads) with one agent.
 
     frames: process at most this many (None: config.max_frames, 0 meaning all). Returns the metrics dict that is
     also written to `out_dir/metrics.json`. observer: called with the agent after every frame (slam.view.live).
     An unreadable frame is skipped with a warning (strict: the run stops with its error); an interrupt or a
     failure mid-run writes what was done so far (slam.run.guard, slam.run.partial_results) and re-raises.
-    As it goes the run appends each keyframe's frames to out_dir/progress/poses.tum (slam.run.checkpoint).
+    As it goes the run appends each keyframe's frames to out_dir/progress/poses.tum and writes checkpoints
+    (config `checkpoint`; slam.run.checkpoint); resume: continue the run in `out_dir` from its last checkpoint
+    (InputError naming what differs when it is not a run of this dataset and config).
     """
     from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.io.datasets import load_sequence
-    from .checkpoint import PoseJournal
+    from .checkpoint import CHECKPOINT, PoseJournal, find_resume, run_identity, save_checkpoint
     from .runtime import check_device, use_kernels
 
     cfg = config or SlamConfig()
@@ -54,18 +57,33 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
         raise InputError(f"{seq.root}: the sequence has no frames")
     check_device(cfg.kernels, [seq.camera], cfg.image.max_width)
     out = output_dir(out_dir, "--out")
+    identity = run_identity(seq, cfg, n)
+    resumed = find_resume(out, identity) if resume else None
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
-    agent = Agent(seq.camera, cfg, name=seq.name)
+    agent = resumed.agent if resumed else Agent(seq.camera, cfg, name=seq.name)
+    start = resumed.next_frame if resumed else 0
+    if resume and progress:
+        print(f"[{seq.name}] resuming at frame {start} of {n}" if resumed else
+              f"[{seq.name}] no checkpoint in {out} yet: starting from the first frame", file=sys.stderr)
     rc = cfg.map_refine
     refine = rc.single_agent and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
     agent.keep_keyframe_images = refine and rc.views == "mapping"  # the refinement's views, after submaps retire
-    journal = PoseJournal(out / JOURNAL)
-    t0 = time.perf_counter()
+    journal = PoseJournal(out / JOURNAL, resume=resumed.journal if resumed else None)
+    t0 = time.perf_counter() - (resumed.wall_s if resumed else 0.0)  # the run's time includes the work resumed
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason, n_frames=n,
                                                     wall_s=time.perf_counter() - t0))
+    every = cfg.checkpoint.every_submaps
+
+    def checkpoint(next_frame: int) -> None:
+        save_checkpoint(out, identity, agent, next_frame=next_frame, journal=journal.state(),
+                        wall_s=time.perf_counter() - t0)
+
     with journal, bar(n, f"[{seq.name}] frames", unit="frame", enabled=progress) as b:
-        for i in range(n):
+        if start:
+            b.update(start)
+        for i in range(start, n):
+            n_submaps = len(agent.gmap.submaps)
             f = read_frame(seq, i, agent, strict=strict)
             if f is not None:  # None: unreadable, skipped with a warning
                 agent.step(f.index, f.timestamp, f.color, f.depth)
@@ -73,6 +91,11 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
             b.update(1, f"{len(agent.gmap)} Gaussians  {len(agent.gmap.submaps)} submaps")
             if observer is not None:
                 observer(agent)
+            finished = len(agent.gmap.submaps) - 1  # submaps finished (frozen) so far
+            if every and len(agent.gmap.submaps) > n_submaps and finished and finished % every == 0:
+                checkpoint(i + 1)
+    if every and start < n:  # every frame done: a kill in the refinement resumes at the refinement
+        checkpoint(n)
     refined = None
     # the mapping stage's own-submap scores, before the refinement fits the submaps jointly (slam.metrics.views)
     t_eval = time.perf_counter()
@@ -87,8 +110,10 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
         with reporting(progress):
             refined = refine_agent(agent, rc, cfg.mapping)
     wall = time.perf_counter() - t0 - t_eval
-    return write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined, own_scores=own,
-                         trajectory_before_refine=before)
+    metrics = write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined, own_scores=own,
+                            trajectory_before_refine=before)
+    (out / CHECKPOINT).unlink(missing_ok=True)  # a complete run needs none; the journal stays
+    return metrics
 
 
 def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,

@@ -1,0 +1,143 @@
+"""Checkpoints of a single-agent run, and what `swarmsplat run ... --resume` continues from.
+
+progress/checkpoint.pkl holds two pickles one after the other: a small header (format, the run's identity: the
+dataset and the config; the next frame to read; the journal's state; the seconds worked so far), then the Agent
+itself — submaps' Gaussians, keyframes with their images and descriptors, the loop closer's edges and log, the
+tracker's last frame, pose and velocity, the mapper's random generator — so the resumed run goes on exactly where
+the checkpoint was taken. It is written atomically (a kill while writing leaves the previous one), and removed when
+the run completes. A pickle runs code when loaded: resume only folders your own runs wrote.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+
+from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import atomic_path
+
+FORMAT = 1
+CHECKPOINT = Path("progress") / "checkpoint.pkl"
+
+
+@dataclass
+class Resumed:
+    """What `load_checkpoint` gives back: the agent and where its run stood."""
+
+    agent: object
+    next_frame: int  # the first input frame not yet read
+    journal: tuple[int, int]  # PoseJournal.state() at the checkpoint
+    wall_s: float  # seconds of run time before the checkpoint
+
+
+def run_identity(seq, cfg, n_frames: int) -> dict:
+    """What a checkpoint must share with the run that resumes it: the sequence (folder, name, frame count and
+    time span, camera), the frames to process and the config (all but its `checkpoint` section)."""
+    ts = seq.timestamps
+    config = cfg.model_dump(mode="json")
+    config.pop("checkpoint", None)  # how often to checkpoint does not change the result
+    return {"dataset": str(Path(seq.root).resolve()), "sequence": seq.name, "sequence_frames": len(seq),
+            "first_timestamp": round(float(ts[0]), 6) if len(ts) else None,
+            "last_timestamp": round(float(ts[-1]), 6) if len(ts) else None,
+            "camera": {k: float(v) for k, v in seq.camera.to_dict().items()}, "frames": int(n_frames),
+            "config": config}
+
+
+def save_checkpoint(out: Path, identity: dict, agent, *, next_frame: int, journal: tuple[int, int],
+                    wall_s: float) -> Path:
+    """Write out/progress/checkpoint.pkl atomically (fsync'd, then renamed over the previous one)."""
+    path = Path(out) / CHECKPOINT
+    header = {"format": FORMAT, "identity": identity, "next_frame": int(next_frame), "journal": list(journal),
+              "wall_s": float(wall_s), "keyframes": len(agent.keyframes), "submaps": len(agent.gmap.submaps)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            pickle.dump(header, f, protocol=pickle.HIGHEST_PROTOCOL)
+            pickle.dump(agent, f, protocol=pickle.HIGHEST_PROTOCOL)
+            f.flush()
+            os.fsync(f.fileno())  # on disk before it replaces the previous checkpoint
+    return path
+
+
+def has_checkpoint(out: Path) -> bool:
+    return (Path(out) / CHECKPOINT).is_file()
+
+
+def load_checkpoint(out: Path, identity: dict) -> Resumed:
+    """The checkpoint in `out`; InputError (one line, naming what differs) when it is not one of this dataset
+    and config, or cannot be read."""
+    path = Path(out) / CHECKPOINT
+    try:
+        with open(path, "rb") as f:
+            header = pickle.load(f)
+            if not isinstance(header, dict) or header.get("format") != FORMAT:
+                raise InputError(f"--resume: {path} is not a checkpoint this version reads")
+            differs = differences(header["identity"], identity)
+            if differs:
+                raise InputError(f"--resume: {out} is a checkpoint of another run: " + "; ".join(differs))
+            agent = pickle.load(f)
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a truncated or foreign file: say so in one line
+        raise InputError(f"--resume: cannot read the checkpoint {path}: {type(e).__name__}: {e}") from None
+    return Resumed(agent, header["next_frame"], tuple(header["journal"]), header["wall_s"])
+
+
+def find_resume(out: Path, identity: dict) -> Resumed | None:
+    """Where `--resume` continues in `out`: its checkpoint (load_checkpoint), or None — start from the first
+    frame — when the run there was killed before its first checkpoint (its config.yaml must match). InputError
+    when `out` holds no run, a complete one, or one of another config."""
+    import json
+
+    import yaml
+
+    out = Path(out)
+    if has_checkpoint(out):
+        return load_checkpoint(out, identity)
+    try:
+        status = json.loads((out / "metrics.json").read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        status = None
+    if status == "complete":
+        raise InputError(f"--resume: {out} holds a complete run (metrics.json status 'complete'); nothing to resume")
+    try:
+        config = yaml.safe_load((out / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        raise InputError(f"--resume: {out} holds no run to resume (no {CHECKPOINT} and no readable config.yaml)") \
+            from None
+    if isinstance(config, dict):
+        config.pop("checkpoint", None)
+    differs = differences({"config": config}, {"config": identity["config"]})
+    if differs:
+        raise InputError(f"--resume: {out} is a run of another config: " + "; ".join(differs))
+    return None
+
+
+def differences(saved: dict, now: dict, *, limit: int = 4) -> list[str]:
+    """'<key>: <checkpoint's> in the checkpoint, <this run's> now' for each leaf that differs (config keys
+    dotted), the first `limit` of them and a count of the rest."""
+    a, b = _flatten(saved), _flatten(now)
+    keys = [k for k in list(a) + [k for k in b if k not in a] if a.get(k, _MISSING) != b.get(k, _MISSING)]
+    out = [f"{k}: {_show(a.get(k, _MISSING))} in the checkpoint, {_show(b.get(k, _MISSING))} now" for k in keys[:limit]]
+    if len(keys) > limit:
+        out.append(f"and {len(keys) - limit} more")
+    return out
+
+
+_MISSING = object()
+
+
+def _show(v) -> str:
+    return "absent" if v is _MISSING else repr(v)
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    flat = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            flat.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            flat[f"{prefix}{k}"] = v
+    return flat
