@@ -122,6 +122,7 @@ def test_a_live_agent_tracks_what_it_receives_and_publishes_every_pose(sequence,
     assert m["pose_latency_ms"]["count"] == len(sequence) and m["pose_latency_ms"]["p50"] > 0
     assert m["pose_overhead_ms"]["count"] == len(sequence)
     assert len(poses) == len(sequence)
+    assert (tmp_path / "live" / "progress" / "poses.tum").is_file()  # the pose journal
     # the same frames offline: the same poses (the live frames' colour came as bgr8, depth as 32FC1)
     off = run_sequence(sequence, tmp_path / "offline", cfg.override({"max_frames": len(sequence)}), progress=False)
     assert off["frames_tracked"] == len(sequence)

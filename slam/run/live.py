@@ -2,12 +2,13 @@
 back as it is tracked, the run's results written when it ends — what `swarmsplat agent --source zenoh/...` runs.
 
 The run ends at `max_frames`, after `idle_timeout` seconds without a sample, or on Ctrl-C / SIGTERM (the normal
-end of a live run: status "complete", reason "stopped"); a second interrupt ends it at once. It writes
-trajectory.txt / trajectory_no_lc.txt / keyframes.txt (TUM), map.ply, loops.csv, config.yaml and metrics.json with
-the pose latency (arrival of the frame's later message -> pose published: p50 / p95 / max; it includes the time a
-frame waits while the agent works on earlier ones), the overhead (decoding and publishing, i.e. the latency less
-the queue wait and the agent's step) and what the source saw (samples per topic, frames, unpaired, dropped). There is no ground truth live: `swarmsplat eval` scores
-trajectory.txt later against one.
+end of a live run: status "complete", reason "stopped"); a second interrupt ends it at once. As it goes it appends
+progress/poses.tum (the pose journal, fsync'd at each keyframe: a hard kill keeps every pose up to the last
+keyframe). At the end it writes trajectory.txt / trajectory_no_lc.txt / keyframes.txt (TUM), map.ply, loops.csv,
+config.yaml and metrics.json with the pose latency (arrival of the frame's later message -> pose published: p50 /
+p95 / max; it includes the time a frame waits while the agent works on earlier ones), the overhead (decoding and
+publishing: the latency less the queue wait and the agent's step) and what the source saw (samples per topic,
+frames, unpaired, dropped). There is no ground truth live: `swarmsplat eval` scores trajectory.txt later.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from swarmsplat.kernels.fileio import atomic_write_text, output_dir
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent
 
+from .checkpoint import PoseJournal
 from .guard import guarded, keep
 from .partial_results import agent_counts, write_partial_agent
 from .runtime import kernels_record
@@ -72,7 +74,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     from swarmsplat.slam.io.trajectory import write_tum
 
     from .runtime import use_kernels
-    from .sequence import _write_loops_csv
+    from .sequence import JOURNAL, _write_loops_csv
 
     cfg = config or SlamConfig()
     use_kernels(cfg.kernels)
@@ -80,6 +82,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
     camera = source.wait_camera(camera_timeout)
     agent = Agent(camera, cfg, name=source.name)
+    journal = PoseJournal(out / JOURNAL)  # a hard kill keeps every pose up to the last keyframe
     latency: list[float] = []
     overhead: list[float] = []
     t0 = time.perf_counter()
@@ -87,13 +90,14 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
                                                     n_frames=len(agent.poses), wall_s=time.perf_counter() - t0))
     optimisations = 0
     reason = "source ended"
-    with _Stop() as stop, bar(max_frames or None, f"[{source.name}] live frames", unit="frame",
+    with _Stop() as stop, journal, bar(max_frames or None, f"[{source.name}] live frames", unit="frame",
                               enabled=progress) as b:
         for frame, arrival, taken in source.frames(max_frames=max_frames, idle_timeout=idle_timeout,
                                             silent_warning=silent_warning, stop=lambda: stop.requested):
             t_step = time.monotonic()
             rec = agent.step(frame.index, frame.timestamp, frame.color, frame.depth)
             step = time.monotonic() - t_step
+            journal.follow(agent)
             if rec is not None and publisher is not None:
                 T = agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
                 publisher.pose(frame.timestamp, T)
