@@ -55,12 +55,16 @@ class CheckResult:
 
 
 def probe_scene(width: int, height: int, seed: int = 0) -> dict:
-    """width x height / 8 Gaussians spread through the view frustum at 1.5-6 m, 1-3.5 px standard deviation on
-    screen (scaled with the width from 640), identity viewmat, pinhole K with a ~58 degree field of view."""
+    """width x height / 8 Gaussians (at least 256) as `frustum_scene` spreads them."""
+    return frustum_scene(max(256, width * height // 8), width, height, seed)
+
+
+def frustum_scene(n: int, width: int, height: int, seed: int = 0) -> dict:
+    """n Gaussians spread through the view frustum at 1.5-6 m, 1-3.5 px standard deviation on screen (scaled with
+    the width from 640), identity viewmat, pinhole K with a ~58 degree field of view (also perf.raster's scenes)."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
-    n = max(256, width * height // 8)
     f = 0.9 * width
     K = torch.tensor([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
     z = 1.5 + 4.5 * torch.rand(n, generator=g)
@@ -75,7 +79,6 @@ def probe_scene(width: int, height: int, seed: int = 0) -> dict:
 
 def _render(scene: dict, weights, torch_device: str):
     """kernels.rasterize on the active backend, then backward of the weighted loss; (output on the CPU, grads)."""
-    import torch
 
     from .raster import rasterize
 

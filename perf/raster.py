@@ -38,19 +38,11 @@ PEER_BUDGET_S = 900.0  # wall-time budget for all peer runs
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0):
-    """n Gaussians spread through the view frustum at 1.5-6 m, sized to 1-3.5 px standard deviation on screen."""
-    g = torch.Generator().manual_seed(seed)
-    f = 0.9 * width  # ~58 degree horizontal field of view
-    K = torch.tensor([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    z = 1.5 + 4.5 * torch.rand(n, generator=g)
-    u = torch.rand(n, generator=g) * width
-    v = torch.rand(n, generator=g) * height
-    means = torch.stack([(u - K[0, 2]) * z / f, (v - K[1, 2]) * z / f, z], 1)
-    sigma_px = (1.0 + 2.5 * torch.rand(n, 1, generator=g)) * (width / 640.0)
-    scales = sigma_px * z[:, None] / f * (0.5 + torch.rand(n, 3, generator=g))
-    return dict(means=means, quats=torch.randn(n, 4, generator=g), scales=scales,
-                opacities=0.2 + 0.75 * torch.rand(n, generator=g), colors=torch.rand(n, 3, generator=g),
-                viewmat=torch.eye(4), K=K, width=width, height=height)
+    """n Gaussians spread through the view frustum at 1.5-6 m, sized to 1-3.5 px standard deviation on screen
+    (kernels.selfcheck.frustum_scene: the device self-check renders the same kind of scene)."""
+    from swarmsplat.kernels.selfcheck import frustum_scene
+
+    return frustum_scene(n, width, height, seed)
 
 
 def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:  # [N, 4] wxyz -> [N, 3, 3]

@@ -73,7 +73,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.io.trajectory import write_tum
 
-    from .runtime import use_kernels
+    from .runtime import check_device, use_kernels
     from .sequence import JOURNAL, _write_loops_csv
 
     cfg = config or SlamConfig()
@@ -81,6 +81,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
     camera = source.wait_camera(camera_timeout)
+    check_device(cfg.kernels, [camera], cfg.image.max_width)  # a device that computes wrongly stops here
     agent = Agent(camera, cfg, name=source.name)
     journal = PoseJournal(out / JOURNAL)  # a hard kill keeps every pose up to the last keyframe
     latency: list[float] = []
