@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .common import markdown_table, write_results
+from .common import machine_info, markdown_table, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 REDWOOD = Path(os.environ.get("SWARMSPLAT_SHARED_DATA", REPO.parent / "shared" / "data")) / \
@@ -58,9 +58,20 @@ def run_one(name: str, scratch: str) -> dict:
             "figures": {k: metrics.get(k) for k in keys}, "status": metrics.get("status")}
 
 
+def _shown(key: str, v) -> str:
+    """A figure as a reader wants it: ATE and depth L1 in cm, PSNR in dB, the rest as they are."""
+    if isinstance(v, float) and (key.startswith("ate_rmse") or key.startswith("depth_l1")):
+        return f"{100 * v:.3f} cm"
+    if isinstance(v, float) and key.startswith("psnr"):
+        return f"{v:.2f} dB"
+    if isinstance(v, float):
+        return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
+    return ", ".join(map(str, v)) if isinstance(v, list) else str(v)
+
+
 def markdown(res: dict) -> str:
-    rows = [{"figure": k, "value": v} for k, v in res["figures"].items()]
-    rows += [{"figure": k, "value": res[k]} for k in ("wall_s", "cpu_s", "peak_rss_mb")]
+    rows = [{"figure": k, "value": _shown(k, v)} for k, v in res["figures"].items()]
+    rows += [{"figure": k, "value": _shown(k, float(res[k]))} for k in ("wall_s", "cpu_s", "peak_rss_mb")]
     return f"### {res['name']}\n\n`{res['command']}`\n\n{markdown_table(rows, ['figure', 'value'])}\n"
 
 
@@ -68,14 +79,23 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m perf.end_to_end", description=__doc__.splitlines()[0])
     p.add_argument("--only", choices=sorted(RUNS), action="append", help="run only this one (repeatable)")
     p.add_argument("--out-dir", default=str(REPO / "perf" / "results"), help="where the result files go")
+    p.add_argument("--from-json", action="store_true", help="only write the Markdown again from the JSON files")
     args = p.parse_args(argv)
+    if args.from_json:
+        for name in args.only or list(RUNS):
+            base = os.path.join(args.out_dir, f"{name}-cpu")
+            with open(base + ".json") as f:
+                res = json.load(f)
+            write_results(None, base + ".md", res, markdown(res))  # the JSON's own machine record heads it
+        return 0
     names = args.only or list(RUNS)
     if "redwood-211" in names and not REDWOOD.is_dir():
         raise SystemExit(f"python -m perf.end_to_end: {REDWOOD} not found (set SWARMSPLAT_SHARED_DATA)")
     with tempfile.TemporaryDirectory(prefix="swarmsplat-e2e-") as scratch:
         for name in names:
             print(f"[end_to_end] {name} ...", file=sys.stderr, flush=True)
-            res = run_one(name, scratch)
+            machine = machine_info()  # where and from what, as the run starts
+            res = {**run_one(name, scratch), "machine": machine}
             md = markdown(res)
             print(md)
             base = os.path.join(args.out_dir, f"{name}-cpu")
