@@ -54,7 +54,9 @@ def _init_warp(device: str) -> None:
     if not _warp_ready:
         # Keep start-up banners and per-module compile timings off the user's terminal.
         wp.config.log_level = getattr(wp, "LOG_WARNING", 30)
-        wp.init()
+        # Warp's native library tells stderr when it finds no CUDA driver, on every CPU-only machine; on the CPU that
+        # is no news (asking for cuda without one is a BackendError below), so the probe runs with fd 2 quiet.
+        (wp.init if device == "cuda" else lambda: _quiet_fd2(wp.init))()
         _warp_ready = True
     if device == "cuda" and not wp.is_cuda_available():
         raise BackendError("device 'cuda' was asked for, but Warp finds no CUDA device on this machine; use --device cpu")
