@@ -58,6 +58,9 @@ class Agent:
         # Keep every keyframe's mapping-resolution images after its submap is retired (a team sets this when its
         # server refines the merged map on them: config map_refine.views "mapping").
         self.keep_keyframe_images = False
+        # Pack retired submaps' keyframe images losslessly (slam.dense.packed): identical reads, a fraction of
+        # the memory.
+        self.compress_keyframes = True
 
     # ---- the algorithm ----------------------------------------------------------------------------------------
 
@@ -131,7 +134,8 @@ class Agent:
         if self.gmap.submaps and not needs_new_submap(self.cfg.submaps, T_local_cam, len(self.gmap.active.keyframe_ids)):
             return T_local_cam
         T_world_cam = self.gmap.active.T_world_local @ T_local_cam if self.gmap.submaps else np.eye(4)
-        start_submap(self.gmap, T_world_cam, self.keyframes, keep_images=self.keep_keyframe_images)
+        start_submap(self.gmap, T_world_cam, self.keyframes, keep_images=self.keep_keyframe_images,
+                     compress=self.compress_keyframes)
         self.tracker.reset_frame(se3.inverse(T_local_cam))
         return np.eye(4)
 

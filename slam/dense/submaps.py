@@ -12,6 +12,7 @@ from swarmsplat.kernels import se3
 from swarmsplat.slam.config import SubmapConfig
 from .frames import RGBD
 from .gaussian_map import GaussianMap, Submap
+from .packed import PackedRGBD, pack
 
 
 @dataclass
@@ -26,8 +27,8 @@ class Keyframe:
     timestamp: float
     submap_id: int
     T_local_cam: np.ndarray  # [4, 4]
-    map_rgbd: RGBD | None  # mapping resolution; dropped when the submap is retired (unless a team keeps it)
-    small: RGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
+    map_rgbd: RGBD | PackedRGBD | None  # mapping resolution; dropped when the submap is retired (unless kept)
+    small: RGBD | PackedRGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
     descriptor: np.ndarray | None = None  # [D] unit vector
     T_local_refined: np.ndarray | None = None  # [4, 4] after the map refinement's pose refinement
 
@@ -46,15 +47,17 @@ def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: in
 
 
 def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe], *,
-                 keep_images: bool = False) -> Submap:
+                 keep_images: bool = False, compress: bool = False) -> Submap:
     """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies, unless
     `keep_images`: a team's server refines the merged map on them) and start a new one whose local frame is the
-    camera at T_world_cam."""
-    if gmap.submaps and not keep_images:
+    camera at T_world_cam. With `compress` the retired keyframes' images that stay are packed losslessly
+    (slam.dense.packed), decoded on each later read."""
+    if gmap.submaps:
         old = gmap.active.id
         for kf in keyframes:
             if kf.submap_id == old:
-                kf.map_rgbd = None
+                kf.map_rgbd = (pack(kf.map_rgbd) if compress else kf.map_rgbd) if keep_images else None
+                kf.small = pack(kf.small) if compress else kf.small
     return gmap.new_submap(T_world_cam)
 
 
