@@ -31,6 +31,17 @@ class TrackingConfig(_Section):
     coarse_max_width: int = Field(320, ge=16, description="resolution of the coarse frame-to-frame odometry")
     coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
                                                             "distrusted: constant velocity is used instead")
+    recovery: bool = Field(True, description="when the coarse stage fails, retry it from a learned start (XFeat "
+                           "matches + depth + RANSAC) against the previous frame, then re-localise against the "
+                           "current submap's keyframes, before falling back to constant velocity "
+                           "(slam.dense.tracking.recovery)")
+    recovery_max_motion: float = Field(0.5, gt=0, description="recovery: a recovered step longer than this (m) is "
+                                       "rejected")
+    recovery_max_disagreement: float = Field(0.1, gt=0, description="recovery: reject when the odometry moves the "
+                                             "learned start by more than this (m)")
+    recovery_max_keyframes: int = Field(3, ge=0, description="recovery: newest keyframes of the current submap "
+                                        "tried for re-localisation (0 = retry against the previous frame only)")
+    recovery_top_k: int = Field(512, ge=16, description="recovery: XFeat keypoints per image")
     refine: bool = Field(True, description="frame-to-model refinement after the coarse stage (§III-C): "
                                           "Gauss-Newton against the active submap rendered at the last keyframe, "
                                           "with debias_view")

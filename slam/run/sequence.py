@@ -146,6 +146,8 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
         "keyframes": len(agent.keyframes),
         "submaps": len(agent.gmap.submaps),
         "gaussians": len(agent.gmap),
+        # frames whose coarse tracking failed and that recovery retried / placed (slam.dense.tracking.recovery)
+        "tracking_recoveries": agent.tracker.recoveries.as_dict(),
         "loop_candidates": len(agent.loops.log),
         "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
         "pose_graph_optimisations": agent.loops.optimisations,

@@ -43,6 +43,7 @@ from swarmsplat.slam.config import TrackingConfig
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from .model_align import ModelTarget, Residual, align_to_model
+from .recovery import RecoveryCounts, coarse_passes, recover
 from swarmsplat.slam.dense.rgbd_registration import Registration, coarse_odometry
 from swarmsplat.slam.dense.render import render, rgbd_loss
 
@@ -56,6 +57,7 @@ class TrackResult:
     loss: float
     coarse: Registration | None = None  # the coarse stage's registration (its information feeds the pose graph)
     refine: "RefineInfo | None" = None  # what the Gauss-Newton refinement did (None when it did not run)
+    recovered: str = ""  # "retry" | "relocalised" when the coarse stage failed and recovery placed the frame
 
 
 @dataclass
@@ -233,12 +235,17 @@ class Tracker:
         # (params it shows, T_local_view, view, its ModelTarget)
         self._view: tuple[GaussianParams, np.ndarray, RGBD, ModelTarget] | None = None
         self.view_biases: list[float | None] = []  # per rendered view: |translation| of its keyframe's self-check
+        # the current submap's keyframes (at coarse_max_width, T_local_cam) for re-localisation, oldest first
+        self._anchors: list[tuple[RGBD, np.ndarray]] = []
+        self._anchor_params: GaussianParams | None = None
+        self.recoveries = RecoveryCounts()
 
     def reset_frame(self, T_new_old: np.ndarray) -> None:
         """Re-express the stored previous pose after the active submap's frame changes (new submap)."""
         if self._prev_pose is not None:
             self._prev_pose = np.asarray(T_new_old) @ self._prev_pose
         self._view = None
+        self._anchors = []  # a new submap: its first keyframe is added once it is mapped
 
     def track(self, frame: RGBD, params: GaussianParams) -> TrackResult:
         """Pose of `frame` in the active submap's local frame."""
@@ -246,16 +253,24 @@ class Tracker:
             T = np.eye(4)
             self._remember(frame, T)
             return TrackResult(T, T, True, 0, 0.0)
-        coarse_ok, r = False, None
-        T_prev_cur = self._velocity
+        if len(params) and params is not self._anchor_params:  # a map update: the previous frame was its keyframe
+            self._anchor_params = params
+            self._anchors.append((self._prev, self._prev_pose.copy()))
+        coarse_ok, r, recovered = False, None, ""
+        T_coarse = self._prev_pose @ self._velocity
         if self.cfg.coarse == "rgbd_odometry":
             src = frame.resized(self.cfg.coarse_max_width)
             tgt = self._prev.resized(self.cfg.coarse_max_width)
             r = coarse_odometry(src, tgt, self._velocity, max_depth=self.max_depth)
-            coarse_ok = r.success and float(np.linalg.norm(r.T_target_source[:3, 3])) <= self.cfg.coarse_max_motion
+            coarse_ok = coarse_passes(r, self.cfg)
             if coarse_ok:
-                T_prev_cur = r.T_target_source
-        T_coarse = self._prev_pose @ T_prev_cur
+                T_coarse = self._prev_pose @ r.T_target_source
+            elif self.cfg.recovery:
+                found = recover(src, tgt, self._prev_pose, self._anchors, self.cfg, self.recoveries,
+                                max_depth=self.max_depth)
+                if found is not None:
+                    T_coarse, r, recovered = found
+                    coarse_ok = r is not None
         T, it, loss, info = T_coarse, 0, float("nan"), None
         refine = self.cfg.refine or (self.cfg.refine_on_coarse_failure and not coarse_ok)
         if refine and self.cfg.iterations > 0 and len(params) > 0:
@@ -268,7 +283,7 @@ class Tracker:
                 T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg)
         self._velocity = se3.inverse(self._prev_pose) @ T
         self._remember(frame, T)
-        return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info)
+        return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info, recovered)
 
     def _model_view(self, params: GaussianParams, frame: RGBD) -> tuple[np.ndarray, RGBD]:
         return self.view_of(params, frame.resized(self.cfg.refine_max_width).camera)
