@@ -31,6 +31,7 @@ SUBJECTS = {
     "placerec": ".place_recognition",
     "bags": ".bags",
     "live": ".live",
+    "long-run": ".long_run",
 }
 
 
