@@ -81,7 +81,7 @@ def sequence(tmp_path_factory):
     from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
     root = generate(tmp_path_factory.mktemp("packed") / "d",
-                    GeneratorConfig.preset("tiny", seed=0, agents=1, frames=24))
+                    GeneratorConfig.preset("tiny", seed=0, agents=1, frames=16))
     return load_dataset(root).agents[0]
 
 
@@ -91,7 +91,8 @@ def test_packed_agent_gives_the_same_poses_and_map(sequence):
     from swarmsplat.slam.dense.mapping.refine import refine_agent
 
     cfg = SlamConfig().override({"mapping": {"iterations": 4, "first_iterations": 10},
-                                 "keyframes": {"every": 2}, "submaps": {"max_keyframes": 3},
+                                 "tracking": {"refine": False},
+                                 "keyframes": {"every": 2}, "submaps": {"max_keyframes": 2},
                                  "loop_closure": {"min_index_gap": 2},
                                  "map_refine": {"max_iterations": 20}})
     kernels.use(cfg.kernels.backend, cfg.kernels.device)
