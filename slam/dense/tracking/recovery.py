@@ -28,10 +28,11 @@ from swarmsplat.slam.dense.rgbd_registration import Registration, coarse_odometr
 
 @dataclass
 class RecoveryCounts:
-    """Per run: frames whose coarse stage failed and recovery was tried, recovered by the retry against the
-    previous frame, and re-localised against a keyframe of the current submap (metrics.json
+    """Per run: frames whose coarse stage failed, those recovery was tried on, recovered by the retry against
+    the previous frame, and re-localised against a keyframe of the current submap (metrics.json
     `tracking_recoveries`)."""
 
+    coarse_failed: int = 0  # frames whose coarse stage failed its checks (counted with the recovery off too)
     attempted: int = 0
     succeeded: int = 0  # retry + relocalised
     retried: int = 0
@@ -39,7 +40,7 @@ class RecoveryCounts:
     frames: list[int] = field(default_factory=list)  # tracker frame counter of each recovered frame
 
     def as_dict(self) -> dict:
-        return {"attempted": self.attempted, "succeeded": self.succeeded, "retried": self.retried,
+        return {"coarse_failed": self.coarse_failed, "attempted": self.attempted, "succeeded": self.succeeded, "retried": self.retried,
                 "relocalised": self.relocalised}
 
 

@@ -265,7 +265,9 @@ class Tracker:
             coarse_ok = coarse_passes(r, self.cfg)
             if coarse_ok:
                 T_coarse = self._prev_pose @ r.T_target_source
-            elif self.cfg.recovery:
+            else:
+                self.recoveries.coarse_failed += 1
+            if not coarse_ok and self.cfg.recovery:
                 found = recover(src, tgt, self._prev_pose, self._anchors, self.cfg, self.recoveries,
                                 max_depth=self.max_depth)
                 if found is not None:
