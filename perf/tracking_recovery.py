@@ -11,6 +11,7 @@ same process, with the default configuration otherwise (loop closure on, as `swa
     python -m perf.tracking_recovery        # strides 4-16 of Redwood 211 -> perf/results/tracking-recovery-cpu.*
     python -m perf.tracking_recovery --hard # the same frames with depth noise, holes and blur (-hard-cpu.*)
     python -m perf.tracking_recovery --strides 8 --frames 20 --json out.json --md out.md
+    python -m perf.tracking_recovery --from-json perf/results/tracking-recovery-cpu.json   # rewrite its .md
 """
 
 from __future__ import annotations
@@ -129,8 +130,8 @@ def markdown(res: dict) -> str:
     from .common import markdown_table
 
     cols = ["stride", "step_cm_mean", "step_cm_max", "step_deg_mean", "recovery", "frames", "ate_cm",
-            "ate_no_lc_cm", "tracking_ms_per_frame", "recoveries_attempted", "recoveries_retried",
-            "recoveries_relocalised"]
+            "ate_no_lc_cm", "tracking_ms_per_frame", "recoveries_coarse_failed", "recoveries_attempted",
+            "recoveries_retried", "recoveries_relocalised"]
     hard = res.get("hard")
     return (f"# Tracking recovery on strided real frames ({Path(res['data']).name}"
             f"{', made harder' if hard else ''})\n\n"
@@ -150,7 +151,14 @@ def main(argv=None) -> int:
     p.add_argument("--hard", action="store_true", help="depth noise, depth holes and motion blur (class Harder)")
     p.add_argument("--json", default=None, help="default perf/results/tracking-recovery[-hard]-cpu.json")
     p.add_argument("--md", default=None, help="default perf/results/tracking-recovery[-hard]-cpu.md")
+    p.add_argument("--from-json", type=Path, help="rewrite the Markdown of this result file and exit")
     a = p.parse_args(argv)
+    if a.from_json:
+        import json
+
+        res = json.loads(a.from_json.read_text())
+        write_results(None, a.md or str(a.from_json.with_suffix(".md")), res, markdown(res))
+        return 0
     name = "tracking-recovery-hard-cpu" if a.hard else "tracking-recovery-cpu"
     a.json = a.json or str(RESULTS / f"{name}.json")
     a.md = a.md or str(RESULTS / f"{name}.md")
