@@ -65,7 +65,7 @@ def _shown(key: str, v) -> str:
     if isinstance(v, float) and key.startswith("psnr"):
         return f"{v:.2f} dB"
     if isinstance(v, float):
-        return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
+        return f"{v:.1f}" if key.endswith(("_s", "_mb")) or abs(v) >= 100 else f"{v:.3f}"
     return ", ".join(map(str, v)) if isinstance(v, list) else str(v)
 
 
