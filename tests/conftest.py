@@ -16,7 +16,7 @@ BACKEND_CASES = [("warp", "cpu"), ("taichi", "cpu"), ("warp", "cuda"), ("taichi"
 # Taichi on Vulkan (SPIR-V): run only by the modules that check the kernels themselves against their twins and
 # finite differences. Mesa's software Vulkan driver is slow, so the pipeline-level tests stay on cpu / cuda.
 VULKAN_CASE = ("taichi", "vulkan")
-VULKAN_MODULES = ("test_backend.py", "test_icp_kernels.py", "test_raster.py")
+VULKAN_MODULES = ("test_backend.py", "test_icp_kernels.py", "test_raster.py", "test_raster_binning.py")
 # Known GPU failures, reported as xfail only when the test fails with exactly this error (any other failure,
 # e.g. a mismatch with the twin, still fails). Delete an entry once its cause is fixed; see docs/gpu.md.
 VULKAN_KNOWN: dict[str, tuple[str, str]] = {}  # test module -> (exact error text, reason) known on Vulkan
