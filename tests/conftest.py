@@ -86,3 +86,13 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module", params=[0, 3], ids=["seed0", "seed3"])
+def default_world(request):
+    """The generator's default world (6 agents) for two seeds: (world, GeneratorConfig, per-agent poses)."""
+    from swarmsplat.slam.synthetic import GeneratorConfig, agent_poses, generate_world
+
+    cfg = GeneratorConfig.preset("default", agents=6, seed=request.param)
+    world = generate_world(cfg.seed, cfg.world)
+    return world, cfg, agent_poses(world, cfg)
