@@ -1,7 +1,8 @@
 """`swarmsplat agent SOURCE --out DIR`: one GRAND-SLAM agent on a robot. SOURCE `zenoh/[PREFIX]` reads live ROS 2
 RGB-D topics over Zenoh (the Zenoh-ROS 2 bridge or rmw_zenoh) and publishes each tracked pose back as
 geometry_msgs/PoseStamped; any other SOURCE is a recording (a sequence folder or a bag), run as `swarmsplat run`
-runs it."""
+runs it. With --server ENDPOINT the agent is a member of a team served by `swarmsplat server` (also registered
+here): it sends its keyframes and submaps over Zenoh and the server closes the loops."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ def register(sub) -> None:
                        description=__doc__.splitlines()[0] + " " + " ".join(__doc__.splitlines()[1:]))
     p.add_argument("source", nargs="?", help="zenoh/[KEY_PREFIX] for live topics, or a sequence folder / bag")
     p.add_argument("--source", dest="source_opt", metavar="SOURCE", help="the same as the positional SOURCE")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", help="output folder (required, except for a team member: --server)")
     add_config_flags(p)
     p.add_argument("--topics", metavar="ROLE=TOPIC,...",
                    help="ROS 2 topics: color, depth, info (live; default /camera/color/image_raw, "
@@ -36,9 +37,89 @@ def register(sub) -> None:
                    help="warn when the topics have been silent for S seconds (default: 5)")
     p.add_argument("--camera-timeout", type=float, default=30.0, metavar="S",
                    help="give up when no camera_info arrives within S seconds (default: 30)")
+    p.add_argument("--server", action="append", default=[], metavar="ENDPOINT",
+                   help="be a team member: send keyframes and submaps to `swarmsplat server` at this Zenoh "
+                        "endpoint, e.g. tcp/192.168.1.10:7447 (recordings only)")
+    p.add_argument("--id", type=int, metavar="K",
+                   help="--server: this agent's index in the team, 0 .. N-1 (default: its position in a "
+                        "multi-agent SOURCE)")
+    p.add_argument("--split", metavar="RANGES",
+                   help="--server: SOURCE is one sequence cut into agents as `swarmsplat run --split` cuts it; "
+                        "this agent is the range named by --name or --id")
+    p.add_argument("--run", default="team", help="--server: the team's Zenoh key prefix (default: team)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_backend_flags(p)
     p.set_defaults(func=run, kernels=None, device=None)
+    register_server(sub)
+
+
+def register_server(sub) -> None:
+    p = sub.add_parser("server", help="the GRAND-SLAM team server for agents in other processes or machines",
+                       description="Serve N team agents (`swarmsplat agent SOURCE --server ENDPOINT`) over Zenoh: "
+                                   "close intra- and inter-agent loops, optimise the team's pose graph, send each "
+                                   "agent its corrections and write the team's outputs to --out. A server started "
+                                   "again on the same --out continues from its journal (link/journal.bin).")
+    p.add_argument("--agents", type=int, required=True, metavar="N", help="agents in the team")
+    p.add_argument("--out", required=True, help="output folder")
+    add_config_flags(p)
+    p.add_argument("--dataset", metavar="PATH",
+                   help="the agents' multi-agent dataset, for the evaluation (ATE, renders); without it the "
+                        "estimates, map, loops and link figures are written")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to listen on (default: tcp/0.0.0.0:<link.port_base>)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to (a router or the agents), repeatable")
+    p.add_argument("--run", default="team", help="the team's Zenoh key prefix (default: team)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_backend_flags(p)
+    p.set_defaults(func=run_server, kernels=None, device=None)
+
+
+def run_server(args) -> int:
+    from swarmsplat.slam.cli.config_flags import load_config
+    from swarmsplat.slam.run.team_link.processes import serve_command
+
+    cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
+                                    "--device": ("kernels.device", args.device)}, preset=args.preset)
+    m = serve_command(args.agents, args.out, cfg, dataset=args.dataset, listen=args.listen, connect=args.connect,
+                      run=args.run, progress=not args.quiet)
+    lost = m["link"]["lost_agents"]
+    print(f"wrote {args.out}: {m['loops_accepted']} loops accepted, {m['link']['bytes_total'] / 1e6:.1f} MB on the "
+          f"link" + (f"; lost: {', '.join(lost)}" if lost else ""))
+    return 0
+
+
+def _team_member(args, source: str, cfg) -> int:
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.io.datasets import load_dataset
+    from swarmsplat.slam.run.team_link.processes import run_team_agent
+
+    if source.startswith(LIVE):
+        raise InputError("--server: a team member runs on a recording for now; live topics run alone (no --server)")
+    ds = load_dataset(source)
+    if args.split:
+        from swarmsplat.slam.io.datasets.split import parse_ranges, split_sequence
+
+        if len(ds.agents) != 1:
+            raise InputError(f"--split cuts one sequence into agents, but {source} holds {len(ds.agents)}")
+        ds = split_sequence(ds.agents[0], parse_ranges(args.split))
+    names = [s.name for s in ds.agents]
+    k = args.id
+    if k is None:
+        if len(names) == 1:
+            raise InputError("--id: give this agent's index in the team (0 .. N-1)")
+        if args.name not in names:
+            raise InputError(f"--name {args.name}: {source} holds agents {', '.join(names)}; name one or give --id")
+        k = names.index(args.name)
+    seq = ds.agents[0] if len(names) == 1 else (ds.agents[k] if k < len(names) else None)
+    if seq is None:
+        raise InputError(f"--id {k}: {source} holds agents 0 .. {len(names) - 1}")
+    name = args.name if args.name != "live" else seq.name
+    m = run_team_agent(seq, k, cfg, name=name, connect=args.server + args.connect, listen=args.listen, run=args.run,
+                       frames=args.frames or None, progress=not args.quiet, out=args.out)
+    print(f"{name}: {m['bytes']['sent_total'] / 1e6:.2f} MB sent, {m['resent']} resent, {m['dropped_images']} "
+          f"keyframe images dropped" + ("" if m["acknowledged"] else "; NOT all acknowledged by the server"))
+    return 0 if m["acknowledged"] else 1
 
 
 def run(args) -> int:
@@ -57,9 +138,16 @@ def run(args) -> int:
         if value < 0:
             raise InputError(f"{flag} must be >= 0, got {value}")
     topics = parse_topics(args.topics)
-    output_dir(args.out, "--out", create=False)
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device)}, preset=args.preset)
+    if args.server:
+        return _team_member(args, source, cfg)
+    for flag in ("id", "split"):
+        if getattr(args, flag) is not None:
+            raise InputError(f"--{flag} chooses a team member's sequence: give --server ENDPOINT too")
+    if not args.out:
+        raise InputError("--out: give an output folder (only a team member, --server, may run without one)")
+    output_dir(args.out, "--out", create=False)
     if not source.startswith(LIVE):
         from swarmsplat.slam.io.datasets import load_sequence
         from swarmsplat.slam.run.sequence import run_sequence

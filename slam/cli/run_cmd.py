@@ -40,6 +40,10 @@ def register(sub) -> None:
                         "each, e.g. 0:3,3:5 (agent_0 frames 0-2, agent_1 frames 3-4; ranges may overlap, an empty "
                         "START/STOP means the start/end). Each agent starts in its own frame and joins the "
                         "global frame at its first accepted inter-agent loop")
+    p.add_argument("--processes", action="store_true",
+                   help="a team with its agents in separate processes: the server runs here and one `swarmsplat "
+                        "agent --server` process per agent, over Zenoh on localhost; the same outputs, plus the "
+                        "link's bytes (metrics.json link, report.md)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out that was killed or interrupted, from its last checkpoint "
                         "(progress/checkpoint.pkl; one agent; the dataset and config must be the run's own)")
@@ -105,6 +109,9 @@ def run(args) -> int:
             ds = split_sequence(ds.agents[0], ranges)
         except InputError as e:
             raise InputError(f"--split: {e}") from None
+    if args.processes and len(ds) < 2:
+        raise InputError(f"--processes runs a team's agents in separate processes, but {args.dataset} holds one "
+                         f"sequence: give a multi-agent dataset or cut it with --split")
     if len(ds) > 1:
         if args.resume:
             raise InputError("--resume continues a one-agent run; a team run cannot be resumed yet (its pose "
@@ -112,8 +119,14 @@ def run(args) -> int:
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map.
         from swarmsplat.slam.run.team import run_team
 
-        m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
-                     strict=args.strict)
+        if args.processes:
+            from swarmsplat.slam.run.team_link.processes import run_team_processes
+
+            m = run_team_processes(args.dataset, args.out, cfg, frames=args.frames, split=args.split, loaded=ds,
+                                   progress=not args.quiet)
+        else:
+            m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
+                         strict=args.strict)
         keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
             "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],

@@ -20,6 +20,7 @@ from pydantic import BaseModel, Field, model_validator
 
 from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfig, MapRefineConfig, MappingConfig,
                     SubmapConfig, TrackingConfig, _Section)
+from .link import LinkConfig
 from .load import deep_merge, preset_path, read_yaml, validate
 from .server import ServerConfig
 from .swarm import PairsConfig, SwarmConfig
@@ -68,6 +69,7 @@ class SlamConfig(_Section):
     pairs: PairsConfig = PairsConfig()
     demo: DemoConfig = DemoConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
+    link: LinkConfig = LinkConfig()
 
     @model_validator(mode="after")
     def _check(self):

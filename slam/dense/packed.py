@@ -39,6 +39,18 @@ class PackedRGBD:
             self._depth_png = _encode(np.concatenate([(bits >> 16).astype(np.uint16),
                                                       (bits & 0xFFFF).astype(np.uint16)], axis=1))
 
+    @classmethod
+    def from_png(cls, camera: PinholeCamera, color_png: bytes, depth_png: bytes, depth_mm: bool) -> "PackedRGBD":
+        """A packed frame from the bytes `png()` gave (another process's keyframe, slam.run.team_link)."""
+        out = cls.__new__(cls)
+        out.camera, out._color_png, out._depth_png, out._depth_mm = camera, bytes(color_png), bytes(depth_png), \
+            bool(depth_mm)
+        return out
+
+    def png(self) -> tuple[bytes, bytes, bool]:
+        """(colour PNG, depth PNG, depth in millimetres?): what `from_png` takes back."""
+        return self._color_png, self._depth_png, self._depth_mm
+
     @property
     def color(self) -> np.ndarray:  # [H, W, 3] uint8 RGB
         return cv2.cvtColor(_decode(self._color_png), cv2.COLOR_BGR2RGB)

@@ -36,7 +36,9 @@ class Team:
     """N agents and one server. `step(a, frame)` feeds agent a one frame; `run(...)` feeds whole sequences."""
 
     def __init__(self, cameras: Sequence, names: Sequence[str], config: SlamConfig | None = None,
-                 server: ServerConfig | None = None):
+                 server: ServerConfig | None = None, *, agent_class: type = Agent):
+        """agent_class: what each agent is built as (slam.dense.team.mirror.AgentMirror: an agent running in
+        another process, slam.run.team_link)."""
         if len(cameras) != len(names) or not names:
             raise InputError(f"a team needs one camera per agent name, got {len(cameras)} and {len(names)}")
         if len(names) > 26:
@@ -48,7 +50,7 @@ class Team:
         scfg.intra_loops = scfg.intra_loops and self.cfg.loop_closure.enabled
         scfg.inter_loops = scfg.inter_loops and self.cfg.loop_closure.enabled
         agent_cfg = self.cfg.override({"loop_closure": {"enabled": False}})  # the server optimises
-        self.agents = [Agent(c, agent_cfg, name=n) for c, n in zip(cameras, names)]
+        self.agents = [agent_class(c, agent_cfg, name=n) for c, n in zip(cameras, names)]
         rc = self.cfg.map_refine  # the server's map refinement fits the keyframes at the mapping resolution
         for ag in self.agents:
             ag.keep_keyframe_images = rc.views == "mapping" and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
@@ -173,10 +175,9 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     (slam.run.partial_results.write_partial_team) and re-raises.
     """
     from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
-    from swarmsplat.slam.io.progress import TeamRounds, reporting
+    from swarmsplat.slam.io.progress import TeamRounds
     from .checkpoint import PoseJournal
     from .runtime import check_device, use_kernels
-    from .team_results import render_metrics, write_team_results
 
     cfg = config or SlamConfig()
     stride = cfg.team.stride if stride is None else stride
@@ -205,6 +206,20 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     finally:
         for j in team.journals:
             j.close()
+    return finish_team(team, ds, out, wall_s=wall, cpu0=cpu0, render_views=render_views, progress=progress,
+                       observer=observer, run_info={"frame_stride": stride, "frame_caps": caps})
+
+
+def finish_team(team: Team, ds, out: Path, *, wall_s: float, cpu0: float, render_views: int, progress: bool,
+                observer=None, run_info: dict | None = None) -> dict:
+    """After the last frame: the final optimisation, the merged map's refinement (config map_refine) and every
+    output (slam.run.team_results). wall_s: seconds so far (the refinement's are added); cpu0: process time at
+    the start. Returns the metrics written."""
+    from swarmsplat.slam.io.progress import reporting
+    from .team_results import render_metrics, write_team_results
+
+    cfg = team.cfg
+    wall = wall_s
     t_fin = time.perf_counter()
     team.finish()
     wall += time.perf_counter() - t_fin
@@ -229,4 +244,4 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
         before["trajectories"] = traj_before
     return write_team_results(team, ds, out, wall_s=wall, cpu_s=time.process_time() - cpu0,
                               render_views=render_views, progress=progress, before_refine=before,
-                              refine=refined, run_info={"frame_stride": stride, "frame_caps": caps})
+                              refine=refined, run_info=run_info)

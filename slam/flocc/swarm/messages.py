@@ -27,7 +27,7 @@ SCHEMA_VERSION = 2  # 2: the end protocol (Finish); a robot without it would hol
 _HEADER = struct.Struct("<4sBBBQI")
 HEADER_BYTES = _HEADER.size
 MAX_PAYLOAD = 256 << 20  # 256 MiB: refuse absurd lengths before allocating anything
-_DTYPES = {"<f4", "<f8", "<i8", "|u1"}
+_DTYPES = {"<f2", "<f4", "<f8", "<i8", "|u1"}
 
 
 class MessageError(InputError):
@@ -292,45 +292,55 @@ MESSAGE_TYPES: dict[int, type[Message]] = {
                         Finish)}
 
 
-def encode(msg: Message, sender: int, seq: int) -> bytes:
-    """Message -> bytes (header + payload)."""
-    if not 0 <= sender <= 254:
-        raise InputError(f"sender robot id must be in 0..254, got {sender}")
-    scalars = {k: getattr(msg, k) for k in msg.SCALARS}
-    specs, blobs = [], []
-    for name, (dt, ndim) in msg.ARRAYS.items():
-        a = np.ascontiguousarray(getattr(msg, name), dtype=np.dtype(dt))
-        if a.ndim != ndim:
-            raise InputError(f"{msg.kind}.{name}: expected {ndim} dimensions, got shape {list(a.shape)}")
-        specs.append([name, dt, list(a.shape)])
-        blobs.append(a.tobytes())
-    head = json.dumps({"s": scalars, "a": specs}, separators=(",", ":"), allow_nan=False).encode()
-    payload = struct.pack("<I", len(head)) + head + b"".join(blobs)
-    return _HEADER.pack(MAGIC, SCHEMA_VERSION, msg.TYPE, sender, seq, len(payload)) + payload
+class Codec:
+    """The wire format above for one family of messages: its magic, schema version and type registry. The
+    swarm's messages use `SWARM` (the module-level `encode` / `decode` / `peek_header`); another family (the dense
+    team's link, slam.run.team_link.messages) builds its own with another magic, so the two never mix."""
+
+    def __init__(self, magic: bytes, version: int, types: dict[int, type[Message]]):
+        if len(magic) != 4:
+            raise InputError(f"a codec magic is 4 bytes, got {magic!r}")
+        self.magic, self.version, self.types = magic, int(version), dict(types)
+
+    def encode(self, msg: Message, sender: int, seq: int) -> bytes:
+        """Message -> bytes (header + payload)."""
+        if not 0 <= sender <= 254:
+            raise InputError(f"sender robot id must be in 0..254, got {sender}")
+        scalars = {k: getattr(msg, k) for k in msg.SCALARS}
+        specs, blobs = [], []
+        for name, (dt, ndim) in msg.ARRAYS.items():
+            a = np.ascontiguousarray(getattr(msg, name), dtype=np.dtype(dt))
+            if a.ndim != ndim:
+                raise InputError(f"{msg.kind}.{name}: expected {ndim} dimensions, got shape {list(a.shape)}")
+            specs.append([name, dt, list(a.shape)])
+            blobs.append(a.tobytes())
+        head = json.dumps({"s": scalars, "a": specs}, separators=(",", ":"), allow_nan=False).encode()
+        payload = struct.pack("<I", len(head)) + head + b"".join(blobs)
+        return _HEADER.pack(self.magic, self.version, msg.TYPE, sender, seq, len(payload)) + payload
+
+    def peek_header(self, data: bytes) -> Header:
+        """Check the header only (magic, version, type, exact length); MessageError when it is not ours."""
+        if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) < HEADER_BYTES:
+            raise MessageError("message: shorter than a header")
+        magic, ver, tid, sender, seq, n = _HEADER.unpack_from(bytes(data[:HEADER_BYTES]))
+        if magic != self.magic:
+            raise MessageError("message: foreign magic")
+        if ver != self.version:
+            raise MessageError(f"message: schema version {ver}, this robot speaks {self.version}")
+        if tid not in self.types:
+            raise MessageError(f"message: unknown type id {tid}")
+        if n > MAX_PAYLOAD or HEADER_BYTES + n != len(data):
+            raise MessageError(f"message: payload length {n} does not match the {len(data) - HEADER_BYTES} bytes "
+                               f"given")
+        return Header(tid, sender, seq)
+
+    def decode(self, data: bytes) -> tuple[Header, Message]:
+        """Bytes -> (Header, Message). Raises MessageError for anything that is not a valid message."""
+        h = self.peek_header(data)
+        return h, _decode_body(self.types[h.type_id], bytes(data)[HEADER_BYTES:])
 
 
-def peek_header(data: bytes) -> Header:
-    """Check the header only (magic, version, type, exact length); MessageError when it is not ours."""
-    if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) < HEADER_BYTES:
-        raise MessageError("message: shorter than a header")
-    magic, ver, tid, sender, seq, n = _HEADER.unpack_from(bytes(data[:HEADER_BYTES]))
-    if magic != MAGIC:
-        raise MessageError("message: foreign magic")
-    if ver != SCHEMA_VERSION:
-        raise MessageError(f"message: schema version {ver}, this robot speaks {SCHEMA_VERSION}")
-    if tid not in MESSAGE_TYPES:
-        raise MessageError(f"message: unknown type id {tid}")
-    if n > MAX_PAYLOAD or HEADER_BYTES + n != len(data):
-        raise MessageError(f"message: payload length {n} does not match the {len(data) - HEADER_BYTES} bytes given")
-    return Header(tid, sender, seq)
-
-
-def decode(data: bytes) -> tuple[Header, Message]:
-    """Bytes -> (Header, Message). Raises MessageError for anything that is not a valid message."""
-    h = peek_header(data)
-    data = bytes(data)
-    cls = MESSAGE_TYPES[h.type_id]
-    body = data[HEADER_BYTES:]
+def _decode_body(cls: type[Message], body: bytes) -> Message:
     if len(body) < 4:
         raise MessageError("message: payload too short")
     (n,) = struct.unpack_from("<I", body)
@@ -368,4 +378,8 @@ def decode(data: bytes) -> tuple[Header, Message]:
     if hasattr(msg, "validate"):
         msg.validate()
     assert {f.name for f in fields(msg)} == set(cls.SCALARS) | set(cls.ARRAYS)
-    return h, msg
+    return msg
+
+
+SWARM = Codec(MAGIC, SCHEMA_VERSION, MESSAGE_TYPES)
+encode, peek_header, decode = SWARM.encode, SWARM.peek_header, SWARM.decode

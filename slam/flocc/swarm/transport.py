@@ -2,7 +2,8 @@
 
 A transport belongs to one robot. `send(dest, msg)` publishes to one robot (`dest` an id) or to every robot in
 range (`dest=None`); `poll()` returns the valid messages that have arrived, dropping (and counting) anything that
-does not decode. Bytes are counted per message type, sent and received, on every transport.
+does not decode. Bytes are counted per message type, sent and received, on every transport, and per peer robot
+(`peer_stats`). A transport speaks one message family (`codec`, the swarm's by default).
 
 `InProcessNetwork` is the simulated radio shared by all robots of one process. Time advances in ticks
 (`network.advance(tick)`); a message is delivered at a tick >= its send tick + delay, only while the two robots
@@ -49,17 +50,21 @@ class ByteCounter:
 class Transport(ABC):
     """One robot's end of the link."""
 
-    def __init__(self, robot: int):
+    def __init__(self, robot: int, codec: M.Codec | None = None):
         self.robot = int(robot)
+        self.codec = codec or M.SWARM
         self.stats = ByteCounter()
+        self.peer_stats: dict[int, ByteCounter] = defaultdict(ByteCounter)  # per robot: to it (direct) / from it
         self.team: set[int] | None = None  # the robots of this run (a subclass sets it): others' messages are foreign
         self._seq = 0
 
     def send(self, dest: int | None, msg: M.Message) -> int:
         """Publish `msg` to robot `dest` (None: every robot in range). Returns the bytes put on the link."""
         self._seq += 1
-        data = M.encode(msg, self.robot, self._seq)
+        data = self.codec.encode(msg, self.robot, self._seq)
         self.stats.on_send(msg.kind, len(data))
+        if dest is not None:
+            self.peer_stats[int(dest)].on_send(msg.kind, len(data))
         self._send_bytes(dest, data)
         return len(data)
 
@@ -69,7 +74,7 @@ class Transport(ABC):
         out = []
         for data in self._receive_bytes():
             try:
-                h, msg = M.decode(data)
+                h, msg = self.codec.decode(data)
             except M.MessageError:
                 self.stats.rejected += 1
                 continue
@@ -79,6 +84,7 @@ class Transport(ABC):
                 self.stats.rejected += 1
                 continue
             self.stats.on_recv(msg.kind, len(data))
+            self.peer_stats[h.sender].on_recv(msg.kind, len(data))
             out.append((h, msg))
         return out
 
@@ -135,8 +141,8 @@ class InProcessNetwork:
         self._inbox: dict[int, list[bytes]] = {r: [] for r in self.robots}
         self._n = 0
 
-    def endpoint(self, robot: int) -> "InProcessTransport":
-        return InProcessTransport(self, robot)
+    def endpoint(self, robot: int, codec: M.Codec | None = None) -> "InProcessTransport":
+        return InProcessTransport(self, robot, codec)
 
     # ------------------------------------------------------------------------------------- faults
     def kill(self, robot: int) -> None:
@@ -203,8 +209,8 @@ class InProcessNetwork:
 class InProcessTransport(Transport):
     """A robot's endpoint on an `InProcessNetwork`. Messages sent during a tick arrive at the next `advance`."""
 
-    def __init__(self, network: InProcessNetwork, robot: int):
-        super().__init__(robot)
+    def __init__(self, network: InProcessNetwork, robot: int, codec: M.Codec | None = None):
+        super().__init__(robot, codec)
         self.network = network
         self.team = set(network.robots)
 

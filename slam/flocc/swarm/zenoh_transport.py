@@ -2,7 +2,8 @@
 
 Each robot listens on `tcp/<host>:<port_base + id>` and connects to the other robots' endpoints (multicast
 scouting off, so tests stay on loopback). Messages go to key `swarmsplat/<run>/to/<dest>` or, for a broadcast,
-`swarmsplat/<run>/all`. The rendezvous schedule is enforced on both ends with the robot's own tick clock: a robot
+`swarmsplat/<run>/all`. Given `listen` / `connect` endpoints instead (a team server on one machine, its agents on
+others: slam.run.team_link), a node listens and connects where told. The rendezvous schedule is enforced on both ends with the robot's own tick clock: a robot
 does not send to a robot it is not linked with, and drops what arrives from one.
 
 `zenoh` is imported when a transport is created, so the rest of the package works without it.
@@ -10,6 +11,7 @@ does not send to a robot it is not linked with, and drops what arrives from one.
 
 from __future__ import annotations
 
+import json
 import queue
 from typing import Callable
 
@@ -32,8 +34,9 @@ class ZenohTransport(Transport):
     """One robot's Zenoh session. `clock()` returns the current tick (used with `schedule` to gate links)."""
 
     def __init__(self, robot: int, robots: list[int], *, run: str = "default", port_base: int = 17447,
-                 host: str = "127.0.0.1", schedule: Schedule | None = None, clock: Callable[[], int] | None = None):
-        super().__init__(robot)
+                 host: str = "127.0.0.1", schedule: Schedule | None = None, clock: Callable[[], int] | None = None,
+                 codec: M.Codec | None = None, listen: list[str] | None = None, connect: list[str] | None = None):
+        super().__init__(robot, codec)
         try:
             import zenoh
         except ImportError:
@@ -45,9 +48,11 @@ class ZenohTransport(Transport):
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("listen/endpoints", f'["tcp/{host}:{port_base + self.robot}"]')
-        others = [f'"tcp/{host}:{port_base + r}"' for r in self.robots if r != self.robot]
-        conf.insert_json5("connect/endpoints", "[" + ",".join(others) + "]")
+        if listen is None and connect is None:  # robot K on port_base + K, connected to every other robot
+            listen = [f"tcp/{host}:{port_base + self.robot}"]
+            connect = [f"tcp/{host}:{port_base + r}" for r in self.robots if r != self.robot]
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen or [])))
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect or [])))
         try:  # peers start in any order: retry connecting quickly instead of Zenoh's slow default back-off
             conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, '
                                                '"period_increase_factor": 1.5}')
@@ -98,7 +103,7 @@ class ZenohTransport(Transport):
             except queue.Empty:
                 return out
             try:
-                sender = M.peek_header(data).sender
+                sender = self.codec.peek_header(data).sender
             except M.MessageError:
                 out.append(data)  # let poll() count it as rejected
                 continue

@@ -1,0 +1,268 @@
+"""A team agent in its own process: it tracks and maps its sequence as an agent of the in-process team does, and
+sends the server what it needs (slam.run.team_link.messages) through an `Outbox` that keeps every message until
+the server acknowledges it. A lost link changes nothing on the agent's side: it keeps tracking and mapping,
+queues, and sends again when the server answers; when its queue passes `link.queue_mb` the oldest keyframe
+images are dropped first (their poses and edges never are).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import OrderedDict
+
+import numpy as np
+
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import SwarmsplatError
+
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.agent import Agent
+from swarmsplat.slam.dense.packed import pack
+from swarmsplat.slam.run.guard import read_frame
+
+from . import messages as L
+
+
+def camera_list(c: PinholeCamera) -> list:
+    return [float(c.fx), float(c.fy), float(c.cx), float(c.cy), int(c.width), int(c.height)]
+
+
+def config_digest(cfg: SlamConfig) -> str:
+    """What the agent and the server must agree on: every section but the link's own and the kernels'."""
+    import hashlib
+
+    d = cfg.model_dump(mode="json")
+    for k in ("link", "kernels", "runtime", "checkpoint", "demo"):
+        d.pop(k, None)
+    return hashlib.sha1(repr(sorted(d.items())).encode()).hexdigest()[:12]
+
+
+def agent_config(cfg: SlamConfig) -> SlamConfig:
+    """A team agent's pipeline settings: its own loop optimisation is off (the server optimises), as in
+    slam.run.team.Team."""
+    return cfg.override({"loop_closure": {"enabled": False}})
+
+
+def server_needs_map_views(cfg: SlamConfig) -> bool:
+    rc = cfg.map_refine
+    return rc.views == "mapping" and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
+
+
+class LinkAgent(Agent):
+    """An Agent that remembers, for each submap it starts, the tracked pose it started at in the previous one (the
+    new origin relative to the previous origin, which the server composes with its own corrected origins)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.submap_starts: dict[int, np.ndarray] = {}
+
+    def _maybe_start_submap(self, T_local_cam: np.ndarray) -> np.ndarray:
+        n = len(self.gmap.submaps)
+        T = np.array(T_local_cam, dtype=np.float64)
+        out = super()._maybe_start_submap(T_local_cam)
+        if len(self.gmap.submaps) > n and n > 0:
+            self.submap_starts[n] = T
+        return out
+
+
+class Outbox:
+    """An agent's messages until acknowledged: `put` sends and keeps, `ack` forgets, `resend` sends again what
+    waited longer than link.resend_s. Keyframe images beyond link.queue_mb are dropped, oldest first."""
+
+    def __init__(self, tx, link, clock=time.monotonic):
+        self.tx, self.link, self.clock = tx, link, clock
+        self.items: OrderedDict[int, list] = OrderedDict()  # mid -> [message, last sent]
+        self.mid = 0
+        self.resent = 0
+        self.dropped_images: list[int] = []  # keyframe ids whose images were dropped
+        self._new_drops: list[int] = []
+
+    def next_mid(self) -> int:
+        self.mid += 1
+        return self.mid
+
+    def put(self, msg: L.Message) -> None:
+        self.items[msg.mid] = [msg, self.clock()]
+        self.tx.send(L.SERVER, msg)
+        self._bound()
+
+    def ack(self, mids) -> None:
+        for m in np.asarray(mids).tolist():
+            self.items.pop(int(m), None)
+
+    def resend(self) -> int:
+        now, n = self.clock(), 0
+        for item in self.items.values():
+            if now - item[1] >= self.link.resend_s:
+                self.tx.send(L.SERVER, item[0])
+                item[1] = now
+                n += 1
+        self.resent += n
+        return n
+
+    def take_drops(self) -> list[int]:
+        out, self._new_drops = self._new_drops, []
+        return out
+
+    def image_bytes(self) -> int:
+        return sum(_image_nbytes(it[0]) for it in self.items.values() if isinstance(it[0], L.KeyframeImage))
+
+    def _bound(self) -> None:
+        limit = self.link.queue_mb * 1e6
+        total = self.image_bytes()
+        for mid in [m for m, it in self.items.items() if isinstance(it[0], L.KeyframeImage)]:
+            if total <= limit:
+                break
+            msg = self.items.pop(mid)[0]
+            total -= _image_nbytes(msg)
+            self.dropped_images.append(msg.id)
+            self._new_drops.append(msg.id)
+
+    def stats(self) -> dict:
+        return {"resent": self.resent, "dropped_images": len(self.dropped_images), "queued": len(self.items)}
+
+
+def _image_nbytes(m: L.KeyframeImage) -> int:
+    return int(m.small_color.nbytes + m.small_depth.nbytes + m.map_color.nbytes + m.map_depth.nbytes)
+
+
+class AgentNode:
+    """One team agent and its link: `join`, then `step_round` per input round, then `finish`."""
+
+    def __init__(self, camera: PinholeCamera, cfg: SlamConfig, name: str, tx):
+        self.cfg, self.name, self.tx = cfg, name, tx
+        self.agent = LinkAgent(camera, agent_config(cfg), name=name)
+        self.agent.keep_keyframe_images = False
+        self.outbox = Outbox(tx, cfg.link)
+        self.map_views = server_needs_map_views(cfg)
+        self.welcomed = False
+        self.finished_by_server = False
+        self.corrections = 0
+        self._sent_frames = 0  # agent.poses already sent
+        self._sent_skips = 0
+        self._sent_submaps = 0
+
+    # ---- the link ----------------------------------------------------------------------------------------------
+
+    def join(self, rounds: int, timeout: float, *, say=print) -> None:
+        """Send Join until the server welcomes this agent; SwarmsplatError after `timeout` seconds."""
+        msg = L.Join(mid=self.outbox.next_mid(), name=self.name, camera=camera_list(self.agent.camera),
+                     config=config_digest(self.cfg), rounds=int(rounds))
+        self.outbox.put(msg)
+        t0 = last = time.monotonic()
+        while not self.welcomed:
+            self.service()
+            now = time.monotonic()
+            if now - t0 > timeout:
+                raise SwarmsplatError(f"{self.name}: no team server answered within {timeout:.0f} s "
+                                      f"(link.connect_timeout_s); is `swarmsplat server` running and reachable?")
+            if now - last > 1.0:
+                self.tx.send(L.SERVER, msg)
+                last = now
+                if int(now - t0) % 5 == 0:
+                    say(f"{self.name}: waiting for the team server ({now - t0:.0f} s)", file=sys.stderr)
+            time.sleep(0.05)
+
+    def service(self) -> None:
+        """Read what the server sent (welcome, acknowledgements, corrections, the end) and send again what waited."""
+        for h, msg in self.tx.poll():
+            if h.sender != L.SERVER:
+                continue
+            if isinstance(msg, L.Welcome):
+                if not msg.ok:
+                    raise SwarmsplatError(f"{self.name}: the team server refused this agent: {msg.reason}")
+                self.welcomed = True
+            elif isinstance(msg, L.Ack):
+                self.outbox.ack(msg.mids)
+            elif isinstance(msg, L.Correction):
+                self._correct(msg)
+            elif isinstance(msg, L.Finished):
+                self.finished_by_server = True
+        self.outbox.resend()
+
+    def _correct(self, msg: L.Correction) -> None:
+        """The server's latest submap origins (this agent's world frame): its own map and trajectory follow them."""
+        if msg.stamp <= self.corrections:
+            return
+        self.corrections = msg.stamp
+        sms = self.agent.gmap.submaps
+        for sid, T in zip(msg.submap_ids.tolist(), msg.T_world_local):
+            if sid < len(sms):
+                self.agent.gmap.place_submap(sms[sid], T)
+
+    # ---- the agent ------------------------------------------------------------------------------------------
+
+    def step_round(self, seq, i: int, stride: int, strict: bool = False) -> None:
+        """Round i: frame i * stride of `seq` (skipped with a warning when unreadable), then what it produced."""
+        ag = self.agent
+        n_kf, n_sm = len(ag.keyframes), len(ag.gmap.submaps)
+        f = read_frame(seq, i * stride, ag, strict=strict)
+        if f is not None:
+            ag.step(f.index, f.timestamp, f.color, f.depth)
+        if len(ag.gmap.submaps) > n_sm and n_sm > 0:
+            self._send_submap(n_sm - 1)
+        if len(ag.keyframes) > n_kf:
+            self._send_keyframe(ag.keyframes[-1], i)
+        self._send_frames(i + 1)
+        self.service()
+
+    def _send_keyframe(self, kf, round_: int) -> None:
+        ag = self.agent
+        odom = ag.loops.odometry[-1] if kf.id > 0 else None
+        start = ag.submap_starts.get(kf.submap_id) if kf.submap_id > 0 and \
+            ag.gmap.submaps[kf.submap_id].keyframe_ids[0] == kf.id else None
+        e = lambda n: np.zeros((0, n, n))  # noqa: E731
+        self.outbox.put(L.KeyframeMeta(
+            mid=self.outbox.next_mid(), id=kf.id, frame_index=int(kf.frame_index), timestamp=float(kf.timestamp),
+            submap_id=kf.submap_id, round=int(round_), T_local_cam=kf.T_local_cam[None],
+            descriptor=np.zeros(0, np.float32) if kf.descriptor is None else np.asarray(kf.descriptor, np.float32),
+            odom_T=e(4) if odom is None else odom.T_ij[None], odom_info=e(6) if odom is None else odom.info[None],
+            submap_start=e(4) if start is None else start[None]))
+        small = pack(kf.small)
+        sc, sd, smm = small.png()
+        img = dict(small_camera=camera_list(small.camera), small_color=np.frombuffer(sc, np.uint8),
+                   small_depth=np.frombuffer(sd, np.uint8), depth_mm=[int(smm)])
+        if self.map_views and kf.map_rgbd is not None:
+            big = pack(kf.map_rgbd)
+            mc, md, mmm = big.png()
+            img.update(map_camera=camera_list(big.camera), map_color=np.frombuffer(mc, np.uint8),
+                       map_depth=np.frombuffer(md, np.uint8), depth_mm=[int(smm), int(mmm)])
+        self.outbox.put(L.KeyframeImage(mid=self.outbox.next_mid(), id=kf.id, **img))
+
+    def _send_submap(self, sid: int) -> None:
+        sm = self.agent.gmap.submaps[sid]
+        self.outbox.put(L.SubmapData.pack(self.outbox.next_mid(), sm, self.cfg.link.gaussians))
+        self._sent_submaps = max(self._sent_submaps, sid + 1)
+
+    def _send_frames(self, rounds_done: int) -> None:
+        ag = self.agent
+        recs = ag.poses[self._sent_frames:]
+        skips = ag.skipped_frames()[self._sent_skips:]
+        self._sent_frames, self._sent_skips = len(ag.poses), len(ag.time.skipped)
+        drops = self.outbox.take_drops()
+        self.outbox.put(L.Frames(
+            mid=self.outbox.next_mid(), rounds_done=int(rounds_done), keyframes=len(ag.keyframes),
+            skipped=[[int(s["frame"]), str(s["reason"])] for s in skips], dropped=[int(k) for k in drops],
+            frame_index=np.array([r.frame_index for r in recs], np.int64),
+            timestamp=np.array([r.timestamp for r in recs], np.float64),
+            submap_id=np.array([r.submap_id for r in recs], np.int64),
+            T_local_cam=np.stack([r.T_local_cam for r in recs]) if recs else np.zeros((0, 4, 4))))
+
+    def finish(self, rounds: int, timeout: float, status: str = "complete") -> bool:
+        """After the last round: the last submap, the totals, then wait (at most `timeout` s) until the server has
+        acknowledged everything. Returns True when it has."""
+        ag = self.agent
+        if ag.gmap.submaps and self._sent_submaps < len(ag.gmap.submaps):
+            self._send_submap(len(ag.gmap.submaps) - 1)
+        self._send_frames(rounds)
+        t = ag.time
+        self.outbox.put(L.Done(mid=self.outbox.next_mid(), rounds=int(rounds), keyframes=len(ag.keyframes),
+                               submaps=len(ag.gmap.submaps), tracking_s=float(t.tracking), mapping_s=float(t.mapping),
+                               frames=int(t.frames), non_finite_dropped=int(ag.mapper.non_finite_dropped),
+                               link={**self.outbox.stats(), "bytes": self.tx.stats.to_dict()}, status=status))
+        t_end = time.monotonic() + timeout
+        while self.outbox.items and time.monotonic() < t_end:
+            self.service()
+            time.sleep(0.05)
+        return not self.outbox.items

@@ -1,0 +1,287 @@
+"""The GRAND-SLAM team across processes: `serve_team` is what `swarmsplat server` runs, `run_team_agent` what
+`swarmsplat agent ... --server ENDPOINT` runs, and `run_team_processes` (`swarmsplat run ... --processes`) starts
+one agent process per sequence on this machine and serves them from this one, writing the in-process team's
+outputs plus the link's byte counts (metrics.json "link", report.md).
+
+The link is Zenoh in peer mode (slam.flocc.swarm.zenoh_transport, with the team's own message family): the server
+listens, agents connect (across machines: `--connect tcp/HOST:PORT`). Node 0 is the server, node k + 1 agent k.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.errors import InputError, SwarmsplatError
+from swarmsplat.kernels.fileio import atomic_write_text, output_dir
+
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.run.guard import guarded
+
+from . import messages as L
+
+
+def _transport(node: int, nodes: list[int], *, listen: list[str], connect: list[str], run: str):
+    from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
+
+    return ZenohTransport(node, nodes, run=run, codec=L.LINK, listen=listen, connect=connect)
+
+
+def _check_endpoints(flag: str, endpoints: list[str]) -> None:
+    for e in endpoints:
+        proto, _, addr = str(e).partition("/")
+        if proto not in ("tcp", "udp", "quic", "tls", "ws") or ":" not in addr:
+            raise InputError(f"{flag} {e}: expected a Zenoh endpoint such as tcp/192.168.1.10:7447")
+
+
+def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *, dataset=None,
+               listen: list[str] | None = None, connect: list[str] | None = None, run: str = "team",
+               progress: bool = True, timeout: float | None = None) -> dict:
+    """Serve `agents` team agents until each has finished or is lost; write the team's outputs to `out`.
+    dataset: the agents' MultiAgentDataset (or a path), agent k its k-th sequence, for the evaluation
+    (ATE, renders); without it only the estimates, map, loops and link figures are written. A server started on
+    a folder holding `link/journal.bin` continues from it (slam.run.team_link.server_node)."""
+    from swarmsplat.slam.dense.team.mirror import AgentMirror
+    from swarmsplat.slam.run.runtime import use_kernels
+    from swarmsplat.slam.run.team import Team, finish_team
+    from .server_node import ServerNode
+
+    cfg = config or SlamConfig()
+    if not 1 <= agents <= 26:
+        raise InputError(f"--agents: expected 1 to 26 agents, got {agents}")
+    listen = list(listen or [])
+    connect = list(connect or [])
+    _check_endpoints("--listen", listen)
+    _check_endpoints("--connect", connect)
+    if not listen and not connect:
+        listen = [f"tcp/0.0.0.0:{cfg.link.port_base}"]
+    ds = _load(dataset) if dataset is not None else None
+    if ds is not None and len(ds.agents) != agents:
+        raise InputError(f"--dataset {ds.root}: {len(ds.agents)} sequences for --agents {agents}")
+    use_kernels(cfg.kernels)
+    out = output_dir(out, "--out")
+    names = [s.name for s in ds.agents] if ds is not None else [f"agent_{k}" for k in range(agents)]
+    cams = [s.camera for s in ds.agents] if ds is not None else [PinholeCamera(1, 1, 0, 0, 1, 1)] * agents
+    team = Team(cams, names, cfg, agent_class=AgentMirror)
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())
+    tx = _transport(L.SERVER, list(range(agents + 1)), listen=listen, connect=connect, run=run)
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    try:
+        node = ServerNode(team, tx, journal=out / "link" / "journal.bin")
+        if progress:
+            print(f"[server] waiting for {agents} agents on {', '.join(listen + connect)}", file=sys.stderr)
+        node.run(progress=progress, timeout=timeout)
+        wall = time.perf_counter() - t0
+        lost = [p.name for p in node.peers if p.lost]
+        run_info = {"processes": True, "lost_agents": lost}
+        if ds is not None and not lost:
+            metrics = finish_team(team, ds, out, wall_s=wall, cpu0=cpu0, render_views=cfg.team.render_views,
+                                  progress=progress, run_info=run_info)
+        else:
+            metrics = _write_estimates(team, out, wall, cpu0, run_info)
+        metrics["link"] = node.link_metrics()
+        _add_link(out, metrics)
+        node.finished()
+    finally:
+        tx.close()
+    return metrics
+
+
+serve_command = guarded("server")(serve_team)  # `swarmsplat server`: interrupts and failures reported as a run's
+
+
+def _load(dataset):
+    from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
+
+    return dataset if isinstance(dataset, MultiAgentDataset) else load_dataset(dataset)
+
+
+def _write_estimates(team, out: Path, wall: float, cpu0: float, run_info: dict) -> dict:
+    """Without the agents' ground truth (or with an agent lost): the estimates, merged map, graphs and loops."""
+    from swarmsplat.graph.g2o import write_g2o
+    from swarmsplat.slam.dense.loops.loop_log import summarise, write_loops_csv
+    from swarmsplat.slam.dense.ply import save_ply
+    from swarmsplat.slam.io.jsonio import write_json
+    from swarmsplat.slam.io.trajectory import write_tum
+
+    team.finish()
+    if not run_info.get("lost_agents"):
+        team.refine_map()
+    srv = team.server
+    agents = []
+    for a, ag in enumerate(team.agents):
+        stamps, T = team.trajectory(a)
+        if len(stamps):
+            write_tum(out / "trajectories" / f"{ag.name}.txt", stamps, T)
+            write_tum(out / "trajectories_no_lc" / f"{ag.name}.txt", *team.trajectory_no_lc(a))
+        agents.append({"name": ag.name, "frames_tracked": len(ag.poses), "keyframes": len(ag.keyframes),
+                       "submaps": len(ag.gmap.submaps), "gaussians": len(ag.gmap),
+                       "component": team.agents[srv.slots[a].component].name,
+                       "skipped_frames": ag.skipped_frames(),
+                       "time_s": {"tracking": ag.time.tracking, "mapping": ag.time.mapping}})
+    g, _ = srv.build_graph()
+    if g.poses:
+        write_g2o(g, out / "pose_graph_optimized.g2o", srv.last_graph[1] if srv.last_graph else g.poses)
+    for root in srv.components():
+        params = srv.merged_map(root)
+        if len(params):
+            save_ply(out / ("map.ply" if root == 0 else f"map_{team.agents[root].name}.ply"), params)
+    write_loops_csv(out / "loops.csv", srv.records)
+    summary = summarise(srv.records)
+    metrics = {"status": "complete", "agents": agents, "loops": summary,
+               "loops_accepted": summary["intra"]["accepted"] + summary["inter"]["accepted"],
+               "loop_candidates": len(srv.records), "pose_graph_optimisations": srv.optimisations,
+               "all_agents_joined": all(s.component == 0 for s in srv.slots),
+               "time_s": {"wall": wall, "cpu": time.process_time() - cpu0, "server": dict(srv.time)},
+               "run": run_info}
+    write_json(out / "metrics.json", metrics)
+    return metrics
+
+
+def _add_link(out: Path, metrics: dict) -> None:
+    """metrics.json gets "link"; report.md a section with the bytes per agent."""
+    from swarmsplat.slam.io.jsonio import write_json
+
+    write_json(out / "metrics.json", metrics)
+    link = metrics["link"]
+    rows = ["", "## Link (agents and server in separate processes)", "",
+            f"Gaussians sent as {link['gaussians']}; raw comparison: a 640x480 RGB-D keyframe is "
+            f"{link['raw_keyframe_bytes'] / 1e6:.2f} MB.", "",
+            "| agent | keyframes | bytes from agent | bytes to agent | per keyframe | per submap | of raw |",
+            "|---|---|---|---|---|---|---|"]
+    for name, s in link["agents"].items():
+        per_kf = f"{s['bytes_per_keyframe'] / 1e3:.1f} kB" if s["bytes_per_keyframe"] else "-"
+        per_sm = f"{s['bytes_per_submap'] / 1e3:.1f} kB" if s["bytes_per_submap"] else "-"
+        frac = f"{100 * s['fraction_of_raw']:.1f} %" if s["fraction_of_raw"] else "-"
+        rows.append(f"| {name}{' (lost)' if s['lost'] else ''} | {s['keyframes']} | "
+                    f"{sum(s['bytes_from_agent'].values()) / 1e6:.2f} MB | {sum(s['bytes_to_agent'].values()) / 1e3:.1f} kB"
+                    f" | {per_kf} | {per_sm} | {frac} |")
+    report = out / "report.md"
+    text = report.read_text() if report.is_file() else "# Team run\n"
+    atomic_write_text(report, text.rstrip("\n") + "\n" + "\n".join(rows) + "\n")
+
+
+@guarded("agent")
+def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: str | None = None,
+                   connect: list[str] | None = None, listen: list[str] | None = None, run: str = "team",
+                   frames: int | None = None, stride: int | None = None, progress: bool = True,
+                   strict: bool = False, out: str | Path | None = None) -> dict:
+    """Agent `index` of a team (node index + 1) on sequence `seq`, sending to the server at `connect`: join, track
+    and map every stride-th frame, send keyframes / submaps / poses, then wait for the server to acknowledge
+    everything (link.finish_timeout_s). out: also write this agent's own view (trajectory as corrected,
+    link.json). Returns the agent's link figures."""
+    import json
+
+    from swarmsplat.slam.run.runtime import use_kernels
+    from .agent_node import AgentNode
+
+    cfg = config or SlamConfig()
+    connect = list(connect or [])
+    _check_endpoints("--server/--connect", connect)
+    _check_endpoints("--listen", list(listen or []))
+    if not 0 <= index <= 25:
+        raise InputError(f"--id: expected 0 to 25, got {index}")
+    stride = cfg.team.stride if stride is None else stride
+    cap = frames if frames is not None else cfg.max_frames
+    n = len(seq) if not cap else min(len(seq), int(cap))
+    rounds = -(-n // stride)
+    use_kernels(cfg.kernels)
+    tx = _transport(index + 1, [L.SERVER, index + 1], listen=list(listen or []), connect=connect, run=run)
+    name = name or seq.name
+    say = (lambda *a, **k: print(*a, **k)) if progress else (lambda *a, **k: None)
+    try:
+        node = AgentNode(seq.camera, cfg, name, tx)
+        node.join(rounds, cfg.link.connect_timeout_s, say=say)
+        t0, last = time.monotonic(), time.monotonic()
+        for i in range(rounds):
+            node.step_round(seq, i, stride, strict)
+            if progress and time.monotonic() - last > 10:
+                last = time.monotonic()
+                say(f"[{name}] round {i + 1}/{rounds}  keyframes {len(node.agent.keyframes)}  "
+                    f"queued {len(node.outbox.items)}  {time.monotonic() - t0:.0f}s", file=sys.stderr)
+        acked = node.finish(rounds, cfg.link.finish_timeout_s)
+        if not acked:
+            say(f"[{name}] the server did not acknowledge {len(node.outbox.items)} messages within "
+                f"{cfg.link.finish_timeout_s:.0f} s (link.finish_timeout_s)", file=sys.stderr)
+        figures = {"name": name, "acknowledged": acked, **node.outbox.stats(), "bytes": tx.stats.to_dict(),
+                   "corrections": node.corrections}
+        if out is not None:
+            from swarmsplat.slam.io.trajectory import write_tum
+
+            d = output_dir(out, "--out")
+            stamps, T = node.agent.trajectory()
+            if len(stamps):
+                write_tum(d / "trajectory.txt", stamps, T)
+            atomic_write_text(d / "link.json", json.dumps(figures, indent=1))
+    finally:
+        tx.close()
+    return figures
+
+
+@guarded("team")
+def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig | None = None, *,
+                       frames: int | None = None, split: str | None = None, loaded=None, progress: bool = True,
+                       timeout: float | None = None) -> dict:
+    """`swarmsplat run DATASET --processes`: one `swarmsplat agent --server` process per sequence of `dataset` (a
+    multi-agent dataset, or one sequence cut by `split` ranges), served by this process on localhost. Writes the
+    in-process team's outputs, plus metrics.json "link". loaded: the dataset as already loaded (and split)."""
+    cfg = config or SlamConfig()
+    if loaded is not None:
+        ds = loaded
+    elif split:
+        from swarmsplat.slam.io.datasets.split import parse_ranges, split_sequence
+
+        ds = split_sequence(_load(dataset).agents[0], parse_ranges(split))
+    else:
+        ds = _load(dataset)
+    if len(ds.agents) < 2:
+        raise InputError(f"--processes runs a team, but {dataset} holds one sequence (cut it with --split)")
+    out = output_dir(out, "--out")
+    (out / "link").mkdir(exist_ok=True)
+    cfg_path = out / "link" / "config.yaml"
+    atomic_write_text(cfg_path, cfg.to_yaml())
+    port = _free_port(cfg.link.port_base)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    run = f"t{os.getpid()}"
+    cmd = lambda k, s: [sys.executable, "-m", "swarmsplat.slam", "agent", str(dataset), "--name", s.name,  # noqa: E731
+                        "--server", endpoint, "--id", str(k), "--config", str(cfg_path), "--run", run, "--quiet",
+                        *(["--split", split] if split else []), *(["--frames", str(frames)] if frames else [])]
+    logs = [open(out / "link" / f"{s.name}.log", "w") for s in ds.agents]
+    procs = [subprocess.Popen(cmd(k, s), stdout=logs[k], stderr=subprocess.STDOUT, start_new_session=True)
+             for k, s in enumerate(ds.agents)]
+    try:
+        m = serve_team(len(ds.agents), out, cfg, dataset=ds, listen=[endpoint], run=run, progress=progress,
+                       timeout=timeout)
+        for k, p in enumerate(procs):
+            try:
+                p.wait(timeout=max(30.0, cfg.link.finish_timeout_s))
+            except subprocess.TimeoutExpired:
+                pass
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        for f in logs:
+            f.close()
+    failed = [f"{s.name} (exit {p.returncode}, see link/{s.name}.log)" for s, p in zip(ds.agents, procs)
+              if p.returncode not in (0, None)]
+    if failed:
+        raise SwarmsplatError("agent processes failed: " + ", ".join(failed))
+    return m
+
+
+def _free_port(start: int) -> int:
+    import socket
+
+    for port in range(start, start + 200):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise SwarmsplatError(f"no free TCP port in {start}..{start + 199} (link.port_base)")

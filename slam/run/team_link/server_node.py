@@ -1,0 +1,330 @@
+"""The team server in its own process: it mirrors every agent from its messages (slam.dense.team.mirror) and runs
+the same Server as the in-process team on them.
+
+Order. The in-process team hands the server agent a's keyframe of round r right after agent a's step of round r,
+agents in index order. The node keeps that order whatever the link does: keyframe (r, a) is handed over once every
+other agent b has reported all its keyframes of the rounds before it (b < a: rounds <= r; b > a: rounds < r), or
+has finished, or is lost. So the server sees the same keyframes in the same order and makes the same decisions
+as in one process, however the agents' processes interleave.
+
+Faults. Messages are kept by id (a duplicate or a late copy changes nothing) and acknowledged; every new message
+is appended to `link/journal.bin` in the output folder before it is acknowledged, so a server restarted on the
+same folder replays the journal, is back in the state it had, and continues with the agents' resent messages.
+An agent silent for link.agent_timeout_s is reported lost and the others go on without it.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.slam.dense.agent import FramePose
+from swarmsplat.slam.dense.frames import RGBD
+from swarmsplat.slam.dense.packed import PackedRGBD
+
+from . import messages as L
+from .agent_node import config_digest
+
+RAW_KEYFRAME_BYTES = 640 * 480 * (3 + 2)  # one 640x480 RGB-D keyframe: 8-bit RGB + 16-bit depth
+
+
+def _camera(c: list) -> PinholeCamera:
+    return PinholeCamera(float(c[0]), float(c[1]), float(c[2]), float(c[3]), int(c[4]), int(c[5]))
+
+
+@dataclass
+class Peer:
+    """What the server has from one agent."""
+
+    name: str
+    joined: bool = False
+    seen: set = field(default_factory=set)  # message ids received
+    meta: dict = field(default_factory=dict)  # keyframe id -> KeyframeMeta
+    images: dict = field(default_factory=dict)  # keyframe id -> KeyframeImage
+    dropped: set = field(default_factory=set)  # keyframe ids whose images the agent dropped
+    submaps: dict = field(default_factory=dict)  # submap id -> SubmapData
+    claims: list = field(default_factory=list)  # (rounds done, keyframes made by then), from Frames
+    rounds_done: int = 0  # rounds whose keyframes have all arrived
+    done: L.Done | None = None
+    processed: int = 0  # keyframes handed to the server
+    last_heard: float = 0.0
+    lost: bool = False
+    ack: list = field(default_factory=list)  # message ids to acknowledge
+
+    def ended(self) -> bool:
+        return self.lost or (self.done is not None and self.processed >= self.done.keyframes)
+
+    def update_frontier(self) -> None:
+        have = self.processed
+        while have in self.meta:
+            have += 1
+        for r, k in self.claims:
+            if k <= have:
+                self.rounds_done = max(self.rounds_done, r)
+        self.claims = [(r, k) for r, k in self.claims if r > self.rounds_done]
+
+
+class ServerNode:
+    """Mirrors + Server + link (module docstring). `team`: a slam.run.team.Team built with AgentMirror agents."""
+
+    def __init__(self, team, tx, *, journal: Path | None = None, say=None):
+        self.team, self.tx, self.cfg = team, tx, team.cfg
+        self.peers = [Peer(ag.name) for ag in team.agents]
+        self.t0 = time.monotonic()
+        for p in self.peers:
+            p.last_heard = self.t0
+        self.digest = config_digest(self.cfg)
+        self.say = say or (lambda *a: print(*a, file=sys.stderr, flush=True))
+        self._stamp = 0  # optimisations whose corrections were sent
+        self.replayed = 0
+        self._journal = None
+        if journal is not None:
+            journal.parent.mkdir(parents=True, exist_ok=True)
+            if journal.is_file():
+                self.replayed = self._replay(journal)
+            self._journal = open(journal, "ab")
+
+    # ---- messages -------------------------------------------------------------------------------------------
+
+    def _replay(self, path: Path) -> int:
+        data, off, n = path.read_bytes(), 0, 0
+        while off + 4 <= len(data):
+            (size,) = struct.unpack_from("<I", data, off)
+            if off + 4 + size > len(data):
+                break  # a record cut by a kill: the agent resends it
+            h, msg = L.LINK.decode(data[off + 4: off + 4 + size])
+            self.handle(h.sender - 1, msg, journal=False)
+            off += 4 + size
+            n += 1
+        for p in self.peers:
+            p.ack = []
+        if n:
+            self.say(f"[server] replayed {n} messages from {path}")
+        return n
+
+    def handle(self, a: int, msg: L.Message, *, journal: bool = True) -> None:
+        """One agent message (a: agent index). Idempotent by message id."""
+        if not 0 <= a < len(self.peers):
+            return
+        p = self.peers[a]
+        p.last_heard = time.monotonic()
+        if p.lost:
+            p.lost = False
+            self.say(f"[server] {p.name} is back")
+        if isinstance(msg, L.Join):
+            self._join(a, msg)
+        if msg.mid in p.seen:
+            p.ack.append(msg.mid)
+            return
+        if isinstance(msg, L.Join) and msg.config != self.digest:
+            return  # refused (Welcome ok=0): not kept, not acknowledged
+        p.seen.add(msg.mid)
+        p.ack.append(msg.mid)
+        if journal and self._journal is not None:
+            data = L.LINK.encode(msg, a + 1, 0)
+            self._journal.write(struct.pack("<I", len(data)) + data)
+            self._journal.flush()
+        if isinstance(msg, L.KeyframeMeta):
+            p.meta.setdefault(msg.id, msg)
+        elif isinstance(msg, L.KeyframeImage):
+            if msg.id >= p.processed:
+                p.images.setdefault(msg.id, msg)
+        elif isinstance(msg, L.SubmapData):
+            p.submaps[msg.id] = msg
+        elif isinstance(msg, L.Frames):
+            self._frames(a, msg)
+        elif isinstance(msg, L.Done):
+            p.done = msg
+            self.team.agents[a].finish(msg.tracking_s, msg.mapping_s, msg.frames, msg.non_finite_dropped)
+        p.update_frontier()
+
+    def _join(self, a: int, msg: L.Join) -> None:
+        p = self.peers[a]
+        if msg.config != self.digest:
+            self.tx.send(a + 1, L.Welcome(agent=a, ok=0, reason=f"its config differs from the server's (digest "
+                                                                   f"{msg.config} vs {self.digest}): give both the "
+                                                                   f"same --config"))
+            return
+        if not p.joined:
+            ag = self.team.agents[a]
+            ag.name, ag.camera = msg.name, _camera(msg.camera)
+            self.team.server.slots[a].agent = ag
+            p.name, p.joined = msg.name, True
+            self.say(f"[server] {msg.name} joined as agent {a}")
+        self.tx.send(a + 1, L.Welcome(agent=a, ok=1))
+
+    def _frames(self, a: int, msg: L.Frames) -> None:
+        p, ag = self.peers[a], self.team.agents[a]
+        ag.add_frames([FramePose(int(i), float(t), int(s), T) for i, t, s, T in
+                       zip(msg.frame_index, msg.timestamp, msg.submap_id, msg.T_local_cam)])
+        for i, reason in msg.skipped:
+            ag.skip(i, reason)
+        p.dropped.update(int(k) for k in msg.dropped)
+        p.claims.append((int(msg.rounds_done), int(msg.keyframes)))
+
+    def poll(self) -> int:
+        """Handle what arrived, acknowledge it, mark silent agents lost. Returns the messages handled."""
+        got = self.tx.poll()
+        for h, msg in got:
+            self.handle(h.sender - 1, msg)
+        for a, p in enumerate(self.peers):
+            if p.ack:
+                self.tx.send(a + 1, L.Ack(mids=np.array(sorted(set(p.ack)), np.int64)))
+                p.ack = []
+        now = time.monotonic()
+        for p in self.peers:
+            if not p.ended() and not p.lost and now - p.last_heard > self.cfg.link.agent_timeout_s:
+                p.lost = True
+                self.say(f"[server] {p.name}: nothing heard for {now - p.last_heard:.0f} s "
+                         f"(link.agent_timeout_s): reported lost; the others go on without it")
+        return len(got)
+
+    # ---- the server, in the in-process order ---------------------------------------------------------------------
+
+    def next_keyframe(self) -> tuple[int, L.KeyframeMeta] | None:
+        """The keyframe the in-process team would hand the server next, if it may go now (module docstring)."""
+        best = None
+        for a, p in enumerate(self.peers):
+            m = p.meta.get(p.processed)
+            if m is not None and (m.id in p.images or m.id in p.dropped) and (best is None or
+                                                                             (m.round, a) < best[0]):
+                best = ((m.round, a), a, m)
+        if best is None:
+            return None
+        (r, a), _, m = best
+        for b, q in enumerate(self.peers):
+            if b != a and not q.ended() and q.rounds_done < (r + 1 if b < a else r):
+                return None
+        return a, m
+
+    def process(self) -> int:
+        """Hand every keyframe that may go to the server; returns how many went."""
+        n = 0
+        while (nxt := self.next_keyframe()) is not None:
+            self._process(*nxt)
+            n += 1
+            self.poll()  # acknowledge while the server works
+        return n
+
+    def _process(self, a: int, m: L.KeyframeMeta) -> None:
+        p, team = self.peers[a], self.team
+        ag = team.agents[a]
+        img = p.images.pop(m.id, None)
+        if img is None:  # dropped by the agent's queue: a keyframe without images, never a loop candidate
+            small = _blank(ag.camera, ag.cfg.submaps.keep_keyframe_width)
+            map_rgbd = None
+        else:
+            small = PackedRGBD.from_png(_camera(img.small_camera), img.small_color.tobytes(),
+                                        img.small_depth.tobytes(), bool(img.depth_mm[0]))
+            map_rgbd = (PackedRGBD.from_png(_camera(img.map_camera), img.map_color.tobytes(),
+                                            img.map_depth.tobytes(), bool(img.depth_mm[1]))
+                        if img.map_camera else None)
+        n_sm = len(ag.gmap.submaps)
+        kf = ag.add_keyframe(m.id, m.frame_index, m.timestamp, m.submap_id, m.T_local_cam[0],
+                             m.descriptor if img is not None else None, small, map_rgbd,
+                             (m.odom_T[0], m.odom_info[0]) if len(m.odom_T) else None,
+                             m.submap_start[0] if len(m.submap_start) else None)
+        p.processed += 1
+        if len(ag.gmap.submaps) > n_sm:
+            team._record_origin(a)
+        team.rounds = m.round
+        team.frames_done[a] = len(ag.poses)
+        if img is not None:
+            team.server.on_keyframe(a, kf, m.round)
+        if team.server.optimisations > self._stamp:
+            self._stamp = team.server.optimisations
+            self.send_corrections()
+
+    def send_corrections(self) -> None:
+        srv = self.team.server
+        for a, ag in enumerate(self.team.agents):
+            sms = ag.gmap.submaps
+            self.tx.send(a + 1, L.Correction(
+                stamp=self._stamp, submap_ids=np.arange(len(sms), dtype=np.int64),
+                T_world_local=np.stack([s.T_world_local for s in sms]) if sms else np.zeros((0, 4, 4)),
+                T_global_world=srv.slots[a].T_global_world[None]))
+
+    # ---- the whole run -----------------------------------------------------------------------------------------
+
+    def run(self, *, progress: bool = True, timeout: float | None = None) -> None:
+        """Serve until every agent has finished (all its keyframes handled) or is lost."""
+        last = time.monotonic()
+        while not all(p.ended() for p in self.peers):
+            n = self.poll()
+            k = self.process()
+            now = time.monotonic()
+            if progress and now - last > 10:
+                last = now
+                self.say("[server] " + self.status())
+            if timeout is not None and now - self.t0 > timeout:
+                raise TimeoutError(f"the team server gave up after {timeout:.0f} s: {self.status()}")
+            if not n and not k:
+                time.sleep(0.02)
+        for a, p in enumerate(self.peers):  # the finished submaps' Gaussians
+            ag = self.team.agents[a]
+            for sid, sd in sorted(p.submaps.items()):
+                if sid < len(ag.gmap.submaps):
+                    ag.set_submap(sid, sd.params())
+
+    def status(self) -> str:
+        parts = []
+        for p in self.peers:
+            state = "lost" if p.lost else "done" if p.ended() else "joined" if p.joined else "waiting"
+            parts.append(f"{p.name} {state} {p.processed} kf / {p.rounds_done} rounds")
+        return "; ".join(parts) + "  |  " + self.team.status(0, 0, time.monotonic() - self.t0).split("  ", 1)[1]
+
+    def finished(self, status: str = "complete") -> None:
+        """Tell the agents the results are written (several times: a lost copy must not keep one waiting)."""
+        for _ in range(3):
+            self.tx.send(None, L.Finished(status=status))
+            time.sleep(0.05)
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None
+
+    def link_metrics(self) -> dict:
+        """metrics.json "link": bytes per agent and message kind, per keyframe and per submap, against raw
+        640x480 RGB-D keyframes."""
+        agents, total = {}, 0
+        for a, p in enumerate(self.peers):
+            st = self.tx.peer_stats[a + 1]
+            recv, sent = dict(st.recv_bytes), dict(st.sent_bytes)
+            n_kf, n_sm = p.processed, len(p.submaps)
+            kf_bytes = recv.get("KeyframeMeta", 0) + recv.get("KeyframeImage", 0)
+            both = int(sum(recv.values()) + sum(sent.values()))
+            total += both
+            raw = n_kf * RAW_KEYFRAME_BYTES
+            agents[p.name] = {
+                "bytes_from_agent": recv, "messages_from_agent": dict(st.recv_count),
+                "bytes_to_agent": sent, "messages_to_agent": dict(st.sent_count),
+                "bytes_total": both, "keyframes": n_kf, "submaps": n_sm,
+                "bytes_per_keyframe": kf_bytes / n_kf if n_kf else None,
+                "image_bytes_per_keyframe": recv.get("KeyframeImage", 0) / n_kf if n_kf else None,
+                "bytes_per_submap": recv.get("SubmapData", 0) / n_sm if n_sm else None,
+                "raw_rgbd_640x480_bytes": raw, "fraction_of_raw": both / raw if raw else None,
+                "dropped_images": len(p.dropped), "lost": p.lost,
+                "agent_side": dict(p.done.link) if p.done is not None else None,
+            }
+        return {"gaussians": self.cfg.link.gaussians, "raw_keyframe_bytes": RAW_KEYFRAME_BYTES,
+                "bytes_total": total, "rejected_messages": self.tx.stats.rejected, "replayed_messages": self.replayed,
+                "lost_agents": [p.name for p in self.peers if p.lost], "agents": agents}
+
+
+def _blank(camera: PinholeCamera, width: int) -> RGBD:
+    """A keyframe image with no valid depth, for a keyframe whose images were dropped."""
+    z = RGBD(np.zeros((camera.height, camera.width, 3), np.uint8), np.zeros((camera.height, camera.width), np.float32),
+             camera)
+    return z.resized(width)
+
+
+def fsync_journal(node: ServerNode) -> None:
+    if node._journal is not None:
+        node._journal.flush()
+        os.fsync(node._journal.fileno())
