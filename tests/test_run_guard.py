@@ -133,6 +133,19 @@ def _spawn(args: list[str], **kw) -> subprocess.Popen:
                             text=True, cwd=REPO, env=env, **kw)
 
 
+def interrupt_after(needle: str, proc: subprocess.Popen) -> str:
+    """Send SIGINT once the child's progress shows `needle`; it must exit 130 within 15 s. Returns its stderr."""
+    log = _Progress(proc)
+    log.wait_for(needle, proc)
+    t0 = time.time()
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=60) == 130
+    took = time.time() - t0
+    text = log.done()
+    assert took < 15, f"{took:.1f} s from SIGINT to exit"
+    return text
+
+
 def test_sigint_mid_run_keeps_every_tracked_frame(tmp_path):
     """The issue's report: Ctrl-C after some frames of `swarmsplat run` (started, as from a script with `&`, with
     SIGINT ignored by its parent) must stop the run within seconds and keep what was tracked."""
@@ -141,14 +154,7 @@ def test_sigint_mid_run_keeps_every_tracked_frame(tmp_path):
     out = tmp_path / "run"
     proc = _spawn(["run", str(seq), "--out", str(out), "--config", _config(tmp_path)],
                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    log = _Progress(proc)
-    log.wait_for("frames 3/20", proc)
-    t0 = time.time()
-    proc.send_signal(signal.SIGINT)
-    assert proc.wait(timeout=60) == 130
-    took = time.time() - t0
-    text = log.done()
-    assert took < 15, f"{took:.1f} s from SIGINT to exit"
+    text = interrupt_after("frames 3/20", proc)
     assert "swarmsplat run: interrupted (SIGINT)" in text, text[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "interrupted" and m["reason"] == "SIGINT"

@@ -47,6 +47,12 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out that was killed or interrupted, from its last checkpoint "
                         "(progress/checkpoint.pkl; one agent; the dataset and config must be the run's own)")
+    p.add_argument("--realtime", action="store_true",
+                   help="real-time mode (one agent): frames arrive at the sensor's rate, each pose is emitted as its "
+                        "frame is tracked, mapping runs beside tracking, frames the tracker cannot take in time are "
+                        "dropped and counted (metrics.json realtime, report.md; config runtime.*)")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="--realtime: replay at HZ frames per second instead of the dataset's timestamps")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--strict", action="store_true",
                    help="stop at the first unreadable frame (default: skip it with a warning; metrics.json lists "
@@ -71,9 +77,15 @@ def run(args) -> int:
         ranges = parse_ranges(args.split)  # bad syntax fails before any loading
     if args.frames is not None and args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")
+    if args.rate is not None and not 0 < args.rate < float("inf"):
+        raise InputError(f"--rate must be a frame rate above 0 (Hz), got {args.rate:g}")
     output_dir(args.out, "--out", create=False)  # a file or an unwritable place fails before any loading
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
-                                    "--device": ("kernels.device", args.device)}, preset=args.preset)
+                                    "--device": ("kernels.device", args.device),
+                                    "--realtime": ("runtime.realtime", args.realtime or None),
+                                    "--rate": ("runtime.rate", args.rate)}, preset=args.preset)
+    if args.rate is not None and not cfg.runtime.realtime:
+        raise InputError("--rate sets the replay rate of real-time mode: give --realtime too")
     from swarmsplat.slam.io.datasets import load_dataset
 
     if args.topics:
@@ -113,6 +125,8 @@ def run(args) -> int:
         raise InputError(f"--processes runs a team's agents in separate processes, but {args.dataset} holds one "
                          f"sequence: give a multi-agent dataset or cut it with --split")
     if len(ds) > 1:
+        if cfg.runtime.realtime:
+            raise InputError(f"--realtime runs one agent, but {args.dataset} holds {len(ds)} agents' sequences")
         if args.resume:
             raise InputError("--resume continues a one-agent run; a team run cannot be resumed yet (its pose "
                              "journals are in --out/progress/)")
@@ -137,8 +151,16 @@ def run(args) -> int:
         }
         print(json.dumps(summary, indent=1))
         return serve_result(live, args.out)
+    keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
+    if cfg.runtime.realtime:  # frames at the sensor's rate, mapping beside tracking (slam.run.realtime)
+        from swarmsplat.slam.run.realtime.run import run_realtime, summary
+
+        if args.resume or live is not None:
+            raise InputError(f"--realtime does not take {'--resume' if args.resume else '--view'}")
+        m = run_realtime(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, strict=args.strict)
+        print(json.dumps({**{k: m.get(k) for k in keys}, "realtime": summary(m)}, indent=1))
+        return 0
     m = run_sequence(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
                      strict=args.strict, resume=args.resume)
-    keys = ["frames", "keyframes", "submaps", "gaussians", "loops_accepted", "ate_rmse", "psnr", "ssim", "depth_l1", "fps"]
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
     return serve_result(live, args.out)

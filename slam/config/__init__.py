@@ -4,10 +4,11 @@ the swarm's, the pairs command's and the demo's (slam.config.tree.SlamConfig); p
 from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfig, MapRefineConfig, MappingConfig,
                     SubmapConfig, TrackingConfig)
 from .load import preset_names
+from .runtime import RuntimeConfig
 from .server import ServerConfig
 from .swarm import PairsConfig, SwarmConfig
 from .tree import CheckpointConfig, DemoConfig, SlamConfig, TeamConfig, with_section
 
 __all__ = ["CheckpointConfig", "DemoConfig", "ImageConfig", "KernelsConfig", "KeyframeConfig", "LoopClosureConfig", "MapRefineConfig",
-           "MappingConfig", "PairsConfig", "ServerConfig", "SlamConfig", "SubmapConfig", "SwarmConfig", "TeamConfig",
+           "MappingConfig", "PairsConfig", "RuntimeConfig", "ServerConfig", "SlamConfig", "SubmapConfig", "SwarmConfig", "TeamConfig",
            "TrackingConfig", "preset_names", "with_section"]

@@ -1,6 +1,6 @@
 """The one config tree every command reads: the agent pipeline's sections at the top level (as in every existing
 YAML file), then `server` (the GRAND-SLAM team server), `team` (a team run), `swarm` (FLOCC-SLAM), `pairs` (the
-front-end over a dataset's keyframe pairs) and `demo`.
+front-end over a dataset's keyframe pairs), `demo`, `checkpoint` and `runtime` (offline or real time).
 
     cfg = SlamConfig.from_yaml("my.yaml")                    # defaults, then the file
     cfg = SlamConfig.from_yaml("my.yaml", preset="demo")     # configs/demo.yaml, then the file
@@ -22,6 +22,7 @@ from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfi
                     SubmapConfig, TrackingConfig, _Section)
 from .link import LinkConfig
 from .load import deep_merge, preset_path, read_yaml, validate
+from .runtime import RuntimeConfig
 from .server import ServerConfig
 from .swarm import PairsConfig, SwarmConfig
 
@@ -70,6 +71,7 @@ class SlamConfig(_Section):
     demo: DemoConfig = DemoConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
     link: LinkConfig = LinkConfig()
+    runtime: RuntimeConfig = RuntimeConfig()
 
     @model_validator(mode="after")
     def _check(self):

@@ -17,7 +17,7 @@ from swarmsplat.slam.dense.loops.edge_information import OdometryChain, failed_c
 from .frames import RGBD, make_rgbd
 from .gaussian_map import GaussianMap, GaussianParams
 from swarmsplat.slam.dense.loops.loop_closure import LoopCloser
-from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper
+from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper, MappingStats
 from .render import render, viewmat_from_pose
 from .submaps import Keyframe, frame_local_poses, needs_new_submap, start_submap, world_pose
 from swarmsplat.slam.dense.tracking.tracker import Tracker
@@ -108,9 +108,13 @@ class Agent:
         """[{"frame": index, "reason": why}] of every skipped frame, in input order (metrics.json)."""
         return [{"frame": i, "reason": self.time.skip_reasons.get(i, "")} for i in self.time.skipped]
 
+    def _tracking_params(self) -> GaussianParams:
+        """The Gaussians the tracker aligns to: the active submap's (slam.run.realtime: the last ones mapping
+        finished, while it works on the next)."""
+        return self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()
+
     def _track(self, frame: RGBD) -> np.ndarray:
-        params = self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()
-        r = self.tracker.track(frame, params)
+        r = self.tracker.track(frame, self._tracking_params())
         if self.poses and self.poses[-1].submap_id == self.gmap.active.id:
             step = se3.inverse(self.poses[-1].T_local_cam) @ r.T_local_cam
             c = r.coarse
@@ -148,15 +152,23 @@ class Agent:
         self._last_kf_pose = T_local_cam.copy()
         return kf
 
-    def _map(self, kf: Keyframe) -> None:
-        s = self.gmap.active
+    def _map(self, kf: Keyframe, *, iterations: int | None = None, stop=None) -> MappingStats:
+        """Map keyframe `kf` into its submap: mapping.first_iterations for a submap's first keyframe, else
+        mapping.iterations (or `iterations`); stop(i), if given, ends the optimisation after i iterations."""
+        s = self.gmap.submaps[kf.submap_id]
         kfs = [self.keyframes[i] for i in s.keyframe_ids]
-        iters = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
-        self.mapper.map(self.gmap, s, [MapKeyframe(k.T_local_cam, k.map_rgbd) for k in kfs], iters)
+        if iterations is None:
+            iterations = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
+        return self.mapper.map(self.gmap, s, [MapKeyframe(k.T_local_cam, k.map_rgbd) for k in kfs], iterations,
+                               stop=stop)
 
-    def _detect_loops(self, kf: Keyframe) -> None:
-        self.loops.add_keyframe(kf, self.keyframes, self.gmap, self._chain.information())
-        self._chain.reset()
+    def _detect_loops(self, kf: Keyframe, information: np.ndarray | None = None) -> None:
+        """Add `kf` to the loop closer and look for loops; `information`: the odometry edge's information since
+        the previous keyframe (None: the tracking chain's, which is then restarted)."""
+        if information is None:
+            information = self._chain.information()
+            self._chain.reset()
+        self.loops.add_keyframe(kf, self.keyframes, self.gmap, information)
         if self.cfg.loop_closure.enabled and self.loops.detect(kf, self.keyframes, self.gmap):
             self.loops.optimise(self.keyframes, self.gmap)
 

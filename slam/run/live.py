@@ -29,7 +29,8 @@ from .partial_results import agent_counts, write_partial_agent
 from .runtime import kernels_record
 
 
-def _latency_ms(values: list[float]) -> dict:
+def latency_ms(values: list[float]) -> dict:
+    """{"p50", "p95", "max" (ms), "count"} of latencies given in seconds (None each when there are none)."""
     if not values:
         return {"p50": None, "p95": None, "max": None, "count": 0}
     v = np.asarray(values) * 1e3
@@ -132,7 +133,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         **agent_counts(agent),
         "loop_candidates": len(agent.loops.log), "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
         "pose_graph_optimisations": agent.loops.optimisations,
-        "pose_latency_ms": _latency_ms(latency), "pose_overhead_ms": _latency_ms(overhead),
+        "pose_latency_ms": latency_ms(latency), "pose_overhead_ms": latency_ms(overhead),
         "poses_published": getattr(publisher, "published", 0),
         "live": {"samples": dict(st.samples), "frames": st.frames, "unpaired": st.unpaired, "dropped": st.dropped,
                  "undecodable": st.undecodable},

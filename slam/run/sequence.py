@@ -41,20 +41,12 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     (InputError naming what differs when it is not a run of this dataset and config).
     """
     from swarmsplat.slam.io.progress import bar
-    from swarmsplat.slam.io.datasets import load_sequence
     from .checkpoint import CHECKPOINT, PoseJournal, find_resume, run_identity, save_checkpoint
     from .runtime import check_device, use_kernels
 
     cfg = config or SlamConfig()
     use_kernels(cfg.kernels)
-    # A loaded sequence is taken as it is (e.g. the one agent of a dataset root holding a single sequence).
-    seq = load_sequence(dataset_path) if isinstance(dataset_path, (str, Path)) else dataset_path
-    n = len(seq)
-    limit = frames if frames is not None else cfg.max_frames
-    if limit:
-        n = min(n, int(limit))
-    if n == 0:
-        raise InputError(f"{seq.root}: the sequence has no frames")
+    seq, n = open_sequence(dataset_path, cfg, frames)
     check_device(cfg.kernels, [seq.camera], cfg.image.max_width)
     out = output_dir(out_dir, "--out")
     identity = run_identity(seq, cfg, n)
@@ -66,9 +58,7 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     if resume and progress:
         print(f"[{seq.name}] resuming at frame {start} of {n}" if resumed else
               f"[{seq.name}] no checkpoint in {out} yet: starting from the first frame", file=sys.stderr)
-    rc = cfg.map_refine
-    refine = rc.single_agent and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
-    agent.keep_keyframe_images = refine and rc.views == "mapping"  # the refinement's views, after submaps retire
+    agent.keep_keyframe_images = refines(cfg) and cfg.map_refine.views == "mapping"  # the refinement's views
     journal = PoseJournal(out / JOURNAL, resume=resumed.journal if resumed else None)
     t0 = time.perf_counter() - (resumed.wall_s if resumed else 0.0)  # the run's time includes the work resumed
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason, n_frames=n,
@@ -96,13 +86,46 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
                 checkpoint(i + 1)
     if every and start < n:  # every frame done: a kill in the refinement resumes at the refinement
         checkpoint(n)
+    metrics = finish_agent_run(agent, seq, out, cfg, n_frames=n, t0=t0, progress=progress)
+    (out / CHECKPOINT).unlink(missing_ok=True)  # a complete run needs none; the journal stays
+    return metrics
+
+
+def open_sequence(dataset_path, cfg: SlamConfig, frames: int | None = None):
+    """(the sequence at `dataset_path`, how many of its frames to run: `frames`, else config max_frames, 0 meaning
+    all); a loaded sequence is taken as it is (e.g. the one agent of a dataset root holding a single sequence).
+    InputError when there is no frame to run."""
+    from swarmsplat.slam.io.datasets import load_sequence
+
+    seq = load_sequence(dataset_path) if isinstance(dataset_path, (str, Path)) else dataset_path
+    n = len(seq)
+    limit = frames if frames is not None else cfg.max_frames
+    if limit:
+        n = min(n, int(limit))
+    if n == 0:
+        raise InputError(f"{seq.root}: the sequence has no frames")
+    return seq, n
+
+
+def refines(cfg: SlamConfig) -> bool:
+    """Whether a one-agent run refines its merged map after the last frame (config map_refine)."""
+    rc = cfg.map_refine
+    return rc.single_agent and rc.iterations_per_keyframe > 0 and rc.max_iterations > 0
+
+
+def finish_agent_run(agent: Agent, seq, out: Path, cfg: SlamConfig, *, n_frames: int, t0: float, progress: bool,
+                     extra: dict | None = None) -> dict:
+    """After the last frame: score the submaps as mapped, refine the merged map (config map_refine), write the
+    results (`write_results`, with `extra` added to the metrics). t0: perf_counter() at the run's start; the
+    evaluation is not part of the run's time."""
+    rc = cfg.map_refine
     refined = None
     # the mapping stage's own-submap scores, before the refinement fits the submaps jointly (slam.metrics.views)
     t_eval = time.perf_counter()
     own = keyframe_metrics(agent, seq, merged=False)
     t_eval = time.perf_counter() - t_eval  # evaluation is not part of the run's time
     before = None
-    if refine:  # the merged map over all keyframes at their final poses (slam.dense.mapping.refine)
+    if refines(cfg):  # the merged map over all keyframes at their final poses (slam.dense.mapping.refine)
         from swarmsplat.slam.io.progress import reporting
         from swarmsplat.slam.dense.mapping.refine import refine_agent
 
@@ -110,17 +133,16 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
         with reporting(progress):
             refined = refine_agent(agent, rc, cfg.mapping)
     wall = time.perf_counter() - t0 - t_eval
-    metrics = write_results(agent, seq, out, wall_s=wall, n_frames=n, map_refine=refined, own_scores=own,
-                            trajectory_before_refine=before)
-    (out / CHECKPOINT).unlink(missing_ok=True)  # a complete run needs none; the journal stays
-    return metrics
+    return write_results(agent, seq, out, wall_s=wall, n_frames=n_frames, map_refine=refined, own_scores=own,
+                         trajectory_before_refine=before, extra=extra)
 
 
 def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
                   map_refine: dict | None = None, own_scores: dict | None = None,
-                  trajectory_before_refine: np.ndarray | None = None) -> dict:
+                  trajectory_before_refine: np.ndarray | None = None, extra: dict | None = None) -> dict:
     """Write the run's outputs and metrics.json; returns the metrics. trajectory_before_refine: the frames' poses
-    before the map refinement refined the keyframe poses (its ATE is reported as ate_rmse_before_refine)."""
+    before the map refinement refined the keyframe poses (its ATE is reported as ate_rmse_before_refine); extra:
+    more metrics (a real-time run's `realtime`)."""
     from swarmsplat.slam.io.trajectory import write_tum
 
     from swarmsplat.slam.dense.ply import save_ply
@@ -169,6 +191,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
     # working and input resolution (slam.metrics.views); own-submap scores as given (taken before refinement)
     metrics.update(keyframe_metrics(agent, seq, own=own_scores is None))
     metrics.update(own_scores or {})
+    metrics.update(extra or {})
     write_json(out / "metrics.json", metrics)
     return metrics
 

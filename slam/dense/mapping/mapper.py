@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -154,8 +155,10 @@ class Mapper:
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.non_finite_dropped = 0  # Gaussians removed for NaN / Inf parameters (metrics.json "warnings")
 
-    def map(self, gmap: GaussianMap, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> MappingStats:
-        """Seed from the newest keyframe (the last of `keyframes`), optimise, prune.
+    def map(self, gmap: GaussianMap, submap: Submap, keyframes: list[MapKeyframe], iterations: int, *,
+            stop: Callable[[int], bool] | None = None) -> MappingStats:
+        """Seed from the newest keyframe (the last of `keyframes`), optimise (at most `iterations` steps; stop(i),
+        if given, is asked before step i + 1 and ends the optimisation when true), prune.
 
         Guards: Gaussians with non-finite parameters are dropped with a warning (counted in `non_finite_dropped`);
         a new submap left without a Gaussian although its keyframe has valid depth raises SanityError, and so
@@ -163,7 +166,7 @@ class Mapper:
         was_empty = len(submap.params) == 0
         new = seed_gaussians(submap, keyframes[-1], self.cfg, generator=self.gen)
         added = gmap.add(submap, new)
-        first, last, it = self.optimise(submap, keyframes, iterations)
+        first, last, it = self.optimise(submap, keyframes, iterations, stop=stop)
         bad = drop_non_finite(submap)
         if bad:
             self.non_finite_dropped += bad
@@ -176,10 +179,11 @@ class Mapper:
                               "device computes wrongly? (swarmsplat devices runs its self-check)")
         return MappingStats(added, pruned, it, first, last)
 
-    def optimise(self, submap: Submap, keyframes: list[MapKeyframe], iterations: int) -> tuple[float, float, int]:
-        """Adam on all Gaussians of `submap` for `iterations` steps, each on one keyframe: the newest with
-        probability `current_keyframe_fraction`, otherwise one drawn uniformly from the submap's keyframes.
-        Returns (first loss, mean loss of the last 5 steps, iterations)."""
+    def optimise(self, submap: Submap, keyframes: list[MapKeyframe], iterations: int, *,
+                 stop: Callable[[int], bool] | None = None) -> tuple[float, float, int]:
+        """Adam on all Gaussians of `submap` for `iterations` steps (fewer when stop(steps done) turns true), each
+        on one keyframe: the newest with probability `current_keyframe_fraction`, otherwise one drawn uniformly
+        from the submap's keyframes. Returns (first loss, mean loss of the last 5 steps, steps done)."""
         cfg = self.cfg
         if iterations <= 0 or len(submap.params) == 0:
             return float("nan"), float("nan"), 0
@@ -190,7 +194,9 @@ class Mapper:
         losses = []
         newest = len(targets) - 1
         checked = False
-        for _ in range(iterations):
+        for i in range(iterations):
+            if stop is not None and stop(i):
+                break
             if len(targets) == 1 or float(torch.rand(1, generator=self.gen)) < cfg.current_keyframe_fraction:
                 j = len(targets) - 1
             else:
@@ -207,7 +213,9 @@ class Mapper:
             opt.step()
             losses.append(float(loss.detach()))
         submap.params = p.detached()
-        return losses[0], float(np.mean(losses[-5:])), iterations
+        if not losses:
+            return float("nan"), float("nan"), 0
+        return losses[0], float(np.mean(losses[-5:])), len(losses)
 
 
 def _check_alpha(alpha: torch.Tensor, depth: torch.Tensor, submap_id: int) -> None:

@@ -296,29 +296,45 @@ class Tracker:
         With `debias_view` the returned pose is where that keyframe aligns to the view (its self-check below),
         so a view offset from its keyframe by B gives T_local_view = T_keyframe @ inv(B)."""
         if self._view is None or self._view[0] is not params:
-            view = model_view(params.detached(), self._prev_pose, camera, alpha_min=self.cfg.alpha_min)
-            target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
-            B = self._view_bias(view, target)
-            T_view = self._prev_pose.copy()
-            self.view_biases.append(None if B is None else float(np.linalg.norm(B[:3, 3])))
-            if B is None or float(np.linalg.norm(B[:3, 3])) > self.cfg.max_view_bias:
-                view = RGBD(view.color, np.zeros_like(view.depth), view.camera)  # unusable: covers nothing
-            elif self.cfg.debias_view:
-                T_view = se3.project_rigid(T_view @ se3.inverse(B))
-            self._view = (params, T_view, view, target)
+            self._view = self.build_view(params, camera, self._prev, self._prev_pose)
         return self._view[1], self._view[2]
+
+    def build_view(self, params: GaussianParams, camera, keyframe: RGBD, T_local_kf: np.ndarray) -> tuple:
+        """The model view of `params` rendered through `camera` at T_local_kf [4, 4], the pose of the keyframe
+        `keyframe` it was mapped from, checked (and with `debias_view` placed) by that keyframe's own alignment to
+        it: (params, T_local_view, view, its ModelTarget), what `view_of` keeps. Reads only the configuration
+        (slam.run.realtime builds views on its mapping thread and hands them over with `use_view`)."""
+        view = model_view(params.detached(), T_local_kf, camera, alpha_min=self.cfg.alpha_min)
+        target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
+        B = self._view_bias(view, target, keyframe)
+        T_view = T_local_kf.copy()
+        self.view_biases.append(None if B is None else float(np.linalg.norm(B[:3, 3])))
+        if B is None or float(np.linalg.norm(B[:3, 3])) > self.cfg.max_view_bias:
+            view = RGBD(view.color, np.zeros_like(view.depth), view.camera)  # unusable: covers nothing
+        elif self.cfg.debias_view:
+            T_view = se3.project_rigid(T_view @ se3.inverse(B))
+        return params, T_view, view, target
+
+    def use_view(self, built: tuple, keyframe: RGBD, T_local_kf: np.ndarray) -> None:
+        """Track the next frames against a view `build_view` made of a newer map (mapped from `keyframe` at
+        T_local_kf, in the active submap), which also joins the re-localisation anchors."""
+        params = built[0]
+        if len(params) and params is not self._anchor_params:
+            self._anchor_params = params
+            self._anchors.append((keyframe.resized(self.cfg.coarse_max_width), np.array(T_local_kf, copy=True)))
+        self._view = built
 
     def _view_agrees(self, view: RGBD, target: ModelTarget) -> bool:
         """Self-check of a fresh model view: the keyframe it was rendered at, aligned to it from its own pose,
         must stay within `max_view_bias` (m). A map that disagrees with its own keyframe (e.g. too few mapping
         iterations) would pull every frame by that much."""
-        B = self._view_bias(view, target)
+        B = self._view_bias(view, target, self._prev)
         return B is not None and float(np.linalg.norm(B[:3, 3])) <= self.cfg.max_view_bias
 
-    def _view_bias(self, view: RGBD, target: ModelTarget) -> np.ndarray | None:
+    def _view_bias(self, view: RGBD, target: ModelTarget, keyframe: RGBD) -> np.ndarray | None:
         """T_view_keyframe [4, 4]: the keyframe the view was rendered at, aligned to it from its own pose (the
         identity for a map that agrees with its keyframe); None when the alignment fails."""
-        f = self._prev.resized(self.cfg.refine_max_width)
+        f = keyframe.resized(self.cfg.refine_max_width)
         if f.camera != view.camera or view.valid_fraction() < self.cfg.min_model_coverage:
             return np.eye(4)  # nothing to check against (refine_against_view skips an uncovered view itself)
         r = align_to_model(f, target, np.eye(4), iterations=self.cfg.iterations,

@@ -1,0 +1,30 @@
+"""The `runtime` section: how `swarmsplat run` feeds frames to the agent. Offline (the default) processes every
+frame in turn; real time replays them at the sensor's rate, tracks what it can and maps beside it
+(slam.run.realtime, docs/realtime.md)."""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from .agent import _Section
+
+
+class RuntimeConfig(_Section):
+    """How frames reach the agent (`swarmsplat run`): offline, every frame in turn (default), or in real time: frames
+    arrive at their timestamps or at `rate`, tracking takes each frame it can and emits its pose, mapping and loop
+    closure run in a thread beside it (docs/realtime.md)."""
+
+    realtime: bool = Field(False, description="real-time mode: frames arrive at the sensor's rate, a frame the "
+                                              "tracker cannot take in time is dropped, mapping runs concurrently")
+    rate: float = Field(0.0, ge=0, description="real time: frame rate of the replay (Hz); 0 = the dataset's "
+                                               "timestamps")
+    queue: int = Field(1, ge=1, description="real time: frames waiting for the tracker at most; an arrival at a "
+                                            "full queue drops the oldest waiting frame")
+    max_latency_ms: float = Field(0.0, ge=0, description="real time: a waiting frame is dropped when its wait plus "
+                                  "the expected tracking time exceed this (ms) while the tracking time alone does "
+                                  "not; 0 = one frame interval")
+    min_mapping_iterations: int = Field(5, ge=0, description="real time: mapping iterations a keyframe gets at "
+                                        "least before it yields to the next keyframe")
+    max_mapping_iterations: int = Field(0, ge=0, description="real time: iterations a keyframe gets at most while "
+                                        "no keyframe waits (0 = mapping.iterations, mapping.first_iterations for a "
+                                        "submap's first keyframe)")

@@ -1,0 +1,179 @@
+"""One GRAND-SLAM agent split over two threads: tracking on the caller's thread, mapping and loop closure on a
+worker thread beside it.
+
+`RealtimeAgent.step` tracks a frame against the map mapping finished last and returns its pose without waiting
+for the map. When the frame is due to be a keyframe and the worker is idle, it starts a submap if needed, adds
+the keyframe and hands it over; when the worker is still busy, the keyframe is deferred (the next frame is asked
+again) and the worker is told to finish: it gives each keyframe `runtime.min_mapping_iterations` at least and
+otherwise stops as soon as the next keyframe waits (at most mapping.iterations, or runtime.max_mapping_iterations).
+After mapping, the worker renders the tracker's model view of the new map (slam.dense.tracking.tracker
+build_view) and publishes both; the tracker takes them up at its next frame. Loop closure runs after that, on
+the worker.
+
+The threads share the map without locks by construction: the worker only changes the submap it maps (the tracker
+reads the Gaussians published before), and the tracker changes the submaps and the keyframe list only while the
+worker is idle. Warp's kernels and torch's operators release the GIL, so the two threads run at the same time
+(the run measures it: metrics.json realtime.cpu_s).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.agent import Agent, FramePose
+from swarmsplat.slam.dense.frames import RGBD
+from swarmsplat.slam.dense.gaussian_map import GaussianParams
+from swarmsplat.slam.dense.submaps import Keyframe
+
+
+class MappingStopped(Exception):
+    """The worker was stopped (end of the run, Ctrl-C) in the middle of a keyframe."""
+
+
+class RealtimeAgent(Agent):
+    def __init__(self, camera, cfg: SlamConfig | None = None, *, name: str = "agent"):
+        super().__init__(camera, cfg, name=name)
+        self._published = GaussianParams.empty()  # what the tracker aligns to (the active submap's, mapped)
+        self._handover = None  # (submap id, params, view, keyframe frame, T_local_kf) from the worker
+        self._lock = threading.Lock()
+        self._idle = threading.Event()
+        self._idle.set()
+        self._pending = threading.Event()  # a keyframe waits for the worker
+        self._stop = threading.Event()
+        self._job = None  # (keyframe, odometry information, frame) for the worker
+        self._cv = threading.Condition()
+        self.error: BaseException | None = None  # what ended the worker, raised on the tracker's thread
+        self.keyframes_deferred = 0  # frames due to be keyframes while the worker was busy
+        self.mapping_log: list[dict] = []  # per keyframe: iterations, planned, seconds (mapping, loop closure)
+        self.worker_cpu_s = 0.0  # CPU time of the worker thread
+        self._thread = threading.Thread(target=self._work, name=f"{name}-mapping", daemon=True)
+        self._thread.start()
+
+    # ---- the tracker's thread -----------------------------------------------------------------------------------
+
+    def step(self, index: int, timestamp: float, color: np.ndarray, depth: np.ndarray | None) -> FramePose | None:
+        """Track one frame and return its pose (None when it was skipped); hand a keyframe to the worker when it
+        is idle. Never waits for the map."""
+        if self.error is not None:
+            raise self.error
+        frame = self._prepare(index, color, depth)
+        if frame is None:
+            return None
+        self._take_handover()
+        t0 = time.perf_counter()
+        T_local_cam = self._track(frame)
+        self.time.tracking += time.perf_counter() - t0
+        if self._is_keyframe(T_local_cam):
+            if self._idle.is_set():
+                T_local_cam = self._hand_over(index, timestamp, frame, T_local_cam)
+            else:
+                self.keyframes_deferred += 1
+                self._pending.set()
+        self.time.frames += 1
+        rec = FramePose(index, timestamp, self.gmap.active.id, T_local_cam)
+        self.poses.append(rec)
+        return rec
+
+    def _tracking_params(self) -> GaussianParams:
+        return self._published
+
+    def _take_handover(self) -> None:
+        with self._lock:
+            h, self._handover = self._handover, None
+        if h is None or not self.gmap.submaps or h[0] != self.gmap.active.id:
+            return
+        _, params, view, kf_frame, T_kf = h
+        self._published = params
+        if view is not None:
+            self.tracker.use_view(view, kf_frame, T_kf)
+
+    def _hand_over(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> np.ndarray:
+        before = self.gmap.active.id if self.gmap.submaps else None
+        T_local_cam = self._maybe_start_submap(T_local_cam)
+        if self.gmap.active.id != before:
+            self._published = self.gmap.active.params  # a new submap: nothing mapped in it yet
+        kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
+        information = self._chain.information()
+        self._chain.reset()
+        self._idle.clear()
+        self._pending.clear()
+        with self._cv:
+            self._job = (kf, information, frame)
+            self._cv.notify()
+        return T_local_cam
+
+    def idle(self) -> bool:
+        return self._idle.is_set()
+
+    def finish(self, timeout: float | None = None) -> bool:
+        """Let the worker finish its keyframe (`timeout` s at most; None: as long as it takes), then stop it.
+        Returns True when it had finished."""
+        done = self._idle.wait(timeout)
+        self.stop(0.0 if done else 1.0)
+        if self.error is not None and not isinstance(self.error, MappingStopped):
+            raise self.error
+        return done
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop the worker: it ends its keyframe's optimisation at the next iteration and exits (waits `timeout`
+        s for it)."""
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    # ---- the worker's thread ------------------------------------------------------------------------------------
+
+    def _work(self) -> None:
+        c0 = time.thread_time()
+        try:
+            while True:
+                with self._cv:
+                    while self._job is None and not self._stop.is_set():
+                        self._cv.wait(0.1)
+                    if self._stop.is_set():
+                        return
+                    job, self._job = self._job, None
+                self._keyframe(*job)
+                self.worker_cpu_s = time.thread_time() - c0
+                self._idle.set()
+        except MappingStopped:
+            pass
+        except BaseException as e:  # noqa: BLE001 - raised on the tracker's thread at its next step
+            self.error = e
+        finally:
+            self.worker_cpu_s = time.thread_time() - c0
+            self._idle.set()
+
+    def _keyframe(self, kf: Keyframe, information, frame: RGBD) -> None:
+        rt = self.cfg.runtime
+        t0 = time.perf_counter()
+        first = len(self.gmap.submaps[kf.submap_id].keyframe_ids) == 1
+        planned = rt.max_mapping_iterations or (self.cfg.mapping.first_iterations if first else
+                                                self.cfg.mapping.iterations)
+
+        def stop(i: int) -> bool:
+            return self._stop.is_set() or (i >= rt.min_mapping_iterations and self._pending.is_set())
+
+        stats = self._map(kf, iterations=planned, stop=stop)
+        if self._stop.is_set():
+            raise MappingStopped
+        params = self.gmap.submaps[kf.submap_id].params
+        view = None
+        tc = self.cfg.tracking
+        if tc.refine and tc.method == "gauss_newton" and tc.iterations > 0 and len(params):
+            view = self.tracker.build_view(params, frame.resized(tc.refine_max_width).camera, frame, kf.T_local_cam)
+        with self._lock:
+            self._handover = (kf.submap_id, params, view, frame, kf.T_local_cam)
+        t1 = time.perf_counter()
+        self._detect_loops(kf, information)
+        t2 = time.perf_counter()
+        self.time.mapping += t1 - t0
+        self.time.loop_closure += t2 - t1
+        self.mapping_log.append({"keyframe": kf.id, "frame": kf.frame_index, "iterations": stats.iterations,
+                                 "planned": planned, "mapping_s": t1 - t0, "loop_closure_s": t2 - t1})

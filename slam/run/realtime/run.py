@@ -1,0 +1,112 @@
+"""`swarmsplat run DATASET --realtime [--rate HZ]`: one agent on a sequence replayed at the sensor's rate.
+
+Frames arrive at their timestamps or at `runtime.rate` (feed.FrameFeed); the calling thread tracks each one it can
+take in time and emits its pose (arrival -> pose latency measured per frame); mapping and loop closure run on the
+agent's worker thread on keyframes (agent.RealtimeAgent). A frame the tracker cannot take in time is dropped and
+counted: pushed out of the full queue by a newer one, or "stale" (its wait plus the expected tracking time would
+pass the latency budget, runtime.max_latency_ms, while the next frame, tracked on arrival, would not). After the
+stream the worker finishes its keyframe and the run ends as an offline run does (map refinement, evaluation,
+results; slam.run.sequence.finish_agent_run), with metrics.json `realtime` and report.md (summary). Ctrl-C stops
+the replay and the worker and keeps every pose tracked so far (slam.run.guard).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from swarmsplat.kernels.fileio import atomic_write_text, output_dir
+from swarmsplat.slam.config import SlamConfig
+
+from ..guard import guarded, keep
+from ..partial_results import write_partial_agent
+from .agent import RealtimeAgent
+from .feed import FrameFeed, arrival_offsets
+from .summary import StreamLog, realtime_metrics, write_report
+
+
+@guarded("run")
+def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
+                 frames: int | None = None, progress: bool = True, strict: bool = False) -> dict:
+    """Replay `dataset_path` (a path any loader reads, or a loaded sequence) in real time with one agent; returns
+    the metrics written to out_dir/metrics.json (those of an offline run plus `realtime`)."""
+    from swarmsplat.slam.io.progress import bar
+
+    from ..checkpoint import PoseJournal
+    from ..runtime import check_device, use_kernels
+    from ..sequence import JOURNAL, _trajectory_metrics, finish_agent_run, open_sequence, refines
+
+    cfg = config or SlamConfig()
+    rt = cfg.runtime
+    use_kernels(cfg.kernels)
+    seq, n = open_sequence(dataset_path, cfg, frames)
+    offsets, interval = arrival_offsets(seq.timestamps, n, rt.rate)
+    rate = 1.0 / interval if interval > 0 else 0.0
+    budget = rt.max_latency_ms / 1e3 if rt.max_latency_ms else interval
+    check_device(cfg.kernels, [seq.camera], cfg.image.max_width)
+    out = output_dir(out_dir, "--out")
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())
+
+    agent = RealtimeAgent(seq.camera, cfg, name=seq.name)
+    agent.keep_keyframe_images = refines(cfg) and cfg.map_refine.views == "mapping"
+    feed = FrameFeed(seq, offsets, queue=rt.queue, skipper=agent, strict=strict)
+    journal = PoseJournal(out / JOURNAL)
+    log = StreamLog()
+    t0 = time.perf_counter()
+
+    def save(status: str, reason: str):
+        feed.stop()
+        agent.stop(1.0)
+        return write_partial_agent(agent, out, status=status, reason=reason, n_frames=n,
+                                   wall_s=time.perf_counter() - t0)
+
+    keep(save)
+    if progress:
+        print(f"[{seq.name}] real time: {n} frames at {rate:.2f} Hz, latency budget {1e3 * budget:.0f} ms",
+              file=sys.stderr)
+    try:
+        with journal, bar(n, f"[{seq.name}] frames", unit="frame", enabled=progress) as b:
+            feed.start()
+            log.begin()
+            seen = 0
+            while (a := feed.take()) is not None:
+                now = time.monotonic()
+                expected = log.expected_step()
+                if expected <= budget < now - a.due + expected:
+                    feed.drop(a, "stale")
+                else:
+                    f = a.frame
+                    rec = agent.step(f.index, f.timestamp, f.color, f.depth)
+                    done = time.monotonic()
+                    log.steps.append(done - now)
+                    if rec is not None:
+                        T = agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
+                        log.pose(f.timestamp, done - a.due, T)
+                    journal.follow(agent)
+                accounted = len(agent.poses) + len(agent.time.skipped) + len(feed.dropped)
+                b.update(accounted - seen, f"{len(agent.gmap)} Gaussians  {len(feed.dropped)} dropped")
+                seen = accounted
+            log.end()
+            agent.finish()  # the keyframe being mapped, then the worker stops
+    finally:
+        feed.stop()
+        agent.stop(1.0)
+    import numpy as np
+
+    ate_live = None
+    if log.poses:
+        ate_live = _trajectory_metrics(seq, np.array(log.stamps), np.stack(log.poses), None)["ate_rmse"]
+    extra = {"realtime": realtime_metrics(log, feed, agent, n_frames=n, rate_hz=rate,
+                                          rate_from="--rate" if rt.rate else "timestamps", budget_s=budget,
+                                          ate_live=ate_live)}
+    metrics = finish_agent_run(agent, seq, out, cfg, n_frames=n, t0=t0, progress=progress, extra=extra)
+    write_report(out, metrics)
+    return metrics
+
+
+def summary(metrics: dict) -> dict:
+    """The few real-time figures `swarmsplat run --realtime` prints: tracked share, drops, latency, live ATE."""
+    r = metrics["realtime"]
+    return {k: r[k] for k in ("rate_hz", "frames_tracked", "tracked_fraction", "frames_dropped", "dropped_by_reason",
+                              "pose_latency_ms", "ate_rmse_live")}

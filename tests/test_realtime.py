@@ -1,0 +1,228 @@
+"""Real-time mode (`swarmsplat run --realtime`, slam.run.realtime): frames arriving faster than the tracker takes
+them are dropped and counted, never queued without bound; mapping on its worker thread maps (and, given the time,
+maps exactly as the offline agent does); Ctrl-C stops both threads and keeps every pose tracked; a bad --rate is
+one line. Latency itself is measured by `python -m perf realtime`, not asserted here."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from swarmsplat.slam.cli import main
+from swarmsplat.slam.config import SlamConfig
+
+from test_run_guard import QUICK, _config, _sequence, _spawn, _stamps, interrupt_after
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory) -> Path:
+    return _sequence(tmp_path_factory.mktemp("rt"), 12) / "agent_0"
+
+
+# ---- the feed: bounded, every frame accounted for ----------------------------------------------------------------
+
+
+@dataclass
+class _Frame:
+    index: int
+
+
+class _Seq:
+    def __getitem__(self, i):
+        return _Frame(i)
+
+
+class _Skips:
+    def skip_frame(self, index, reason):
+        raise AssertionError("nothing to skip")
+
+
+@pytest.mark.parametrize("queue", [1, 3])
+def test_feed_drops_and_counts_what_a_slow_tracker_cannot_take(queue):
+    from swarmsplat.slam.run.realtime.feed import FrameFeed
+
+    n = 60
+    feed = FrameFeed(_Seq(), np.arange(n) / 400.0, queue=queue, skipper=_Skips())  # 400 Hz
+    feed.start()
+    taken, longest = [], 0
+    while (a := feed.take()) is not None:
+        with feed._cv:
+            longest = max(longest, len(feed._q) + 1)  # what waited, this frame included
+        taken.append(a.frame.index)
+        time.sleep(0.02)  # a tracker 8x slower than the sensor
+    dropped = [i for i, _ in feed.dropped]
+    assert longest <= queue  # bounded
+    assert sorted(taken + dropped) == list(range(n)) and feed.arrived == n  # every frame taken or dropped
+    assert {r for _, r in feed.dropped} == {"queue_full"} and len(dropped) > n // 2
+    assert taken == sorted(taken) and taken[0] == 0  # in order, oldest waiting first
+
+
+def test_rate_from_timestamps_or_flag():
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.run.realtime.feed import arrival_offsets
+
+    t, dt = arrival_offsets(np.array([10.0, 10.1, 10.2, 10.35]), 4, 0.0)
+    np.testing.assert_allclose(t, [0, 0.1, 0.2, 0.35]) and pytest.approx(0.1) == dt
+    t, dt = arrival_offsets(np.zeros(4), 3, 20.0)
+    np.testing.assert_allclose(t, [0, 0.05, 0.1]) and dt == 0.05
+    with pytest.raises(InputError, match="--rate"):
+        arrival_offsets(np.zeros(4), 4, 0.0)  # no rate of its own
+
+
+# ---- the agent on two threads --------------------------------------------------------------------------------------
+
+
+def _frames(seq_path: Path, n: int):
+    from swarmsplat.slam.io.datasets import load_sequence
+
+    s = load_sequence(seq_path)
+    return s, [s[i] for i in range(n)]
+
+
+def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
+    """Stepping the real-time agent and letting its worker finish each keyframe before the next frame gives the
+    offline agent's trajectory and map: the split over two threads changes when mapping runs, not what it does."""
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.run.realtime.agent import RealtimeAgent
+    from swarmsplat.slam.run.runtime import use_kernels
+
+    cfg = SlamConfig().override({**QUICK, "loop_closure": {"enabled": False}})
+    use_kernels(cfg.kernels)
+    s, frames = _frames(seq, 10)
+    off = Agent(s.camera, cfg)
+    rt = RealtimeAgent(s.camera, cfg)
+    try:
+        for f in frames:
+            off.step(f.index, f.timestamp, f.color, f.depth)
+            rt.step(f.index, f.timestamp, f.color, f.depth)
+            assert rt._idle.wait(60)
+        rt.finish(60)
+    finally:
+        rt.stop()
+    assert len(rt.keyframes) == len(off.keyframes) >= 2 and len(rt.mapping_log) == len(rt.keyframes)
+    assert [r["iterations"] for r in rt.mapping_log] == [r["planned"] for r in rt.mapping_log]  # none cut short
+    np.testing.assert_allclose(rt.trajectory()[1], off.trajectory()[1], atol=1e-9)
+    a, b = rt.gmap.merged(), off.gmap.merged()
+    assert len(a) == len(b) > 0
+    np.testing.assert_allclose(a.means.numpy(), b.means.numpy(), atol=1e-6)
+
+
+def test_tracking_does_not_wait_for_mapping_and_stop_ends_the_worker(seq):
+    """While the worker maps, frames are tracked against the map published before (keyframes due meanwhile are
+    deferred and cut the mapping short); stop() ends a worker in the middle of a long optimisation within a
+    second."""
+    from swarmsplat.slam.run.realtime.agent import RealtimeAgent
+    from swarmsplat.slam.run.runtime import use_kernels
+
+    cfg = SlamConfig().override({**QUICK, "keyframes": {"every": 1},
+                                 "runtime": {"min_mapping_iterations": 2, "max_mapping_iterations": 100000}})
+    use_kernels(cfg.kernels)
+    s, frames = _frames(seq, 4)
+    rt = RealtimeAgent(s.camera, cfg)
+    try:
+        f = frames[0]
+        rt.step(f.index, f.timestamp, f.color, f.depth)  # the first keyframe: 100000 iterations planned
+        assert not rt.idle()
+        f = frames[1]
+        assert rt.step(f.index, f.timestamp, f.color, f.depth) is not None  # tracked meanwhile
+        assert rt.keyframes_deferred == 1 and len(rt.keyframes) == 1  # due, deferred
+        assert rt._idle.wait(60)  # the deferred keyframe cut the optimisation short
+        assert 2 <= rt.mapping_log[0]["iterations"] < 100000
+        for f in frames[2:]:
+            rt.step(f.index, f.timestamp, f.color, f.depth)  # a keyframe again: the worker maps it, without end
+        time.sleep(0.5)
+        t0 = time.perf_counter()
+        rt.stop(1.0)
+        assert not rt._thread.is_alive() and time.perf_counter() - t0 < 1.0
+    finally:
+        rt.stop()
+    assert len(rt.poses) == 4
+
+
+# ---- the command ---------------------------------------------------------------------------------------------------
+
+
+def test_realtime_run_writes_what_it_measured(seq, tmp_path):
+    out = tmp_path / "rt"
+    assert main(["run", str(seq), "--out", str(out), "--config", _config(tmp_path), "--realtime", "--rate", "15",
+                 "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    r = m["realtime"]
+    assert m["status"] == "complete" and r["rate_hz"] == 15 and r["frames"] == 12
+    assert r["frames_tracked"] + r["frames_dropped"] + r["frames_skipped"] == 12
+    assert sum(r["dropped_by_reason"].values()) == r["frames_dropped"]
+    assert r["pose_latency_ms"]["count"] == r["frames_tracked"] == m["frames_tracked"] >= 1
+    assert r["keyframes_mapped"] == m["keyframes"] >= 1 and r["mapping_iterations"]["min"] >= 0
+    assert m["gaussians"] > 0 and m["psnr"] is not None and r["ate_rmse_live"] is not None
+    from swarmsplat.slam.io.trajectory import read_tum
+
+    stamps, _ = read_tum(out / "trajectory.txt")
+    assert len(stamps) == r["frames_tracked"]
+    report = (out / "report.md").read_text()
+    assert "Pose latency" in report and f"{r['frames_tracked']} tracked" in report
+    assert yaml_realtime(out)
+
+
+def yaml_realtime(out: Path) -> bool:
+    import yaml
+
+    return yaml.safe_load((out / "config.yaml").read_text())["runtime"]["realtime"] is True
+
+
+def test_offline_stays_the_default(seq, tmp_path):
+    assert SlamConfig().runtime.realtime is False
+    out = tmp_path / "off"
+    assert main(["run", str(seq), "--out", str(out), "--config", _config(tmp_path), "--frames", "3",
+                 "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert "realtime" not in m and m["frames_tracked"] == 3 and not (out / "report.md").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--realtime", "--rate", "0"], "--rate must be a frame rate above 0 (Hz), got 0"),
+    (["--realtime", "--rate", "-2"], "--rate must be a frame rate above 0 (Hz), got -2"),
+    (["--realtime", "--rate", "nan"], "--rate must be a frame rate above 0 (Hz), got nan"),
+    (["--realtime", "--rate", "fast"], "invalid float value: 'fast'"),
+    (["--rate", "15"], "--rate sets the replay rate of real-time mode: give --realtime too"),
+    (["--realtime", "--resume"], "--realtime does not take --resume"),
+])
+def test_bad_rate_is_one_line(seq, tmp_path, capsys, args, message):
+    with pytest.raises(SystemExit) if "fast" in args else _nothing():
+        code = main(["run", str(seq), "--out", str(tmp_path / "x"), "--quiet", *args])
+        assert code == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and message in err[0], err
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_realtime_team_is_refused(tmp_path, capsys):
+    data = _sequence(tmp_path / "team", 2, agents=2)
+    assert main(["run", str(data), "--out", str(tmp_path / "x"), "--realtime", "--quiet"]) == 2
+    assert "--realtime runs one agent" in capsys.readouterr().err
+
+
+def test_sigint_stops_both_threads_and_keeps_the_poses(tmp_path):
+    from swarmsplat.slam.io.trajectory import read_tum
+
+    seq = _sequence(tmp_path / "data", 40) / "agent_0"
+    out = tmp_path / "run"
+    proc = _spawn(["run", str(seq), "--out", str(out), "--config", _config(tmp_path), "--realtime", "--rate", "4"])
+    text = interrupt_after("frames 4/40", proc)
+    assert "interrupted (SIGINT)" in text, text[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "interrupted" and 4 <= m["frames_tracked"] < 40
+    stamps, T = read_tum(out / "trajectory.txt")
+    assert len(stamps) == m["frames_tracked"] and np.all(np.isfinite(T))
+    assert set(np.round(stamps, 6)) <= set(np.round(_stamps(seq), 6))
