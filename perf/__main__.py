@@ -53,6 +53,10 @@ def main(argv: list[str] | None = None, *, prog: str = "python -m perf",
         from .device_check import main as device_check
 
         return device_check(argv[1:], prog=f"{prog} device-check", parser_class=parser_class)
+    if argv[:1] == ["team-link"]:  # its own flags and result files (perf/team_link.py)
+        from .team_link import main as team_link
+
+        return team_link(argv[1:])
     p = parser_class(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("subject", choices=sorted(SUBJECTS) + ["all"])
     p.add_argument("--kernels", choices=["warp", "taichi", "both"], default="both")

@@ -65,6 +65,7 @@ def register_server(sub) -> None:
     p.add_argument("--dataset", metavar="PATH",
                    help="the agents' multi-agent dataset, for the evaluation (ATE, renders); without it the "
                         "estimates, map, loops and link figures are written")
+    p.add_argument("--split", metavar="RANGES", help="--dataset is one sequence cut into agents (as run --split)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on (default: tcp/0.0.0.0:<link.port_base>)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
@@ -81,7 +82,17 @@ def run_server(args) -> int:
 
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device)}, preset=args.preset)
-    m = serve_command(args.agents, args.out, cfg, dataset=args.dataset, listen=args.listen, connect=args.connect,
+    from swarmsplat.kernels.errors import InputError
+
+    dataset = args.dataset
+    if args.split:
+        if not dataset:
+            raise InputError("--split cuts --dataset into agents: give --dataset too")
+        from swarmsplat.slam.io.datasets import load_dataset
+        from swarmsplat.slam.io.datasets.split import parse_ranges, split_sequence
+
+        dataset = split_sequence(load_dataset(dataset).agents[0], parse_ranges(args.split))
+    m = serve_command(args.agents, args.out, cfg, dataset=dataset, listen=args.listen, connect=args.connect,
                       run=args.run, progress=not args.quiet)
     lost = m["link"]["lost_agents"]
     print(f"wrote {args.out}: {m['loops_accepted']} loops accepted, {m['link']['bytes_total'] / 1e6:.1f} MB on the "

@@ -35,7 +35,8 @@ class ZenohTransport(Transport):
 
     def __init__(self, robot: int, robots: list[int], *, run: str = "default", port_base: int = 17447,
                  host: str = "127.0.0.1", schedule: Schedule | None = None, clock: Callable[[], int] | None = None,
-                 codec: M.Codec | None = None, listen: list[str] | None = None, connect: list[str] | None = None):
+                 codec: M.Codec | None = None, listen: list[str] | None = None, connect: list[str] | None = None,
+                 block: bool = False):
         super().__init__(robot, codec)
         try:
             import zenoh
@@ -58,6 +59,8 @@ class ZenohTransport(Transport):
                                                '"period_increase_factor": 1.5}')
         except Exception:  # noqa: BLE001 (older releases without the key keep their default)
             pass
+        # block: a full send queue waits instead of dropping the message (Zenoh's default for puts drops)
+        self._put_kw = {"congestion_control": zenoh.CongestionControl.BLOCK} if block else {}
         self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self.session = zenoh.open(conf)
         cb = lambda sample: self._q.put(sample.payload.to_bytes())  # noqa: E731  (runs on Zenoh's thread)
@@ -93,7 +96,7 @@ class ZenohTransport(Transport):
 
     def _send_bytes(self, dest: int | None, data: bytes) -> None:
         key = f"{self.prefix}/all" if dest is None else f"{self.prefix}/to/{int(dest)}"
-        self.session.put(key, data)
+        self.session.put(key, data, **self._put_kw)
 
     def _receive_bytes(self) -> list[bytes]:
         out = []

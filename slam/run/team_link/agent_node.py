@@ -130,11 +130,12 @@ def _image_nbytes(m: L.KeyframeImage) -> int:
 class AgentNode:
     """One team agent and its link: `join`, then `step_round` per input round, then `finish`."""
 
-    def __init__(self, camera: PinholeCamera, cfg: SlamConfig, name: str, tx):
+    def __init__(self, camera: PinholeCamera, cfg: SlamConfig, name: str, tx, clock=time.monotonic):
         self.cfg, self.name, self.tx = cfg, name, tx
         self.agent = LinkAgent(camera, agent_config(cfg), name=name)
         self.agent.keep_keyframe_images = False
-        self.outbox = Outbox(tx, cfg.link)
+        self.outbox = Outbox(tx, cfg.link, clock)
+        self._join_msg = None
         self.map_views = server_needs_map_views(cfg)
         self.welcomed = False
         self.finished_by_server = False
@@ -145,11 +146,16 @@ class AgentNode:
 
     # ---- the link ----------------------------------------------------------------------------------------------
 
+    def start(self, rounds: int) -> None:
+        """Ask to join (the Join stays queued until the server acknowledges it)."""
+        self._join_msg = L.Join(mid=self.outbox.next_mid(), name=self.name, camera=camera_list(self.agent.camera),
+                                config=config_digest(self.cfg), rounds=int(rounds))
+        self.outbox.put(self._join_msg)
+
     def join(self, rounds: int, timeout: float, *, say=print) -> None:
         """Send Join until the server welcomes this agent; SwarmsplatError after `timeout` seconds."""
-        msg = L.Join(mid=self.outbox.next_mid(), name=self.name, camera=camera_list(self.agent.camera),
-                     config=config_digest(self.cfg), rounds=int(rounds))
-        self.outbox.put(msg)
+        self.start(rounds)
+        msg = self._join_msg
         t0 = last = time.monotonic()
         while not self.welcomed:
             self.service()
@@ -262,7 +268,7 @@ class AgentNode:
                                frames=int(t.frames), non_finite_dropped=int(ag.mapper.non_finite_dropped),
                                link={**self.outbox.stats(), "bytes": self.tx.stats.to_dict()}, status=status))
         t_end = time.monotonic() + timeout
-        while self.outbox.items and time.monotonic() < t_end:
+        while self.outbox.items and not self.finished_by_server and time.monotonic() < t_end:
             self.service()
             time.sleep(0.05)
-        return not self.outbox.items
+        return not self.outbox.items or self.finished_by_server

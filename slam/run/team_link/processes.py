@@ -28,7 +28,7 @@ from . import messages as L
 def _transport(node: int, nodes: list[int], *, listen: list[str], connect: list[str], run: str):
     from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
 
-    return ZenohTransport(node, nodes, run=run, codec=L.LINK, listen=listen, connect=connect)
+    return ZenohTransport(node, nodes, run=run, codec=L.LINK, listen=listen, connect=connect, block=True)
 
 
 def _check_endpoints(flag: str, endpoints: list[str]) -> None:
@@ -242,6 +242,7 @@ def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig 
         raise InputError(f"--processes runs a team, but {dataset} holds one sequence (cut it with --split)")
     out = output_dir(out, "--out")
     (out / "link").mkdir(exist_ok=True)
+    (out / "link" / "journal.bin").unlink(missing_ok=True)  # a new run: an earlier run's journal is not replayed
     cfg_path = out / "link" / "config.yaml"
     atomic_write_text(cfg_path, cfg.to_yaml())
     port = _free_port(cfg.link.port_base)

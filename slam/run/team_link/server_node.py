@@ -58,8 +58,12 @@ class Peer:
     lost: bool = False
     ack: list = field(default_factory=list)  # message ids to acknowledge
 
-    def ended(self) -> bool:
-        return self.lost or (self.done is not None and self.processed >= self.done.keyframes)
+    def ended(self, frames: int = 0) -> bool:
+        """Lost, or done with every keyframe handed over and every submap and frame pose received (`frames`:
+        frame poses the server holds)."""
+        d = self.done
+        return self.lost or (d is not None and self.processed >= d.keyframes and len(self.submaps) >= d.submaps
+                             and frames >= d.frames)
 
     def update_frontier(self) -> None:
         have = self.processed
@@ -74,10 +78,10 @@ class Peer:
 class ServerNode:
     """Mirrors + Server + link (module docstring). `team`: a slam.run.team.Team built with AgentMirror agents."""
 
-    def __init__(self, team, tx, *, journal: Path | None = None, say=None):
-        self.team, self.tx, self.cfg = team, tx, team.cfg
+    def __init__(self, team, tx, *, journal: Path | None = None, say=None, clock=time.monotonic):
+        self.team, self.tx, self.cfg, self.clock = team, tx, team.cfg, clock
         self.peers = [Peer(ag.name) for ag in team.agents]
-        self.t0 = time.monotonic()
+        self.t0 = clock()
         for p in self.peers:
             p.last_heard = self.t0
         self.digest = config_digest(self.cfg)
@@ -114,7 +118,7 @@ class ServerNode:
         if not 0 <= a < len(self.peers):
             return
         p = self.peers[a]
-        p.last_heard = time.monotonic()
+        p.last_heard = self.clock()
         if p.lost:
             p.lost = False
             self.say(f"[server] {p.name} is back")
@@ -178,13 +182,16 @@ class ServerNode:
             if p.ack:
                 self.tx.send(a + 1, L.Ack(mids=np.array(sorted(set(p.ack)), np.int64)))
                 p.ack = []
-        now = time.monotonic()
-        for p in self.peers:
-            if not p.ended() and not p.lost and now - p.last_heard > self.cfg.link.agent_timeout_s:
+        now = self.clock()
+        for a, p in enumerate(self.peers):
+            if not self._ended(a) and not p.lost and now - p.last_heard > self.cfg.link.agent_timeout_s:
                 p.lost = True
                 self.say(f"[server] {p.name}: nothing heard for {now - p.last_heard:.0f} s "
                          f"(link.agent_timeout_s): reported lost; the others go on without it")
         return len(got)
+
+    def _ended(self, a: int) -> bool:
+        return self.peers[a].ended(len(self.team.agents[a].poses))
 
     # ---- the server, in the in-process order ---------------------------------------------------------------------
 
@@ -200,7 +207,7 @@ class ServerNode:
             return None
         (r, a), _, m = best
         for b, q in enumerate(self.peers):
-            if b != a and not q.ended() and q.rounds_done < (r + 1 if b < a else r):
+            if b != a and not self._ended(b) and q.rounds_done < (r + 1 if b < a else r):
                 return None
         return a, m
 
@@ -253,21 +260,31 @@ class ServerNode:
 
     # ---- the whole run -----------------------------------------------------------------------------------------
 
+    def step(self) -> int:
+        """Read the link once and hand over every keyframe that may go; returns how much happened."""
+        return self.poll() + self.process()
+
+    def all_ended(self) -> bool:
+        return all(self._ended(a) for a in range(len(self.peers)))
+
     def run(self, *, progress: bool = True, timeout: float | None = None) -> None:
         """Serve until every agent has finished (all its keyframes handled) or is lost."""
         last = time.monotonic()
-        while not all(p.ended() for p in self.peers):
-            n = self.poll()
-            k = self.process()
+        while not self.all_ended():
+            busy = self.step()
             now = time.monotonic()
             if progress and now - last > 10:
                 last = now
                 self.say("[server] " + self.status())
             if timeout is not None and now - self.t0 > timeout:
                 raise TimeoutError(f"the team server gave up after {timeout:.0f} s: {self.status()}")
-            if not n and not k:
+            if not busy:
                 time.sleep(0.02)
-        for a, p in enumerate(self.peers):  # the finished submaps' Gaussians
+        self.collect_submaps()
+
+    def collect_submaps(self) -> None:
+        """Every finished submap's Gaussians into its mirror."""
+        for a, p in enumerate(self.peers):
             ag = self.team.agents[a]
             for sid, sd in sorted(p.submaps.items()):
                 if sid < len(ag.gmap.submaps):
@@ -275,8 +292,8 @@ class ServerNode:
 
     def status(self) -> str:
         parts = []
-        for p in self.peers:
-            state = "lost" if p.lost else "done" if p.ended() else "joined" if p.joined else "waiting"
+        for a, p in enumerate(self.peers):
+            state = "lost" if p.lost else "done" if self._ended(a) else "joined" if p.joined else "waiting"
             parts.append(f"{p.name} {state} {p.processed} kf / {p.rounds_done} rounds")
         return "; ".join(parts) + "  |  " + self.team.status(0, 0, time.monotonic() - self.t0).split("  ", 1)[1]
 
