@@ -2,7 +2,8 @@
 
 Runs one benchmark subject (or `all`), prints a Markdown table and writes JSON with the machine's description.
 Runs unchanged on a GPU machine with `--device cuda` (vulkan: Taichi only). `python -m perf device-check` runs
-the suite's device cases and a quick benchmark of every subject on one device (perf/device_check.py).
+the suite's device cases and a quick benchmark of every subject on one device (perf/device_check.py);
+`python -m perf realtime` replays a real sequence in real-time mode (perf/realtime.py).
 """
 
 from __future__ import annotations
@@ -53,6 +54,10 @@ def main(argv: list[str] | None = None, *, prog: str = "python -m perf",
         from .device_check import main as device_check
 
         return device_check(argv[1:], prog=f"{prog} device-check", parser_class=parser_class)
+    if argv[:1] == ["realtime"]:  # its own flags and result files (perf/realtime.py)
+        from .realtime import main as realtime
+
+        return realtime(argv[1:])
     if argv[:1] == ["team-link"]:  # its own flags and result files (perf/team_link.py)
         from .team_link import main as team_link
 

@@ -1,0 +1,164 @@
+"""Real-time mode on a real sequence: Redwood living room 1 (211 frames, 640x480) replayed at 15 and 30 Hz
+(`swarmsplat run --realtime --rate HZ`) against the offline run of the same frames in the same process.
+
+Per run: frames tracked (%), dropped and why, pose latency from a frame's arrival to its pose (p50 / p95 / max),
+the tracker's step time, mapping iterations per keyframe, the CPU time of the tracking and mapping threads over
+the stream (their sum above the stream's wall time means they ran at the same time), the ATE of the poses as
+emitted and after the run (loop closures, map refinement), and the merged map's PSNR; the offline run's ATE and
+PSNR beside them. The machine's 1-minute load average is recorded before and after each run: other processes on
+the same cores lengthen every latency.
+
+    python -m perf realtime                      # -> perf/results/realtime-cpu.{json,md} (about 4 minutes)
+    python -m perf realtime --rates 15 --preset realtime
+    python -m perf realtime --from-json          # rewrite perf/results/realtime-cpu.md from its JSON
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from .common import machine_info, markdown_table, write_results
+
+DESCRIPTION = "real-time replay of Redwood 211 at 15 and 30 Hz: tracked %, pose latency, ATE and PSNR vs offline"
+
+ROOT = Path(__file__).resolve().parents[1]
+REDWOOD = Path(os.environ.get("SWARMSPLAT_SHARED_DATA", ROOT.parent / "shared" / "data")) / "redwood_livingroom1_211"
+RESULTS = ROOT / "perf" / "results"
+TARGETS = {15.0: 66.0, 30.0: 33.0}  # rate (Hz) -> the pose latency p95 to reach (ms)
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def measure(data: Path, rate: float | None, preset: str | None) -> dict:
+    """One run (rate None: offline) in this process; its figures."""
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.run.realtime.run import run_realtime
+    from swarmsplat.slam.run.sequence import run_sequence
+
+    cfg = SlamConfig.preset(preset) if preset else SlamConfig()
+    load0 = _load()
+    with tempfile.TemporaryDirectory(prefix="swarmsplat-rt-") as out:
+        t0 = time.perf_counter()
+        if rate is None:
+            m = run_sequence(data, out, cfg.override({"runtime": {"realtime": False}}), progress=False)
+        else:
+            m = run_realtime(data, out, cfg.override({"runtime": {"realtime": True, "rate": rate}}), progress=False)
+        wall = time.perf_counter() - t0
+    row = {"mode": "offline" if rate is None else "real time", "rate_hz": rate, "preset": preset or "defaults",
+           "ate_cm": 100 * m["ate_rmse"], "psnr_merged_db": m["psnr_merged"], "keyframes": m["keyframes"],
+           "wall_s": wall, "load_before": load0, "load_after": _load()}
+    r = m.get("realtime")
+    if r:
+        lat, step = r["pose_latency_ms"], r["step_ms"]
+        row.update({"tracked_pct": 100 * r["tracked_fraction"], "frames_tracked": r["frames_tracked"],
+                    "dropped": r["frames_dropped"],
+                    "dropped_by_reason": r["dropped_by_reason"], "latency_p50_ms": lat["p50"],
+                    "latency_p95_ms": lat["p95"], "latency_max_ms": lat["max"], "step_p50_ms": step["p50"],
+                    "step_p95_ms": step["p95"], "ate_live_cm": 100 * r["ate_rmse_live"],
+                    "mapping_iterations_mean": r["mapping_iterations"]["mean"],
+                    "keyframes_deferred": r["keyframes_deferred"], "stream_s": r["stream_s"],
+                    "cpu_tracker_s": r["cpu_s"]["tracker_thread"], "cpu_mapping_s": r["cpu_s"]["mapping_thread"],
+                    "cpu_process_s": r["cpu_s"]["process"]})
+    else:
+        row.update({"tracked_pct": 100.0, "dropped": 0})
+    return row
+
+
+def compare(rows: list[dict]) -> None:
+    """Add each real-time row's ATE and PSNR against the offline row, and its targets."""
+    off = next((r for r in rows if r["mode"] == "offline"), None)
+    for r in rows:
+        if r["mode"] == "offline" or off is None:
+            continue
+        r["ate_vs_offline_pct"] = 100 * (r["ate_cm"] / off["ate_cm"] - 1)
+        r["psnr_vs_offline_db"] = r["psnr_merged_db"] - off["psnr_merged_db"]
+        p95 = TARGETS.get(r["rate_hz"])
+        if p95 is not None:
+            r["targets_met"] = {"latency_p95": r["latency_p95_ms"] <= p95, "ate_within_15pct": r["ate_vs_offline_pct"] <= 15,
+                                "psnr_within_1.5db": r["psnr_vs_offline_db"] >= -1.5,
+                                **({"tracked_95pct": r["tracked_pct"] >= 95} if r["rate_hz"] == 15.0 else {})}
+
+
+def run_all(data: Path = REDWOOD, rates=(15.0, 30.0), preset: str | None = None, offline: bool = True) -> dict:
+    rows = []
+    for rate in ([None] if offline else []) + list(rates):
+        print(f"[perf realtime] {'offline' if rate is None else f'{rate:g} Hz'} ...", file=sys.stderr, flush=True)
+        rows.append(measure(data, rate, preset))
+        print(json.dumps(rows[-1], default=str), file=sys.stderr, flush=True)
+    compare(rows)
+    return {"subject": "realtime", "data": str(data), "rows": rows}
+
+
+COLUMNS = ["mode", "rate_hz", "preset", "tracked_pct", "dropped", "latency_p50_ms", "latency_p95_ms",
+           "latency_max_ms", "step_p50_ms", "ate_live_cm", "ate_cm", "ate_vs_offline_pct", "psnr_merged_db",
+           "psnr_vs_offline_db", "keyframes", "mapping_iterations_mean", "load_before", "load_after"]
+CPU_COLUMNS = ["mode", "rate_hz", "preset", "stream_s", "cpu_tracker_s", "cpu_mapping_s", "cpu_process_s",
+               "cores_used", "tracker_cpu_ms_per_frame", "keyframes_deferred", "dropped_by_reason"]
+
+
+def _cpu_row(r: dict) -> dict:
+    """A real-time row with what its CPU times say: cores the process used over the stream, and the tracker
+    thread's CPU per tracked frame (what a step costs without waiting for a core or the GIL)."""
+    return {**r, "cores_used": r["cpu_process_s"] / r["stream_s"],
+            "tracker_cpu_ms_per_frame": 1e3 * r["cpu_tracker_s"] / max(1, r["frames_tracked"]),
+            "dropped_by_reason": ", ".join(f"{k} {v}" for k, v in r["dropped_by_reason"].items())}
+
+
+def markdown(res: dict) -> str:
+    rows = res["rows"]
+    rt = [r for r in rows if r["mode"] != "offline"]
+    lines = [f"# Real-time mode on {Path(res['data']).name}", "",
+             "`swarmsplat run DATA --realtime --rate HZ` (one agent, Warp on the CPU) against the offline run in the "
+             "same process (`python -m perf realtime`). Latency: a frame's arrival to its pose; ATE live: the poses "
+             "as emitted; ATE: after the run (loop closures, map refinement); PSNR: the merged map after the run. "
+             "Load: the machine's 1-minute load average before / after the run (other processes on the same cores "
+             "lengthen every latency).", "",
+             markdown_table(rows, COLUMNS), "",
+             "CPU time over the stream, per thread (their sum above the stream's wall time means tracking and "
+             "mapping ran at the same time; the process figure adds the frame reader's decoding). Cores used: the "
+             "process's CPU time over the stream's wall time, of the machine's cores; below them, other processes "
+             "had the rest. Tracker CPU per frame: what a tracking step costs without waiting for a core or the "
+             "GIL (step_p50_ms above it is that wait):", "",
+             markdown_table([_cpu_row(r) for r in rt], CPU_COLUMNS), ""]
+    for r in rt:
+        if r.get("targets_met"):
+            met = ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in r["targets_met"].items())
+            lines.append(f"- {r['rate_hz']:g} Hz ({r['preset']}): {met}.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m perf realtime", description=DESCRIPTION)
+    p.add_argument("--data", type=Path, default=REDWOOD)
+    p.add_argument("--rates", default="15,30", help="comma-separated replay rates (Hz)")
+    p.add_argument("--preset", default=None, help="a config preset (configs/NAME.yaml) for every run")
+    p.add_argument("--no-offline", action="store_true", help="skip the offline run (no comparison)")
+    p.add_argument("--json", default=str(RESULTS / "realtime-cpu.json"))
+    p.add_argument("--md", default=str(RESULTS / "realtime-cpu.md"))
+    p.add_argument("--from-json", action="store_true", help="only write the Markdown again from --json")
+    a = p.parse_args(argv)
+    if a.from_json:
+        res = json.loads(Path(a.json).read_text())
+        write_results(None, a.md, res, markdown(res))
+        return 0
+    if not a.data.is_dir():
+        raise SystemExit(f"python -m perf realtime: {a.data} not found (set SWARMSPLAT_SHARED_DATA)")
+    machine = machine_info()  # where and from what, as the runs start
+    res = {**run_all(a.data, [float(x) for x in a.rates.split(",")], a.preset, not a.no_offline),
+           "machine": machine, "load_after": _load()}
+    md = markdown(res)
+    print(md)
+    write_results(a.json, a.md, res, md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
