@@ -255,9 +255,8 @@ class AgentNode:
             submap_id=np.array([r.submap_id for r in recs], np.int64),
             T_local_cam=np.stack([r.T_local_cam for r in recs]) if recs else np.zeros((0, 4, 4))))
 
-    def finish(self, rounds: int, timeout: float, status: str = "complete") -> bool:
-        """After the last round: the last submap, the totals, then wait (at most `timeout` s) until the server has
-        acknowledged everything. Returns True when it has."""
+    def send_last(self, rounds: int, status: str = "complete") -> None:
+        """After the last round: the last submap, the last poses and the totals."""
         ag = self.agent
         if ag.gmap.submaps and self._sent_submaps < len(ag.gmap.submaps):
             self._send_submap(len(ag.gmap.submaps) - 1)
@@ -267,8 +266,17 @@ class AgentNode:
                                submaps=len(ag.gmap.submaps), tracking_s=float(t.tracking), mapping_s=float(t.mapping),
                                frames=int(t.frames), non_finite_dropped=int(ag.mapper.non_finite_dropped),
                                link={**self.outbox.stats(), "bytes": self.tx.stats.to_dict()}, status=status))
+
+    def settled(self) -> bool:
+        """Everything acknowledged, or the server has written the results."""
+        return not self.outbox.items or self.finished_by_server
+
+    def finish(self, rounds: int, timeout: float, status: str = "complete") -> bool:
+        """`send_last`, then wait (at most `timeout` s) until the server has acknowledged everything. Returns True
+        when it has."""
+        self.send_last(rounds, status)
         t_end = time.monotonic() + timeout
-        while self.outbox.items and not self.finished_by_server and time.monotonic() < t_end:
+        while not self.settled() and time.monotonic() < t_end:
             self.service()
             time.sleep(0.05)
-        return not self.outbox.items or self.finished_by_server
+        return self.settled()

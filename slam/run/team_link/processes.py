@@ -180,11 +180,11 @@ def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: s
     from .agent_node import AgentNode
 
     cfg = config or SlamConfig()
+    if not 0 <= index <= 25:
+        raise InputError(f"--id: expected 0 to 25, got {index}")
     connect = list(connect or [])
     _check_endpoints("--server/--connect", connect)
     _check_endpoints("--listen", list(listen or []))
-    if not 0 <= index <= 25:
-        raise InputError(f"--id: expected 0 to 25, got {index}")
     stride = cfg.team.stride if stride is None else stride
     cap = frames if frames is not None else cfg.max_frames
     n = len(seq) if not cap else min(len(seq), int(cap))

@@ -302,6 +302,10 @@ class ServerNode:
         for _ in range(3):
             self.tx.send(None, L.Finished(status=status))
             time.sleep(0.05)
+        self.close()
+
+    def close(self) -> None:
+        """Close the journal (what a server that stops, or is killed, leaves behind)."""
         if self._journal is not None:
             self._journal.close()
             self._journal = None

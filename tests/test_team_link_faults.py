@@ -1,0 +1,198 @@
+"""Faults on the team link, injected over the in-process transport (slam.flocc.swarm.transport.InProcessNetwork):
+the agents and the server of slam.run.team_link run in this process, one round at a time, with a tick clock.
+Duplicated, delayed and reordered messages, and a link lost for several rounds, leave the outputs byte-identical
+to the in-process team's; a queue too small for a long outage drops the oldest keyframe images and never a pose
+or an edge; an agent that vanishes is reported lost and the other finishes; a server rebuilt from its journal
+continues as if nothing happened; garbage bytes are counted and dropped."""
+
+from __future__ import annotations
+
+import filecmp
+
+import pytest
+
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.flocc.swarm.transport import Faults, InProcessNetwork
+from test_team_link import FAST as LINK_TEST_CONFIG
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+FAST = {**LINK_TEST_CONFIG, "link": {"resend_s": 3.0, "agent_timeout_s": 8.0}}  # ticks of the test's clock
+SAME = ["loops.csv", "map.ply", "pose_graph_optimized.g2o", "trajectories/agent_0.txt", "trajectories/agent_1.txt",
+        "trajectories_no_lc/agent_1.txt"]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    from swarmsplat.slam.io.datasets import load_dataset
+    from swarmsplat.slam.io.datasets.split import split_sequence
+    from swarmsplat.slam.run.team import run_team
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    root = tmp_path_factory.mktemp("link_faults")
+    data = generate(root / "data", GeneratorConfig.preset("tiny", seed=0, agents=1, frames=8))
+    ds = split_sequence(load_dataset(data).agents[0], [(0, 5), (2, 8)])
+    cfg = SlamConfig().override(FAST)
+    m = run_team(ds, root / "in_process", cfg, progress=False)
+    assert m["all_agents_joined"], "the split must join (corrections are sent)"
+    return root, ds, cfg, m
+
+
+class Linked:
+    """The team's nodes on one simulated network: `round(i)` steps every agent once and lets the server work."""
+
+    def __init__(self, ds, cfg, faults=None, journal=None):
+        from swarmsplat.slam.run.team_link import messages as L
+        from swarmsplat.slam.run.team_link.agent_node import AgentNode
+
+        self.ds, self.cfg, self.journal = ds, cfg, journal
+        n = len(ds.agents)
+        self.net = InProcessNetwork(range(n + 1), faults=faults)
+        self.t = 0
+        self.clock = lambda: float(self.t)
+        self.server = self._server()
+        self.agents = [AgentNode(s.camera, cfg, s.name, self.net.endpoint(k + 1, L.LINK), clock=self.clock)
+                       for k, s in enumerate(ds.agents)]
+        for node, s in zip(self.agents, ds.agents):
+            node.start(len(s))
+        self.alive = [True] * n
+
+    def _server(self):
+        from swarmsplat.slam.dense.team.mirror import AgentMirror
+        from swarmsplat.slam.run.team import Team
+        from swarmsplat.slam.run.team_link import messages as L
+        from swarmsplat.slam.run.team_link.server_node import ServerNode
+
+        team = Team([s.camera for s in self.ds.agents], [s.name for s in self.ds.agents], self.cfg,
+                    agent_class=AgentMirror)
+        return ServerNode(team, self.net.endpoint(0, L.LINK), journal=self.journal, say=lambda *a: None,
+                          clock=self.clock)
+
+    def tick(self, k: int = 1) -> None:
+        for _ in range(k):
+            self.t += 1
+            self.net.advance(self.t)
+            self.server.step()
+            for node, alive in zip(self.agents, self.alive):
+                if alive:
+                    node.service()
+
+    def run(self, between=None, max_ticks: int = 200) -> None:
+        rounds = max(len(s) for s in self.ds.agents)
+        for i in range(rounds):
+            for node, s, alive in zip(self.agents, self.ds.agents, self.alive):
+                if alive and i < len(s):
+                    node.step_round(s, i, 1)
+                    if i == len(s) - 1:
+                        node.send_last(len(s))
+            if between:
+                between(self, i)
+            self.tick()
+        for _ in range(max_ticks):
+            if self.server.all_ended() and all(n.settled() for n, a in zip(self.agents, self.alive) if a):
+                break
+            self.tick()
+        assert self.server.all_ended(), self.server.status()
+        self.server.collect_submaps()
+
+    def write(self, out):
+        from swarmsplat.slam.run.team import finish_team
+
+        return finish_team(self.server.team, self.ds, out, wall_s=0.0, cpu0=0.0, render_views=2, progress=False)
+
+
+def _same(root, out):
+    return {f: filecmp.cmp(root / "in_process" / f, out / f, shallow=False) for f in SAME}
+
+
+def test_duplicates_delays_and_reordering_change_nothing(reference, tmp_path):
+    root, ds, cfg, m_in = reference
+    link = Linked(ds, cfg, Faults(duplicate=0.3, delay=(0, 3), reorder=True, seed=4))
+    link.run()
+    m = link.write(tmp_path)
+    assert all(_same(root, tmp_path).values()), _same(root, tmp_path)
+    assert m["loops"] == m_in["loops"] and m["ate_rmse_team"] == m_in["ate_rmse_team"]
+    dup = sum(p.recv_count.get("KeyframeMeta", 0) for r, p in link.server.tx.peer_stats.items())
+    assert dup > sum(len(a.keyframes) for a in link.server.team.agents)  # duplicates did arrive
+
+
+def test_lost_link_queues_and_resends(reference, tmp_path):
+    """Agent 1 loses the link for four rounds (its messages then are lost on the way), keeps tracking and mapping,
+    and its queue is resent when the link is back."""
+    root, ds, cfg, _ = reference
+
+    def outage(link, i):
+        if i == 1:
+            link.net.link_down(0, 2)
+        if i == 5:
+            link.net.link_up(0, 2)
+
+    link = Linked(ds, cfg)
+    link.run(outage)
+    assert link.agents[1].outbox.resent > 0
+    link.write(tmp_path)
+    assert all(_same(root, tmp_path).values()), _same(root, tmp_path)
+
+
+def test_a_full_queue_drops_the_oldest_images_never_poses(reference, tmp_path):
+    root, ds, cfg, _ = reference
+    small = cfg.override({"link": {"queue_mb": 0.4}})  # about two keyframes' images
+
+    def outage(link, i):
+        if i == 0:
+            link.net.link_down(0, 2)
+        if i == 5:
+            link.net.link_up(0, 2)
+
+    link = Linked(ds, small)
+    link.run(outage)
+    node, mirror = link.agents[1], link.server.team.agents[1]
+    dropped = node.outbox.dropped_images
+    assert dropped and dropped == sorted(dropped) and dropped[0] == 0  # the oldest first
+    assert len(mirror.keyframes) == len(node.agent.keyframes)  # every keyframe pose and edge arrived
+    assert len(mirror.loops.odometry) == len(node.agent.loops.odometry)
+    assert [p.frame_index for p in mirror.poses] == [p.frame_index for p in node.agent.poses]
+    assert link.server.link_metrics()["agents"]["agent_1"]["dropped_images"] == len(dropped)
+    link.write(tmp_path)  # the run completes without those images
+
+
+def test_an_agent_that_never_comes_back_is_reported_and_the_other_finishes(reference, tmp_path):
+    root, ds, cfg, _ = reference
+
+    def vanish(link, i):
+        if i == 2:
+            link.net.kill(2)
+            link.alive[1] = False
+
+    link = Linked(ds, cfg)
+    link.run(vanish, max_ticks=40)
+    assert link.server.peers[1].lost and not link.server.peers[0].lost
+    assert link.server.link_metrics()["lost_agents"] == ["agent_1"]
+    assert link.server.peers[0].processed == len(link.agents[0].agent.keyframes)
+
+
+def test_a_server_rebuilt_from_its_journal_continues(reference, tmp_path):
+    root, ds, cfg, _ = reference
+    journal = tmp_path / "journal.bin"
+
+    def restart(link, i):
+        if i == 3:  # the server process is gone; a new one reads the journal
+            link.server.close()
+            link.server = link._server()
+            assert link.server.replayed > 0
+
+    link = Linked(ds, cfg, journal=journal)
+    link.run(restart)
+    link.write(tmp_path)
+    assert all(_same(root, tmp_path).values()), _same(root, tmp_path)
+
+
+def test_garbage_and_foreign_messages_are_counted_and_dropped(reference):
+    from swarmsplat.slam.flocc.swarm import messages as SW
+
+    root, ds, cfg, _ = reference
+    link = Linked(ds, cfg)
+    link.net.inject(0, b"not a message at all")
+    link.net.inject(0, SW.encode(SW.Finish(tick=1), 1, 1))  # the swarm's family: another magic
+    link.tick()
+    assert link.server.tx.stats.rejected == 2
