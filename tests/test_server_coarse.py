@@ -71,6 +71,7 @@ def test_degenerate_depth_gives_a_rejected_candidate_with_its_reason(split_team)
     flat.id = 10_000  # not in the encoding cache
     flat.small = copy.copy(q.small)
     flat.small.depth = np.zeros_like(q.small.depth)
+    flat.map_rgbd = None  # the coarse start encodes the loop-closure copy then (slam.dense.team.descriptors.coarse_view)
     rec = srv.verify_inter(1, flat, 0, m, sim=1.0)
     assert not rec.accepted and rec.reason_code == "registration"
     assert "learned coarse guess not found" in rec.reason and "depth" in rec.reason, rec.reason

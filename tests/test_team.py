@@ -54,11 +54,12 @@ def test_two_agents_end_to_end(split_run):
     assert [a["name"] for a in saved["agents"]] == ["agent_0", "agent_1"]
     assert saved["kernels"]["torch_threads"] == saved["kernels"]["torch_threads_in_effect"] == 1  # as configured
     assert [a["frames_tracked"] for a in saved["agents"]] == [5, 6]
-    # The shared frames 2-4 give inter-agent loops; the first one brings agent 1 into agent 0's frame.
+    # The shared frames 2-4 give inter-agent loops; the second consistent one brings agent 1 into agent 0's frame
+    # (server.join_min_loops 2), and the first is kept as a loop after the join.
     inter = [r for r in csv.DictReader(open(out / "loops.csv")) if r["kind"] == "inter"]
     accepted = [r for r in inter if r["accepted"] == "True"]
-    assert accepted, f"no inter-agent loop accepted: {[r['reason'] for r in inter]}"
-    assert accepted[0]["joined"] == "True"
+    assert len(accepted) >= 2, f"fewer than two inter-agent loops accepted: {[r['reason'] for r in inter]}"
+    assert [r["joined"] for r in accepted].count("True") == 1 and saved["joins"]["made"] == 1
     assert saved["components"] == {"agent_0": ["agent_0", "agent_1"]}
     assert all(a["in_global_frame"] for a in saved["agents"])
     assert saved["joined_agents"] == ["agent_0", "agent_1"] and saved["unjoined_agents"] == []

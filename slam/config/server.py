@@ -32,8 +32,18 @@ class ServerConfig(BaseModel):
                                                       "is not found")
     same_frame_fallback: bool = Field(False, description="FPFH + RANSAC restart also for agents already in one "
                                       "frame when the start from their relative pose fails")
-    tau_sim: float = Field(0.85, ge=-1, le=1, description="inter-agent cosine similarity gate")
-    top_k: int = Field(2, ge=1, description="inter-agent candidates checked per new keyframe (best first)")
+    tau_sim: float | None = Field(None, ge=-1, le=1, description="inter-agent cosine similarity gate; null = "
+                                  "none: the top_k most similar keyframes are always verified")
+    top_k: int = Field(2, ge=1, description="inter-agent descriptor candidates verified per new keyframe (best "
+                                            "first): with loop_closure.pose_top_k, the verification budget per "
+                                            "keyframe")
+    coarse_width: int = Field(320, ge=32, description="width (pixels) at which the learned coarse start encodes "
+                              "and lifts each keyframe (its mapping-resolution copy, downsampled), encoded once")
+    join_min_loops: int = Field(2, ge=1, le=2, description="verified loops, mutually consistent, that two agents "
+                                "not yet in one frame need before they are joined (1 = the first verified loop)")
+    join_tolerance_trans: float = Field(0.15, gt=0, description="two join loops agree when the frame alignments "
+                                        "they imply map both query keyframes within this distance (m)")
+    join_tolerance_deg: float = Field(5.0, gt=0, description="... and differ by at most this rotation (degrees)")
     global_fallback: bool = Field(True, description="FPFH + RANSAC start when agents are not yet in one frame "
                                                     "(or the guess fails the gates)")
     solver: Literal["lm", "gnc"] = Field("lm", description="pose-graph solver; gnc rejects inconsistent loops")

@@ -118,6 +118,14 @@ def _loop_section(m: dict) -> list[str]:
                  + "; ".join(", ".join(v) for v in comps.values()) + ".")
     else:
         L.append("All agents were brought into one global frame.")
+    budget, joins = m.get("verification_budget"), m.get("joins")
+    if budget:
+        gate = "no similarity gate" if budget["tau_sim"] is None else f"similarity >= {budget['tau_sim']}"
+        L.append(f"Inter-agent verification budget: at most {budget['descriptor_per_keyframe']} descriptor and "
+                 f"{budget['pose_per_keyframe']} pose candidates per keyframe ({gate}).")
+    if joins:
+        L.append(f"Joins need {joins['min_loops']} mutually consistent loop(s): {joins['made']} made, "
+                 f"{joins['undone']} undone, {joins['unconfirmed_loops']} verified loop(s) left unconfirmed.")
     inter = m["loops"].get("inter", {})
     registered = sum(v for k, v in inter.get("by_reason", {}).items() if k != "similarity")
     if registered == 0:

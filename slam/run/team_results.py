@@ -121,6 +121,11 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "loop_candidates": len(srv.records), "pose_graph_optimisations": srv.optimisations,
         "pose_graph_not_applied": srv.not_applied,
         "inter_verify_s": srv.time["inter"],
+        "joins": {"made": srv.joins, "undone": srv.joins_undone, "unconfirmed_loops": len(srv.pending),
+                  "min_loops": srv.cfg.join_min_loops},
+        "verification_budget": {"descriptor_per_keyframe": srv.cfg.top_k, "tau_sim": srv.cfg.tau_sim,
+                                "pose_per_keyframe": team.cfg.loop_closure.pose_top_k
+                                if team.cfg.loop_closure.candidates != "descriptor" else 0},
         "inter_verify": {"by_source_and_coarse": srv.inter_stats, "coarse": srv.cfg.coarse,
                          "descriptor": srv.cfg.descriptor,
                          "encoder": srv.encoder.stats() if srv.encoder is not None else None},

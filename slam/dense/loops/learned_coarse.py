@@ -10,6 +10,7 @@ Frames: x_match = T_match_query @ x_query (the query camera's points into the ma
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -119,63 +120,90 @@ def coarse_guess_from_pair(color_q: np.ndarray, depth_q: np.ndarray, color_m: np
             raise InputError(f"coarse_guess_from_pair: {nm} must be [{camera.height}, {camera.width}] like its "
                              f"colour image and the camera, got {list(d.shape)} (colour {list(np.asarray(c).shape)})")
     reg = _xfeat(top_k, max_side)
-    enc_q = reg.encode(color_q) if enc_q is None else enc_q
-    enc_m = reg.encode(color_m) if enc_m is None else enc_m
-    pairs = reg.match(enc_q, enc_m)
+    lq = lifted(reg.encode(color_q) if enc_q is None else enc_q, depth_q, camera, depth_max=depth_max)
+    lm = lifted(reg.encode(color_m) if enc_m is None else enc_m, depth_m, camera, depth_max=depth_max)
+    T, info = guess_from_lifted(reg, lq, lm, min_inliers=min_inliers, min_inlier_ratio=min_inlier_ratio,
+                                threshold=threshold, seed=seed)
+    return T, info | {"time_s": time.perf_counter() - t0}
+
+
+@dataclass
+class Lifted:
+    """A keyframe's XFeat encoding with its keypoints lifted once with the keyframe's depth."""
+
+    encoding: object  # registration.pair.base.Encoding (backend 'xfeat')
+    points: np.ndarray  # [N, 3] camera-frame metres, one per keypoint
+    valid: np.ndarray  # [N] bool: depth valid and not on a depth edge (see `lift`)
+
+
+def lifted(encoding, depth: np.ndarray, camera: PinholeCamera, *, depth_max: float = np.inf) -> Lifted:
+    P, ok = lift(np.asarray(encoding.arrays["kp"], np.float64), np.asarray(depth), camera, depth_max=depth_max)
+    return Lifted(encoding, P, ok)
+
+
+def guess_from_lifted(reg, lq: Lifted, lm: Lifted, *, min_inliers: int = 15, min_inlier_ratio: float = 0.25,
+                      threshold: float = 0.03, seed: int = 0) -> tuple[np.ndarray | None, dict]:
+    """coarse_guess_from_pair's matching and RANSAC on two lifted encodings (`reg` the XFeat registrar that made
+    them); info without "time_s"."""
+    pairs = reg.match(lq.encoding, lm.encoding)
     info = {"n_matches": int(len(pairs)), "n_depth": 0, "n_inliers": 0, "inlier_rmse_m": float("nan")}
-
-    def done(T, reason=""):
-        return T, info | {"time_s": time.perf_counter() - t0, "reason": reason}
-
     if len(pairs) < min_inliers:
-        return done(None, f"too few matches ({len(pairs)} < {min_inliers})")
-    Pq, okq = lift(enc_q.arrays["kp"][pairs[:, 0]].astype(np.float64), np.asarray(depth_q), camera,
-                   depth_max=depth_max)
-    Pm, okm = lift(enc_m.arrays["kp"][pairs[:, 1]].astype(np.float64), np.asarray(depth_m), camera,
-                   depth_max=depth_max)
-    ok = okq & okm
-    Pq, Pm = Pq[ok], Pm[ok]
+        return None, info | {"reason": f"too few matches ({len(pairs)} < {min_inliers})"}
+    ok = lq.valid[pairs[:, 0]] & lm.valid[pairs[:, 1]]
+    Pq, Pm = lq.points[pairs[ok, 0]], lm.points[pairs[ok, 1]]
     info["n_depth"] = int(ok.sum())
     if len(Pq) < min_inliers:
-        return done(None, f"too few matches with valid depth ({len(Pq)} < {min_inliers})")
+        return None, info | {"reason": f"too few matches with valid depth ({len(Pq)} < {min_inliers})"}
     T, inl = ransac_rigid(Pq, Pm, threshold=threshold, seed=seed)
     n_in = int(inl.sum())
     info["n_inliers"] = n_in
     if T is None or n_in < max(min_inliers, min_inlier_ratio * len(Pq)):
-        return done(None, f"too few rigid inliers ({n_in} of {len(Pq)})")
+        return None, info | {"reason": f"too few rigid inliers ({n_in} of {len(Pq)})"}
     info["inlier_rmse_m"] = float(np.sqrt(np.mean(np.sum((Pq[inl] @ T[:3, :3].T + T[:3, 3] - Pm[inl]) ** 2, 1))))
-    return done(T)
+    return T, info | {"reason": ""}
 
 
 class KeyframeEncoder:
-    """The server's cache of one XFeat encoding per keyframe (key: (agent, keyframe id)), made the first time the
-    keyframe is needed and reused for every candidate it is in; `bytes` counts the encodings' wire size and
-    `seconds` the time spent encoding and guessing."""
+    """The server's cache of one XFeat encoding per keyframe (key: (agent, keyframe id)), its keypoints lifted
+    with the keyframe's depth, made the first time the keyframe is needed and reused for every candidate it is in.
+    Frames wider than `width` are downsampled to it first (the working resolution: at the 160-pixel loop-closure
+    copies XFeat finds too few matches across viewpoints, see docs/grand-slam.md). `bytes` counts the encodings'
+    wire size, `encode_s` / `guess_s` the time spent."""
 
-    def __init__(self, *, top_k: int = 512, max_side: int = 640, min_inliers: int = 15):
+    def __init__(self, *, top_k: int = 512, max_side: int = 640, min_inliers: int = 15, width: int = 320,
+                 depth_max: float = np.inf):
         self.top_k, self.max_side, self.min_inliers = int(top_k), int(max_side), int(min_inliers)
-        self.cache: dict = {}
+        self.width, self.depth_max = int(width), float(depth_max)
+        self.cache: dict = {}  # key -> Encoding
+        self.lifted: dict = {}  # key -> Lifted
         self.bytes = 0
         self.encode_s = 0.0
         self.guess_s = 0.0
         self.guesses = 0
         self.found = 0
 
-    def encode(self, key, color: np.ndarray):
+    def encode(self, key, rgbd):
+        """The Encoding of keyframe `key` from its RGB-D view `rgbd` (slam.dense.frames.RGBD or PackedRGBD, any
+        width), encoded and lifted on the first call only."""
         enc = self.cache.get(key)
         if enc is None:
             t0 = time.perf_counter()
-            enc = self.cache[key] = _xfeat(self.top_k, self.max_side).encode(color)
+            view = rgbd.resized(self.width) if rgbd.camera.width > self.width else rgbd
+            view_depth = view.depth
+            enc = self.cache[key] = _xfeat(self.top_k, self.max_side).encode(view.color)
+            self.lifted[key] = lifted(enc, view_depth, view.camera, depth_max=self.depth_max)
             self.bytes += enc.nbytes
             self.encode_s += time.perf_counter() - t0
         return enc
 
-    def guess(self, key_q, rgbd_q, key_m, rgbd_m, *, depth_max: float = np.inf) -> tuple[np.ndarray | None, dict]:
-        """coarse_guess_from_pair on two keyframes' small RGB-D copies (`slam.dense.frames.RGBD`), encodings cached."""
-        enc_q, enc_m = self.encode(key_q, rgbd_q.color), self.encode(key_m, rgbd_m.color)
-        T, info = coarse_guess_from_pair(rgbd_q.color, rgbd_q.depth, rgbd_m.color, rgbd_m.depth, rgbd_q.camera,
-                                         enc_q=enc_q, enc_m=enc_m, top_k=self.top_k, max_side=self.max_side,
-                                         depth_max=depth_max, min_inliers=self.min_inliers)
+    def guess(self, key_q, rgbd_q, key_m, rgbd_m) -> tuple[np.ndarray | None, dict]:
+        """The coarse guess T_match_query between two keyframes (their views encoded if not cached yet)."""
+        self.encode(key_q, rgbd_q)
+        self.encode(key_m, rgbd_m)
+        t0 = time.perf_counter()
+        T, info = guess_from_lifted(_xfeat(self.top_k, self.max_side), self.lifted[key_q], self.lifted[key_m],
+                                    min_inliers=self.min_inliers)
+        info["time_s"] = time.perf_counter() - t0
         self.guesses += 1
         self.found += int(T is not None)
         self.guess_s += info["time_s"]
@@ -184,5 +212,5 @@ class KeyframeEncoder:
     def stats(self) -> dict:
         n = len(self.cache)
         return {"keyframes_encoded": n, "encoding_bytes": self.bytes, "bytes_per_keyframe": self.bytes / n if n else 0,
-                "encode_s": self.encode_s, "guesses": self.guesses, "guesses_found": self.found,
-                "guess_s": self.guess_s}
+                "encode_width": self.width, "encode_s": self.encode_s, "guesses": self.guesses,
+                "guesses_found": self.found, "guess_s": self.guess_s}

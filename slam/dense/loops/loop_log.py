@@ -4,7 +4,8 @@ rejected, written as `loops.csv` and summarised in the report.
 "No loops found" without an explanation is the most common complaint about SLAM systems; every candidate that
 reached the similarity test is therefore kept, with a short machine-readable `reason_code`
 (`accepted`, `similarity`, `overlap`, `registration`, `fitness`, `rmse`, `correction`, `gnc`, `inconsistent`,
-`move`) beside the human sentence; `source` says where the candidate came from (`descriptor`: place recognition,
+`move`, `unconfirmed`: verified between agents not yet in one frame, but no second consistent loop confirmed the
+join) beside the human sentence; `source` says where the candidate came from (`descriptor`: place recognition,
 `pose`: the tracked poses' view overlap, GRAND-SLAM eq. 6).
 
 Intra-agent candidates come from the agent's own `LoopCloser.log` (slam.dense.loops.loop_closure.LoopCandidate); that record
@@ -23,7 +24,7 @@ from swarmsplat.kernels.fileio import atomic_write_text
 
 INTRA, INTER = "intra", "inter"
 REASON_CODES = ("accepted", "similarity", "overlap", "registration", "fitness", "rmse", "correction", "gnc",
-                "inconsistent", "move")
+                "inconsistent", "move", "unconfirmed")
 SOURCES = ("descriptor", "pose")
 
 

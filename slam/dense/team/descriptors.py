@@ -24,22 +24,31 @@ def make_recognizer_and_encoder(cfg: ServerConfig):
     if cfg.coarse == "learned" or cfg.descriptor == "xfeat-vlad":
         from swarmsplat.slam.dense.loops.learned_coarse import KeyframeEncoder
 
-        encoder = KeyframeEncoder()
+        encoder = KeyframeEncoder(width=cfg.coarse_width)
     return recognizer, encoder
 
 
+def coarse_view(kf: Keyframe):
+    """The keyframe view the learned coarse start encodes: the mapping-resolution copy while the keyframe has it
+    (the encoder downsamples it to server.coarse_width), else the loop-closure copy."""
+    return kf.map_rgbd if kf.map_rgbd is not None else kf.small
+
+
 def describe_keyframe(server, a: int, kf: Keyframe) -> None:
-    """Agent a's keyframe into server.descriptors[(a, kf.id)]. xfeat-vlad comes from the cached encoding; without
-    a vocabulary file the first `vocabulary_keyframes` keyframes train it (k-means on their XFeat descriptors) and
-    are described then (server._untrained holds them until then)."""
+    """Agent a's keyframe into server.descriptors[(a, kf.id)], and into the encoder's cache when the server has
+    one (encoded now, while the keyframe still holds its mapping-resolution view). xfeat-vlad comes from that
+    encoding; without a vocabulary file the first `vocabulary_keyframes` keyframes train it (k-means on their
+    XFeat descriptors) and are described then (server._untrained holds them until then)."""
     cfg, rec, enc = server.cfg, server.recognizer, server.encoder
+    if enc is not None:
+        enc.depth_max = server.slots[a].agent.cfg.image.max_depth
+        enc.encode((a, kf.id), coarse_view(kf))
     if rec is None:
         server.descriptors[a, kf.id] = kf.descriptor
         return
     if cfg.descriptor != "xfeat-vlad":
         server.descriptors[a, kf.id] = rec.describe(kf.small.color)
         return
-    enc.encode((a, kf.id), kf.small.color)
     if rec.trained:
         server.descriptors[a, kf.id] = rec.describe_encoding(enc.cache[a, kf.id])
         return

@@ -23,7 +23,7 @@ from swarmsplat.slam.dense.loops import loop_check
 from swarmsplat.slam.dense.loops.edge_information import fixed_information
 from swarmsplat.slam.dense.loops.loop_log import INTER, LoopRecord, from_intra
 from swarmsplat.slam.config import ServerConfig  # noqa: F401  (re-exported: slam.dense.team.server.ServerConfig)
-from swarmsplat.slam.dense.team.descriptors import describe_keyframe, make_recognizer_and_encoder
+from swarmsplat.slam.dense.team.descriptors import coarse_view, describe_keyframe, make_recognizer_and_encoder
 from swarmsplat.slam.dense.submaps import Keyframe, last_keyframes, world_pose
 
 
@@ -68,6 +68,9 @@ class Server:
         self.last_graph = None  # (PoseGraph, optimised poses) of the last optimisation
         self.descriptors: dict[tuple[int, int], np.ndarray] = {}  # (agent, keyframe id) -> unit vector
         self.inter_stats: dict = {}  # per source and coarse method: candidates, accepted, seconds
+        self.pending: list[InterLoop] = []  # verified loops between components waiting for a consistent second
+        self.joins = 0
+        self.joins_undone = 0
         self._untrained: list[tuple[int, int]] = []  # xfeat-vlad keyframes waiting for the vocabulary
         # The server's place recognizer (None: the agents' own descriptors) and its XFeat keyframe encoder.
         self.recognizer, self.encoder = make_recognizer_and_encoder(self.cfg)
@@ -109,8 +112,9 @@ class Server:
     # ---- inter-agent candidates and their verification ---------------------------------------------------------
 
     def inter_candidates(self, a: int, kf: Keyframe, step: int = 0) -> list[tuple[int, Keyframe, float]]:
-        """The `top_k` most similar keyframes of the other agents with similarity ≥ τ_sim. The best one below
-        the gate is logged (reason `similarity`), so a pair of agents that never matches is visible in loops.csv."""
+        """The `top_k` most similar keyframes of the other agents (similarity ≥ τ_sim when a gate is set; by
+        default none: verification decides). With a gate, the best one below it is logged (reason `similarity`),
+        so a pair of agents that never matches is visible in loops.csv."""
         d = self.descriptors.get((a, kf.id))
         if d is None:
             return []
@@ -123,11 +127,12 @@ class Server:
                 if e is not None:
                     scored.append((float(np.dot(d, e)), b, m))
         scored.sort(key=lambda s: -s[0])
-        out = [(b, m, s) for s, b, m in scored[: self.cfg.top_k] if s >= self.cfg.tau_sim]
+        tau = self.cfg.tau_sim
+        out = [(b, m, s) for s, b, m in scored[: self.cfg.top_k] if tau is None or s >= tau]
         if not out and scored:
             s, b, m = scored[0]
             self.records.append(self._record(a, kf, b, m, s, step).reject(
-                "similarity", f"similarity {s:.3f} < tau_sim {self.cfg.tau_sim}"))
+                "similarity", f"similarity {s:.3f} < tau_sim {tau}"))
         return out
 
     def inter_pose_candidates(self, a: int, kf: Keyframe, step: int = 0) -> list[tuple[int, Keyframe, float]]:
@@ -204,7 +209,7 @@ class Server:
         depth_max = self.slots[a].agent.cfg.image.max_depth
         fallback = self.cfg.global_fallback and (self.cfg.same_frame_fallback if same else True)
         if not same and self.cfg.coarse == "learned":
-            T_guess, info = self.encoder.guess((a, q.id), q.small, (b, m.id), m.small, depth_max=depth_max)
+            T_guess, info = self.encoder.guess((a, q.id), coarse_view(q), (b, m.id), coarse_view(m))
             fallback = self.cfg.global_fallback and self.cfg.learned_fallback
             if T_guess is not None:
                 T_init = T_guess
@@ -224,20 +229,138 @@ class Server:
             return rec.reject("rmse", f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {lc.rmse_max}")
         if not r.success:
             return rec.reject("registration", f"registration failed: {r.reason}")
-        if same:
-            rec.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
-            if rec.correction_m > lc.max_correction:
-                return rec.reject("correction", f"correction {rec.correction_m:.3f} m > max_correction "
-                                                f"{lc.max_correction}")
-        else:
-            self._join(b, m, a, q, r.T_target_source)
-            rec.joined = True
-        rec.accepted, rec.reason_code = True, "accepted"
-        rec.reason = "accepted" + (" (joined frames)" if rec.joined else "") + f" [{r.method}]"
         ag = self.slots[a].agent
         info = ag.loops.loop_information(r) if ag.cfg.loop_closure.information == "registration" else None
-        self.inter.append(InterLoop(b, m.id, a, q.id, _rigid(r.T_target_source), rec, info))
+        loop = InterLoop(b, m.id, a, q.id, _rigid(r.T_target_source), rec, info)
+        if not same:
+            return self._join_or_wait(loop, r.method)
+        rec.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
+        if rec.correction_m > lc.max_correction:
+            return rec.reject("correction", f"correction {rec.correction_m:.3f} m > max_correction {lc.max_correction}")
+        rec.accepted, rec.reason_code, rec.reason = True, "accepted", f"accepted [{r.method}]"
+        self.inter.append(loop)
         return rec
+
+    # ---- joining two agents' frames: only on mutually consistent loops, undone when they fail ------------------
+
+    def _alignment(self, L: InterLoop, moving: int) -> np.ndarray:
+        """The alignment [4, 4] that loop L implies from component `moving`'s frame into the other component's
+        (x_other = C x_moving), from the two keyframes' current poses in their components."""
+        gi = self.global_pose(L.agent_i, self._kf(L.agent_i, L.kf_i))
+        gj = self.global_pose(L.agent_j, self._kf(L.agent_j, L.kf_j))
+        C = gi @ L.T_ij @ se3.inverse(gj)  # j's component -> i's
+        return C if self.slots[L.agent_j].component == moving else se3.inverse(C)
+
+    def _kf(self, a: int, kf_id: int) -> Keyframe:
+        return self.slots[a].agent.keyframes[kf_id]
+
+    def _end_in(self, L: InterLoop, component: int) -> tuple[int, Keyframe]:
+        """(agent, keyframe) of loop L's end that lies in `component`."""
+        if self.slots[L.agent_j].component == component:
+            return L.agent_j, self._kf(L.agent_j, L.kf_j)
+        return L.agent_i, self._kf(L.agent_i, L.kf_i)
+
+    def _agree(self, L: InterLoop, P: InterLoop) -> tuple[bool, str]:
+        """Whether loops L and P (between the same two components) imply the same alignment: the two alignments
+        map each loop's keyframe in the moving component within server.join_tolerance_trans of each other and
+        differ by at most join_tolerance_deg. Independent evidence only: the two loops share no keyframe."""
+        if {(L.agent_i, L.kf_i), (L.agent_j, L.kf_j)} & {(P.agent_i, P.kf_i), (P.agent_j, P.kf_j)}:
+            return False, "shares a keyframe"
+        moving = self.slots[L.agent_j].component
+        CL, CP = self._alignment(L, moving), self._alignment(P, moving)
+        pts = [self.global_pose(*self._end_in(X, moving))[:3, 3] for X in (L, P)]
+        dt = max(float(np.linalg.norm((CL[:3, :3] - CP[:3, :3]) @ p + CL[:3, 3] - CP[:3, 3])) for p in pts)
+        dr = float(np.degrees(se3.rotation_angle(CL[:3, :3].T @ CP[:3, :3])))
+        ok = dt <= self.cfg.join_tolerance_trans and dr <= self.cfg.join_tolerance_deg
+        return ok, f"{100 * dt:.1f} cm / {dr:.2f} deg"
+
+    def _join_or_wait(self, L: InterLoop, method: str) -> LoopRecord:
+        """A verified loop between agents in different frames: join their components when it agrees with an
+        earlier such loop (server.join_min_loops = 2; with 1 it joins at once), else keep it pending."""
+        rec = L.record
+        ci, cj = self.slots[L.agent_i].component, self.slots[L.agent_j].component
+        partner, why = None, ""
+        if self.cfg.join_min_loops > 1:
+            for P in self.pending:
+                if {self.slots[P.agent_i].component, self.slots[P.agent_j].component} != {ci, cj}:
+                    continue
+                ok, why = self._agree(L, P)
+                if ok:
+                    partner = P
+                    break
+            if partner is None:
+                self.pending.append(L)
+                return rec.reject("unconfirmed", f"verified [{method}] between agents in different frames; waiting "
+                                                 f"for a second, consistent loop before joining them")
+        b, a = L.agent_i, L.agent_j
+        self._join(b, self._kf(b, L.kf_i), a, self._kf(a, L.kf_j), L.T_ij)
+        self.joins += 1
+        rec.joined = True
+        rec.accepted, rec.reason_code = True, "accepted"
+        rec.reason = f"accepted (joined frames) [{method}]" + (f"; agrees with loop {partner.record.query_agent}:"
+                                                                f"{partner.record.query_kf} within {why}"
+                                                                if partner else "")
+        self.inter.append(L)
+        if partner is not None:
+            self.pending.remove(partner)
+            partner.record.accepted, partner.record.reason_code = True, "accepted"
+            partner.record.reason = "accepted (confirmed the join)"
+            self.inter.append(partner)
+        self._settle_pending()
+        return rec
+
+    def _settle_pending(self) -> None:
+        """Pending loops whose agents a join has just put in one frame: kept as loops when they agree with the
+        joined frames (within join_tolerance), else rejected as inconsistent with the join."""
+        lc = self.slots[0].agent.cfg.loop_closure
+        for P in list(self.pending):
+            if self.slots[P.agent_i].component != self.slots[P.agent_j].component:
+                continue
+            self.pending.remove(P)
+            T_now = se3.inverse(self.global_pose(P.agent_i, self._kf(P.agent_i, P.kf_i))) @ \
+                self.global_pose(P.agent_j, self._kf(P.agent_j, P.kf_j))
+            D = se3.inverse(T_now) @ P.T_ij
+            dt, dr = float(np.linalg.norm(D[:3, 3])), float(np.degrees(se3.rotation_angle(D[:3, :3])))
+            P.record.correction_m = dt
+            if dt <= max(self.cfg.join_tolerance_trans, lc.max_correction) and dr <= self.cfg.join_tolerance_deg:
+                P.record.accepted, P.record.reason_code, P.record.reason = True, "accepted", "accepted (after the join)"
+                self.inter.append(P)
+            else:
+                P.record.reject("inconsistent", f"inconsistent with the joined frames: {100 * dt:.1f} cm / "
+                                                f"{dr:.2f} deg")
+
+    def _split_unsupported(self) -> int:
+        """Undo joins that lost every loop supporting them (rejected after optimisation, by GNC or by the move
+        check): agents are regrouped by the inter-agent loops still active, and a group cut off from its old
+        component's root takes its lowest agent as its own root (frames re-expressed, poses unchanged). Returns
+        how many components were split off."""
+        n = len(self.slots)
+        root = list(range(n))
+
+        def find(x):
+            while root[x] != x:
+                root[x] = root[root[x]]
+                x = root[x]
+            return x
+
+        for k, L in enumerate(self.inter):
+            if not L.rejected and ("inter", k) not in self.rejected_edges:
+                ra, rb = find(L.agent_i), find(L.agent_j)
+                root[max(ra, rb)] = min(ra, rb)
+        groups: dict[int, list[int]] = {}
+        for a in range(n):
+            groups.setdefault(find(a), []).append(a)
+        split = 0
+        for r, members in groups.items():
+            if self.slots[r].component == r:  # still its component's root: its members keep their frames
+                continue
+            split += 1
+            T_r = se3.inverse(self.slots[r].T_global_world)
+            for a in members:
+                self.slots[a].T_global_world = _rigid(T_r @ self.slots[a].T_global_world)
+                self.slots[a].component = r
+        self.joins_undone += split
+        return split
 
     def _join(self, b: int, m: Keyframe, a: int, q: Keyframe, T_m_q: np.ndarray) -> None:
         """Bring the components of agents a and b into one frame, the one of the lower-numbered root."""
@@ -327,7 +450,7 @@ class Server:
                                                f"loops justify ({allowed:.3f} m): not applied")
             self.time["optimisation"] += time.perf_counter() - t0
             return {"submaps_moved": 0, "max_shift_m": 0.0, "solver": res.solver, "rejected": rejected,
-                    "applied": False}
+                    "applied": False, "joins_undone": self._split_unsupported()}
         self._mark_applied()
         shifts = []
         for a, s in enumerate(self.slots):
@@ -343,7 +466,7 @@ class Server:
         self.last_graph = (g, res.poses)
         self.time["optimisation"] += time.perf_counter() - t0
         return {"submaps_moved": len(shifts), "max_shift_m": max(shifts, default=0.0), "solver": res.solver,
-                "rejected": rejected + len(res.rejected), "applied": True}
+                "rejected": rejected + len(res.rejected), "applied": True, "joins_undone": self._split_unsupported()}
 
     def _unapplied_loops(self) -> list[tuple]:
         out = [("intra", a, n) for a, s in enumerate(self.slots) for n, e in enumerate(s.agent.loops.loops)
