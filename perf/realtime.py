@@ -125,8 +125,10 @@ def markdown(res: dict) -> str:
              "CPU time over the stream, per thread (their sum above the stream's wall time means tracking and "
              "mapping ran at the same time; the process figure adds the frame reader's decoding). Cores used: the "
              "process's CPU time over the stream's wall time, of the machine's cores; below them, other processes "
-             "had the rest. Tracker CPU per frame: what a tracking step costs without waiting for a core or the "
-             "GIL (step_p50_ms above it is that wait):", "",
+             "had the rest. Tracker CPU per frame: the tracker thread's own CPU per tracked frame, a lower bound "
+             "of a step's cost (the process figure also holds the reader's decoding and Warp's launch pool, "
+             "which runs half of either thread's larger kernels); step_p50_ms above it is waiting for a core "
+             "or the GIL:", "",
              markdown_table([_cpu_row(r) for r in rt], CPU_COLUMNS), ""]
     for r in rt:
         if r.get("targets_met"):

@@ -1,7 +1,8 @@
 """What a real-time run measured, as metrics.json's `realtime` block and the Markdown of its report.md: frames
 arrived, tracked and dropped (and why), pose latency (arrival -> pose: p50 / p95 / max), mapping iterations per
 keyframe, keyframes deferred while mapping was busy, and the CPU time of each thread against the stream's wall
-time (their sum above the wall time means they ran at the same time)."""
+time (their sum above the wall time means they ran at the same time; the process's figure also holds the
+reader's decoding and Warp's launch pool, which runs half of either thread's larger kernels)."""
 
 from __future__ import annotations
 
