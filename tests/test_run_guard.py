@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -116,7 +117,7 @@ class _Progress:
 
     def wait_for(self, needle: str, proc: subprocess.Popen, timeout: float = 240.0) -> None:
         t0 = time.time()
-        while needle not in self.text:
+        while not re.search(needle, self.text):  # a regular expression
             assert proc.poll() is None, f"ended early:\n{self.text[-2000:]}"
             assert time.time() - t0 < timeout, f"never saw {needle!r}:\n{self.text[-2000:]}"
             time.sleep(0.05)
@@ -134,7 +135,7 @@ def _spawn(args: list[str], **kw) -> subprocess.Popen:
 
 
 def interrupt_after(needle: str, proc: subprocess.Popen) -> str:
-    """Send SIGINT once the child's progress shows `needle`; it must exit 130 within 15 s. Returns its stderr."""
+    """Send SIGINT once the child's progress matches `needle` (a regular expression); it must exit 130 within 15 s. Returns its stderr."""
     log = _Progress(proc)
     log.wait_for(needle, proc)
     t0 = time.time()
