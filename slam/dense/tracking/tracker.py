@@ -328,13 +328,14 @@ class Tracker:
         """Self-check of a fresh model view: the keyframe it was rendered at, aligned to it from its own pose,
         must stay within `max_view_bias` (m). A map that disagrees with its own keyframe (e.g. too few mapping
         iterations) would pull every frame by that much."""
-        B = self._view_bias(view, target, self._prev)
+        B = self._view_bias(view, target)
         return B is not None and float(np.linalg.norm(B[:3, 3])) <= self.cfg.max_view_bias
 
-    def _view_bias(self, view: RGBD, target: ModelTarget, keyframe: RGBD) -> np.ndarray | None:
-        """T_view_keyframe [4, 4]: the keyframe the view was rendered at, aligned to it from its own pose (the
-        identity for a map that agrees with its keyframe); None when the alignment fails."""
-        f = keyframe.resized(self.cfg.refine_max_width)
+    def _view_bias(self, view: RGBD, target: ModelTarget, keyframe: RGBD | None = None) -> np.ndarray | None:
+        """T_view_keyframe [4, 4]: the keyframe the view was rendered at (default: the frame tracked last),
+        aligned to it from its own pose (the identity for a map that agrees with its keyframe); None when the
+        alignment fails."""
+        f = (self._prev if keyframe is None else keyframe).resized(self.cfg.refine_max_width)
         if f.camera != view.camera or view.valid_fraction() < self.cfg.min_model_coverage:
             return np.eye(4)  # nothing to check against (refine_against_view skips an uncovered view itself)
         r = align_to_model(f, target, np.eye(4), iterations=self.cfg.iterations,

@@ -12,7 +12,7 @@ the worker.
 
 The threads share the map without locks by construction: the worker only changes the submap it maps (the tracker
 reads the Gaussians published before), and the tracker changes the submaps and the keyframe list only while the
-worker is idle. Warp's kernels and torch's operators release the GIL, so the two threads run at the same time
+worker is idle (the retired submap's keyframe images are packed by the worker, as its next job's first step). Warp's kernels and torch's operators release the GIL, so the two threads run at the same time
 (the run measures it: metrics.json realtime.cpu_s).
 """
 
@@ -27,6 +27,7 @@ from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent, FramePose
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
+from swarmsplat.slam.dense.packed import PackedRGBD, pack
 from swarmsplat.slam.dense.submaps import Keyframe
 
 
@@ -93,16 +94,22 @@ class RealtimeAgent(Agent):
 
     def _hand_over(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> np.ndarray:
         before = self.gmap.active.id if self.gmap.submaps else None
-        T_local_cam = self._maybe_start_submap(T_local_cam)
+        compress, self.compress_keyframes = self.compress_keyframes, False  # packed on the worker (_pack)
+        try:
+            T_local_cam = self._maybe_start_submap(T_local_cam)
+        finally:
+            self.compress_keyframes = compress
+        retired = []
         if self.gmap.active.id != before:
             self._published = self.gmap.active.params  # a new submap: nothing mapped in it yet
+            retired = [k for k in self.keyframes if k.submap_id == before] if compress else []
         kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
         information = self._chain.information()
         self._chain.reset()
         self._idle.clear()
         self._pending.clear()
         with self._cv:
-            self._job = (kf, information, frame)
+            self._job = (kf, information, frame, retired)
             self._cv.notify()
         return T_local_cam
 
@@ -150,9 +157,10 @@ class RealtimeAgent(Agent):
             self.worker_cpu_s = time.thread_time() - c0
             self._idle.set()
 
-    def _keyframe(self, kf: Keyframe, information, frame: RGBD) -> None:
+    def _keyframe(self, kf: Keyframe, information, frame: RGBD, retired: list[Keyframe]) -> None:
         rt = self.cfg.runtime
         t0 = time.perf_counter()
+        self._pack(retired)
         first = len(self.gmap.submaps[kf.submap_id].keyframe_ids) == 1
         planned = rt.max_mapping_iterations or (self.cfg.mapping.first_iterations if first else
                                                 self.cfg.mapping.iterations)
@@ -177,3 +185,13 @@ class RealtimeAgent(Agent):
         self.time.loop_closure += t2 - t1
         self.mapping_log.append({"keyframe": kf.id, "frame": kf.frame_index, "iterations": stats.iterations,
                                  "planned": planned, "mapping_s": t1 - t0, "loop_closure_s": t2 - t1})
+
+    @staticmethod
+    def _pack(retired: list[Keyframe]) -> None:
+        """Pack the images of a retired submap's keyframes as slam.dense.submaps.start_submap does with `compress`
+        (tens of ms per keyframe: on the worker, not in a frame's latency); lossless, so reads are unchanged."""
+        for k in retired:
+            if k.map_rgbd is not None and not isinstance(k.map_rgbd, PackedRGBD):
+                k.map_rgbd = pack(k.map_rgbd)
+            if not isinstance(k.small, PackedRGBD):
+                k.small = pack(k.small)
