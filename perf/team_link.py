@@ -2,10 +2,11 @@
 `python -m perf team-link [--quick] [--only demo|redwood-split] [--out-dir perf/results]`.
 
   demo           the `swarmsplat demo` dataset and config (3 generated agents, every 2nd of 120 frames, 320x240):
-                 `swarmsplat run DATA --config demo.yaml` in one process, then with --processes (float32
-                 Gaussians), then with --processes and link.gaussians float16
+                 `swarmsplat run DATA --config demo.yaml` in one process, then with --processes (lossless images,
+                 float32 Gaussians), with link.gaussians float16, and compact (link.images compact: JPEG colour
+                 and millimetre depth, and float16 Gaussians)
   redwood-split  ../shared/data/redwood_livingroom1_211 cut in two (--split 0:106,106:), default config, in one
-                 process and with --processes
+                 process, with --processes, and compact
 
 Each command runs as a user runs it, in its own process (--processes starts the agents' processes itself); the
 figures are its metrics.json: team ATE, PSNR, loops, and for --processes the link's bytes per agent, per message
@@ -94,24 +95,31 @@ def _r(x):
     return None if x is None else round(x, 2)
 
 
+COMPACT = {"images": "compact", "gaussians": "float16"}
+
+
 def run_case(name: str, scratch: Path, quick: bool) -> list[dict]:
+    scratch.mkdir(parents=True, exist_ok=True)
     if name == "demo":
         data, cfg = _demo_inputs(scratch, "tiny" if quick else "default")
-        base = [str(data), "--config", str(cfg)]
-        variants = [("in-process", base), ("processes", base + ["--processes"])]
-        if not quick:
-            half = scratch / "float16.yaml"
-            half.write_text(_with_half(cfg))
-            variants.append(("processes float16", [str(data), "--config", str(half), "--processes"]))
+        source = [str(data)]
     else:
         if not REDWOOD.is_dir():
             return []
-        variants = [("in-process", [str(REDWOOD), "--split", "0:106,106:"]),
-                    ("processes", [str(REDWOOD), "--split", "0:106,106:", "--processes"])]
+        from swarmsplat.slam.config import SlamConfig
+
+        cfg = scratch / "default.yaml"
+        cfg.write_text(SlamConfig().to_yaml())
+        source = [str(REDWOOD), "--split", "0:106,106:"]
+    variants = [("in-process", cfg, []), ("processes", cfg, ["--processes"]),
+                ("processes float16", _with_link(cfg, {"gaussians": "float16"}), ["--processes"]),
+                ("processes compact", _with_link(cfg, COMPACT), ["--processes"])]
+    if quick or name != "demo":
+        variants.pop(2)
     rows, outs = [], {}
-    for mode, args in variants:
+    for mode, c, extra in variants:
         out = scratch / f"{name}-{mode.replace(' ', '-')}"
-        r = _run(args, out)
+        r = _run([*source, "--config", str(c), *extra], out)
         outs[mode] = out
         row = _row(name, mode, r)
         row["link"] = r["metrics"].get("link")
@@ -121,12 +129,14 @@ def run_case(name: str, scratch: Path, quick: bool) -> list[dict]:
     return rows
 
 
-def _with_half(cfg: Path) -> str:
+def _with_link(cfg: Path, link: dict) -> Path:
     import yaml
 
     d = yaml.safe_load(cfg.read_text())
-    d.setdefault("link", {})["gaussians"] = "float16"
-    return yaml.safe_dump(d, sort_keys=False)
+    d.setdefault("link", {}).update(link)
+    out = cfg.with_name(cfg.stem + "-" + "-".join(str(v) for v in link.values()) + ".yaml")
+    out.write_text(yaml.safe_dump(d, sort_keys=False))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -169,6 +169,12 @@ def test_an_agent_that_never_comes_back_is_reported_and_the_other_finishes(refer
     assert link.server.peers[1].lost and not link.server.peers[0].lost
     assert link.server.link_metrics()["lost_agents"] == ["agent_1"]
     assert link.server.peers[0].processed == len(link.agents[0].agent.keyframes)
+    from swarmsplat.slam.run.team_link.processes import _write_estimates
+
+    link.server.collect_submaps()
+    m = _write_estimates(link.server.team, tmp_path, 0.0, 0.0, {"lost_agents": ["agent_1"]})
+    assert m["run"]["lost_agents"] == ["agent_1"] and m["agents"][0]["frames_tracked"] == 5
+    assert (tmp_path / "trajectories" / "agent_0.txt").is_file() and (tmp_path / "loops.csv").is_file()
 
 
 def test_a_server_rebuilt_from_its_journal_continues(reference, tmp_path):
@@ -196,3 +202,39 @@ def test_garbage_and_foreign_messages_are_counted_and_dropped(reference):
     link.net.inject(0, SW.encode(SW.Finish(tick=1), 1, 1))  # the swarm's family: another magic
     link.tick()
     assert link.server.tx.stats.rejected == 2
+
+
+def test_link_messages_round_trip_and_compact_encodings():
+    """Every link message decodes to what was sent; float16 Gaussians stay within half-float rounding (means
+    exact); compact images keep depth within 0.5 mm; a message of another schema version is refused."""
+    import numpy as np
+    import torch
+
+    from swarmsplat.kernels.camera import PinholeCamera
+    from swarmsplat.slam.dense.frames import RGBD
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams, Submap
+    from swarmsplat.slam.dense.packed import pack_lossy
+    from swarmsplat.slam.flocc.swarm.messages import MessageError
+    from swarmsplat.slam.run.team_link import messages as L
+
+    g = torch.Generator().manual_seed(0)
+    n = 50
+    p = GaussianParams(torch.randn(n, 3, generator=g), torch.randn(n, 3, generator=g) - 4,
+                       torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
+                       torch.randn(n, generator=g), torch.rand(n, 3, generator=g))
+    sm = Submap(3, np.eye(4), p, keyframe_ids=[7, 8])
+    for enc, tol in (("float32", 0.0), ("float16", 2e-3)):
+        h, back = L.LINK.decode(L.LINK.encode(L.SubmapData.pack(5, sm, enc), 2, 9))
+        q = back.params()
+        assert h.sender == 2 and back.id == 3 and back.keyframe_ids == [7, 8]
+        assert torch.equal(q.means, p.means)
+        for name in ("log_scales", "quats", "logit_opacities", "colors"):
+            assert torch.allclose(getattr(q, name), getattr(p, name), rtol=tol, atol=tol), (enc, name)
+    f = RGBD((np.arange(48 * 64 * 3) % 251).astype(np.uint8).reshape(48, 64, 3),
+             np.linspace(0.3, 4.0, 48 * 64, dtype=np.float32).reshape(48, 64), PinholeCamera(60, 60, 32, 24, 64, 48))
+    c = pack_lossy(f, 90)
+    assert np.abs(c.depth - f.depth).max() <= 5e-4 + 1e-6 and c.color.shape == f.color.shape
+    data = bytearray(L.LINK.encode(L.Ack(mids=np.arange(3)), 0, 1))
+    data[4] = L.SCHEMA_VERSION + 1
+    with pytest.raises(MessageError, match="schema version"):
+        L.LINK.decode(bytes(data))

@@ -17,9 +17,16 @@ class LinkConfig(BaseModel):
     gaussians: Literal["float32", "float16"] = Field(
         "float32", description="encoding of a finished submap's Gaussians on the link: float32 (exact) or float16 "
                                "(half the bytes; means stay float32)")
+    images: Literal["lossless", "compact"] = Field(
+        "lossless", description="keyframe images on the link: lossless PNG (the server sees the agent's frames bit "
+                                "for bit), or compact: JPEG colour (jpeg_quality) and depth rounded to millimetres")
+    jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of images: compact")
+    map_views: bool = Field(True, description="send each keyframe's mapping-resolution copy too when the server "
+                                              "refines the merged map on it (map_refine.views mapping); false: it "
+                                              "refines on the loop-closure copies")
     queue_mb: float = Field(256.0, gt=0, description="an agent's unacknowledged keyframe images beyond this many MB "
                                                      "are dropped, oldest first (poses, edges and submaps are kept)")
-    resend_s: float = Field(5.0, gt=0, description="an agent sends a message again when the server has not "
+    resend_s: float = Field(30.0, gt=0, description="an agent sends a message again when the server has not "
                                                    "acknowledged it within this many seconds")
     connect_timeout_s: float = Field(60.0, gt=0, description="an agent gives up when no server answers within this "
                                                              "many seconds of its start")

@@ -84,6 +84,18 @@ class PackedRGBD:
         return self.unpacked().valid_fraction()
 
 
+def pack_lossy(frame: RGBD | PackedRGBD, quality: int = 90) -> PackedRGBD:
+    """`frame` compressed for a link, not losslessly: colour as JPEG at `quality`, depth rounded to millimetres
+    (16-bit PNG). Reads like any PackedRGBD."""
+    depth = np.asarray(frame.depth, dtype=np.float64)
+    mm = np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16)
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(np.ascontiguousarray(frame.color), cv2.COLOR_RGB2BGR),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError(f"JPEG encoding failed for an image {list(frame.color.shape)}")
+    return PackedRGBD.from_png(frame.camera, jpg.tobytes(), _encode(mm), True)
+
+
 def pack(frame: RGBD | PackedRGBD | None) -> RGBD | PackedRGBD | None:
     """`frame` packed (None and packed frames pass through)."""
     return frame if frame is None or isinstance(frame, PackedRGBD) else PackedRGBD(frame)

@@ -18,7 +18,7 @@ from swarmsplat.kernels.errors import SwarmsplatError
 
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent
-from swarmsplat.slam.dense.packed import pack
+from swarmsplat.slam.dense.packed import pack, pack_lossy
 from swarmsplat.slam.run.guard import read_frame
 
 from . import messages as L
@@ -225,12 +225,14 @@ class AgentNode:
             descriptor=np.zeros(0, np.float32) if kf.descriptor is None else np.asarray(kf.descriptor, np.float32),
             odom_T=e(4) if odom is None else odom.T_ij[None], odom_info=e(6) if odom is None else odom.info[None],
             submap_start=e(4) if start is None else start[None]))
-        small = pack(kf.small)
+        link = self.cfg.link
+        enc = pack if link.images == "lossless" else lambda f: pack_lossy(f, link.jpeg_quality)  # noqa: E731
+        small = enc(kf.small)
         sc, sd, smm = small.png()
         img = dict(small_camera=camera_list(small.camera), small_color=np.frombuffer(sc, np.uint8),
                    small_depth=np.frombuffer(sd, np.uint8), depth_mm=[int(smm)])
-        if self.map_views and kf.map_rgbd is not None:
-            big = pack(kf.map_rgbd)
+        if self.map_views and link.map_views and kf.map_rgbd is not None:
+            big = enc(kf.map_rgbd)
             mc, md, mmm = big.png()
             img.update(map_camera=camera_list(big.camera), map_color=np.frombuffer(mc, np.uint8),
                        map_depth=np.frombuffer(md, np.uint8), depth_mm=[int(smm), int(mmm)])

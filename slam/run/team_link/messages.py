@@ -34,6 +34,14 @@ SCHEMA_VERSION = 1
 SERVER = 0  # the server's node id; agent k is node k + 1
 
 
+def _finite_poses(T: np.ndarray, what: str) -> None:
+    """MessageError unless T [N, 4, 4] is finite with the last row 0 0 0 1 (tracked poses: their rotations are
+    the tracker's, orthonormal to its rounding, and are passed on as they are)."""
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)) or \
+            (len(T) and np.abs(T[:, 3] - [0, 0, 0, 1]).max() > 0):
+        raise MessageError(f"{what}: poses must be finite [N, 4, 4] with a last row 0 0 0 1")
+
+
 def _f(shape_tail=()):
     return lambda: np.zeros((0, *shape_tail))
 
@@ -82,9 +90,9 @@ class KeyframeMeta(Message):
     submap_start: np.ndarray = field(default_factory=_f((4, 4)))  # [1, 4, 4] T_prev_local_new, or [0]
 
     def validate(self) -> None:
-        _check_poses(self.T_local_cam, "KeyframeMeta")
-        _check_poses(self.odom_T, "KeyframeMeta")
-        _check_poses(self.submap_start, "KeyframeMeta")
+        _finite_poses(self.T_local_cam, "KeyframeMeta")
+        _finite_poses(self.odom_T, "KeyframeMeta")
+        _finite_poses(self.submap_start, "KeyframeMeta")
         if len(self.T_local_cam) != 1 or len(self.odom_T) != len(self.odom_info) or len(self.odom_T) > 1 \
                 or len(self.submap_start) > 1 or self.odom_info.shape[1:] != (6, 6) \
                 or not np.all(np.isfinite(self.odom_info)) or not np.all(np.isfinite(self.descriptor)):
@@ -136,7 +144,7 @@ class Frames(Message):
         if len(self.timestamp) != n or len(self.submap_id) != n or len(self.T_local_cam) != n \
                 or min(self.rounds_done, self.keyframes) < 0:
             raise MessageError("Frames: arrays of different lengths or negative counts")
-        _check_poses(self.T_local_cam, "Frames")
+        _finite_poses(self.T_local_cam, "Frames")
         if not all(isinstance(s, list) and len(s) == 2 and isinstance(s[0], int) and isinstance(s[1], str)
                    for s in self.skipped):
             raise MessageError("Frames: skipped must be [[frame index, reason]]")

@@ -75,6 +75,9 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
         if progress:
             print(f"[server] waiting for {agents} agents on {', '.join(listen + connect)}", file=sys.stderr)
         node.run(progress=progress, timeout=timeout)
+        if not any(p.joined for p in node.peers):
+            raise SwarmsplatError(f"no agent joined within {cfg.link.agent_timeout_s:.0f} s (link.agent_timeout_s) "
+                                  f"on {', '.join(listen + connect)}")
         wall = time.perf_counter() - t0
         lost = [p.name for p in node.peers if p.lost]
         run_info = {"processes": True, "lost_agents": lost}

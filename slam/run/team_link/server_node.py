@@ -57,6 +57,8 @@ class Peer:
     last_heard: float = 0.0
     lost: bool = False
     ack: list = field(default_factory=list)  # message ids to acknowledge
+    duplicates: int = 0  # messages received again (resent, or duplicated on the way)
+    unique_bytes: dict = field(default_factory=dict)  # message kind -> bytes of the first copies
 
     def ended(self, frames: int = 0) -> bool:
         """Lost, or done with every keyframe handed over and every submap and frame pose received (`frames`:
@@ -126,13 +128,15 @@ class ServerNode:
             self._join(a, msg)
         if msg.mid in p.seen:
             p.ack.append(msg.mid)
+            p.duplicates += 1
             return
         if isinstance(msg, L.Join) and msg.config != self.digest:
             return  # refused (Welcome ok=0): not kept, not acknowledged
         p.seen.add(msg.mid)
         p.ack.append(msg.mid)
+        data = L.LINK.encode(msg, a + 1, 0)  # the size on the wire (only the header's sequence number differs)
+        p.unique_bytes[msg.kind] = p.unique_bytes.get(msg.kind, 0) + len(data)
         if journal and self._journal is not None:
-            data = L.LINK.encode(msg, a + 1, 0)
             self._journal.write(struct.pack("<I", len(data)) + data)
             self._journal.flush()
         if isinstance(msg, L.KeyframeMeta):
@@ -159,7 +163,6 @@ class ServerNode:
         if not p.joined:
             ag = self.team.agents[a]
             ag.name, ag.camera = msg.name, _camera(msg.camera)
-            self.team.server.slots[a].agent = ag
             p.name, p.joined = msg.name, True
             self.say(f"[server] {msg.name} joined as agent {a}")
         self.tx.send(a + 1, L.Welcome(agent=a, ok=1))
@@ -318,7 +321,8 @@ class ServerNode:
             st = self.tx.peer_stats[a + 1]
             recv, sent = dict(st.recv_bytes), dict(st.sent_bytes)
             n_kf, n_sm = p.processed, len(p.submaps)
-            kf_bytes = recv.get("KeyframeMeta", 0) + recv.get("KeyframeImage", 0)
+            once = p.unique_bytes
+            kf_bytes = once.get("KeyframeMeta", 0) + once.get("KeyframeImage", 0)
             both = int(sum(recv.values()) + sum(sent.values()))
             total += both
             raw = n_kf * RAW_KEYFRAME_BYTES
@@ -327,8 +331,9 @@ class ServerNode:
                 "bytes_to_agent": sent, "messages_to_agent": dict(st.sent_count),
                 "bytes_total": both, "keyframes": n_kf, "submaps": n_sm,
                 "bytes_per_keyframe": kf_bytes / n_kf if n_kf else None,
-                "image_bytes_per_keyframe": recv.get("KeyframeImage", 0) / n_kf if n_kf else None,
-                "bytes_per_submap": recv.get("SubmapData", 0) / n_sm if n_sm else None,
+                "image_bytes_per_keyframe": once.get("KeyframeImage", 0) / n_kf if n_kf else None,
+                "bytes_per_submap": once.get("SubmapData", 0) / n_sm if n_sm else None,
+                "bytes_from_agent_first_copies": dict(once), "duplicates_received": p.duplicates,
                 "raw_rgbd_640x480_bytes": raw, "fraction_of_raw": both / raw if raw else None,
                 "dropped_images": len(p.dropped), "lost": p.lost,
                 "agent_side": dict(p.done.link) if p.done is not None else None,
