@@ -1,5 +1,6 @@
 """Real-time mode on a real sequence: Redwood living room 1 (211 frames, 640x480) replayed at 15 and 30 Hz
-(`swarmsplat run --realtime --rate HZ`) against the offline run of the same frames in the same process.
+(`swarmsplat run --realtime --rate HZ`, with the default settings and with configs/realtime.yaml's cheaper
+tracker) against the offline run of the same frames in the same process.
 
 Per run: frames tracked (%), dropped and why, pose latency from a frame's arrival to its pose (p50 / p95 / max),
 the tracker's step time, mapping iterations per keyframe, the CPU time of the tracking and mapping threads over
@@ -9,7 +10,7 @@ PSNR beside them. The machine's 1-minute load average is recorded before and aft
 the same cores lengthen every latency.
 
     python -m perf realtime                      # -> perf/results/realtime-cpu.{json,md} (about 4 minutes)
-    python -m perf realtime --rates 15 --preset realtime
+    python -m perf realtime --rates 15 --presets realtime --no-offline
     python -m perf realtime --from-json          # rewrite perf/results/realtime-cpu.md from its JSON
 """
 
@@ -87,10 +88,13 @@ def compare(rows: list[dict]) -> None:
                                 **({"tracked_95pct": r["tracked_pct"] >= 95} if r["rate_hz"] == 15.0 else {})}
 
 
-def run_all(data: Path = REDWOOD, rates=(15.0, 30.0), preset: str | None = None, offline: bool = True) -> dict:
+def run_all(data: Path = REDWOOD, rates=(15.0, 30.0), presets=(None, "realtime"), offline: bool = True) -> dict:
+    """The offline run (defaults), then each preset (None: the defaults) at each rate."""
+    runs = ([(None, None)] if offline else []) + [(p, r) for p in presets for r in rates]
     rows = []
-    for rate in ([None] if offline else []) + list(rates):
-        print(f"[perf realtime] {'offline' if rate is None else f'{rate:g} Hz'} ...", file=sys.stderr, flush=True)
+    for preset, rate in runs:
+        print(f"[perf realtime] {'offline' if rate is None else f'{rate:g} Hz'} {preset or 'defaults'} ...",
+              file=sys.stderr, flush=True)
         rows.append(measure(data, rate, preset))
         print(json.dumps(rows[-1], default=str), file=sys.stderr, flush=True)
     compare(rows)
@@ -141,7 +145,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m perf realtime", description=DESCRIPTION)
     p.add_argument("--data", type=Path, default=REDWOOD)
     p.add_argument("--rates", default="15,30", help="comma-separated replay rates (Hz)")
-    p.add_argument("--preset", default=None, help="a config preset (configs/NAME.yaml) for every run")
+    p.add_argument("--presets", default="defaults,realtime",
+                   help="comma-separated config presets (configs/NAME.yaml; 'defaults': none) run at each rate")
     p.add_argument("--no-offline", action="store_true", help="skip the offline run (no comparison)")
     p.add_argument("--json", default=str(RESULTS / "realtime-cpu.json"))
     p.add_argument("--md", default=str(RESULTS / "realtime-cpu.md"))
@@ -154,7 +159,8 @@ def main(argv=None) -> int:
     if not a.data.is_dir():
         raise SystemExit(f"python -m perf realtime: {a.data} not found (set SWARMSPLAT_SHARED_DATA)")
     machine = machine_info()  # where and from what, as the runs start
-    res = {**run_all(a.data, [float(x) for x in a.rates.split(",")], a.preset, not a.no_offline),
+    presets = [None if x == "defaults" else x for x in a.presets.split(",")]
+    res = {**run_all(a.data, [float(x) for x in a.rates.split(",")], presets, not a.no_offline),
            "machine": machine, "load_after": _load()}
     md = markdown(res)
     print(md)

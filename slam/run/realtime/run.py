@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from swarmsplat.kernels.fileio import atomic_write_text, output_dir
 from swarmsplat.slam.config import SlamConfig
 
@@ -92,8 +94,6 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     finally:
         feed.stop()
         agent.stop(1.0)
-    import numpy as np
-
     ate_live = None
     if log.poses:
         ate_live = _trajectory_metrics(seq, np.array(log.stamps), np.stack(log.poses), None)["ate_rmse"]
