@@ -168,6 +168,32 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
     assert yaml_realtime(out)
 
 
+def test_too_slow_for_the_rate_completes_and_says_what_it_dropped(seq, tmp_path):
+    """12 frames in 22 ms (500 Hz): the tracker cannot take them all; the run completes, and metrics.json and
+    report.md give the drops by reason."""
+    out = tmp_path / "fast"
+    assert main(["run", str(seq), "--out", str(out), "--config", _config(tmp_path), "--realtime", "--rate", "500",
+                 "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    r = m["realtime"]
+    assert m["status"] == "complete" and r["frames_dropped"] >= 1 and r["frames_tracked"] >= 1
+    assert r["frames_tracked"] + r["frames_dropped"] + r["frames_skipped"] == 12
+    assert sorted(i for ids in r["dropped_frames"].values() for i in ids) == sorted(
+        set(range(12)) - set(_tracked_indices(out, seq)))  # every frame not tracked was dropped
+    report = (out / "report.md").read_text()
+    assert "## Dropped frames" in report
+    for reason, count in r["dropped_by_reason"].items():
+        assert f"| {reason} | {count} |" in report
+
+
+def _tracked_indices(out: Path, seq: Path) -> list[int]:
+    from swarmsplat.slam.io.trajectory import read_tum
+
+    stamps, _ = read_tum(out / "trajectory.txt")
+    all_stamps = list(np.round(_stamps(seq), 6))
+    return [all_stamps.index(round(float(t), 6)) for t in stamps]
+
+
 def yaml_realtime(out: Path) -> bool:
     import yaml
 

@@ -75,7 +75,7 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
             while (a := feed.take()) is not None:
                 now = time.monotonic()
                 expected = log.expected_step()
-                if expected <= budget < now - a.due + expected:
+                if log.steps and expected <= budget < now - a.due + expected:  # no step yet: no estimate
                     feed.drop(a, "stale")
                 else:
                     f = a.frame

@@ -46,7 +46,7 @@ class StreamLog:
         self.tracker_cpu_s = time.thread_time() - self._ct
 
     def expected_step(self, window: int = 20) -> float:
-        """The median of the last `window` steps (s), 0 before the first."""
+        """The median of the last `window` steps (s), 0 before the first (then nothing is dropped as stale)."""
         return statistics.median(self.steps[-window:]) if self.steps else 0.0
 
     def pose(self, timestamp: float, latency_s: float, T_world_cam: np.ndarray) -> None:
