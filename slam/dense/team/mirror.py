@@ -4,7 +4,8 @@ team server (slam.dense.team.server.Server), the map refinement and the results 
 read an agent of the same process.
 
 Its submap origins are the server's own: a new submap starts at the previous one's (possibly corrected) origin
-composed with the offset the agent tracked, which is how the agent itself places it. Everything is idempotent:
+composed with the offset the agent tracked, which is how the agent itself places it, and a tracking edge across
+two submaps is taken from those origins as the agent takes it from its own (the same product, so the same bits). Everything is idempotent:
 a keyframe, submap or frame received twice is kept once.
 """
 
@@ -12,13 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from swarmsplat.kernels import se3
 from swarmsplat.kernels.camera import PinholeCamera
 
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent, FramePose
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from swarmsplat.slam.dense.loops.loop_closure import Edge
-from swarmsplat.slam.dense.submaps import Keyframe
+from swarmsplat.slam.dense.submaps import Keyframe, world_pose
 
 
 class AgentMirror(Agent):
@@ -53,7 +55,11 @@ class AgentMirror(Agent):
         self.keyframes.append(kf)
         self.gmap.submaps[submap_id].keyframe_ids.append(kf.id)
         if odometry is not None:
-            self.loops.odometry.append(Edge(kf_id - 1, kf_id, np.array(odometry[0]), np.array(odometry[1])))
+            T = np.array(odometry[0])
+            prev = self.keyframes[kf_id - 1]
+            if prev.submap_id != kf.submap_id:  # across submaps: from the origins, as LoopCloser.add_keyframe does
+                T = se3.project_rigid(se3.inverse(world_pose(self.gmap, prev)) @ world_pose(self.gmap, kf))
+            self.loops.odometry.append(Edge(kf_id - 1, kf_id, T, np.array(odometry[1])))
         return kf
 
     def set_submap(self, submap_id: int, params: GaussianParams) -> None:
