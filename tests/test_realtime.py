@@ -86,12 +86,16 @@ def _frames(seq_path: Path, n: int):
 
 def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
     """Stepping the real-time agent and letting its worker finish each keyframe before the next frame gives the
-    offline agent's trajectory and map: the split over two threads changes when mapping runs, not what it does."""
+    offline agent's trajectory and map: the split over two threads changes when mapping runs, not what it does
+    (across submaps too: the worker packs a retired submap's keyframe images where the offline agent packs them
+    when it starts the next submap)."""
     from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.dense.packed import PackedRGBD
     from swarmsplat.slam.run.realtime.agent import RealtimeAgent
     from swarmsplat.slam.run.runtime import use_kernels
 
-    cfg = SlamConfig().override({**QUICK, "loop_closure": {"enabled": False}})
+    cfg = SlamConfig().override({**QUICK, "loop_closure": {"enabled": False},
+                                 "submaps": {**QUICK["submaps"], "max_keyframes": 2}})
     use_kernels(cfg.kernels)
     s, frames = _frames(seq, 10)
     off = Agent(s.camera, cfg)
@@ -104,7 +108,10 @@ def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
         rt.finish(60)
     finally:
         rt.stop()
-    assert len(rt.keyframes) == len(off.keyframes) >= 2 and len(rt.mapping_log) == len(rt.keyframes)
+    assert len(rt.keyframes) == len(off.keyframes) >= 3 and len(rt.mapping_log) == len(rt.keyframes)
+    assert len(rt.gmap.submaps) == len(off.gmap.submaps) >= 2
+    assert all(type(a.small) is type(b.small) for a, b in zip(rt.keyframes, off.keyframes))  # packed alike
+    assert any(isinstance(k.small, PackedRGBD) for k in rt.keyframes)
     assert [r["iterations"] for r in rt.mapping_log] == [r["planned"] for r in rt.mapping_log]  # none cut short
     np.testing.assert_allclose(rt.trajectory()[1], off.trajectory()[1], atol=1e-9)
     a, b = rt.gmap.merged(), off.gmap.merged()
