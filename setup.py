@@ -11,5 +11,6 @@ setup(
     packages=[f"swarmsplat.{top}{'.' + sub if sub else ''}" for top in FOLDERS for sub in ["", *find_packages(top)]]
     + ["swarmsplat.configs"],
     package_dir={**{f"swarmsplat.{top}": top for top in FOLDERS}, "swarmsplat.configs": "configs"},
-    package_data={"swarmsplat.configs": ["*.yaml"]},
+    package_data={"swarmsplat.configs": ["*.yaml"],
+                  "swarmsplat.registration": ["place_recognition/vocabularies/*.npz"]},
 )

@@ -169,6 +169,17 @@ def test_team_run_reads_the_server_and_team_sections(tmp_path):
     assert m["render_views"] <= 2 and m["loops"]["inter"]["candidates"] == 0
 
 
+def test_set_reaches_any_key_after_the_file_and_is_written(tmp_path):
+    """--set KEY=VALUE (YAML value, null included) overrides the file and the flags, and config.yaml holds it."""
+    from swarmsplat.slam.cli.config_flags import load_config
+
+    f = _write(tmp_path / "c.yaml", "server:\n  top_k: 5\n  tau_sim: 0.3\n")
+    cfg = load_config(f, {"--kernels": ("kernels.backend", "taichi")}, sets=[
+        "server.top_k=4", "server.tau_sim=null", "kernels.backend=warp", "server.descriptor=xfeat-vlad"])
+    assert (cfg.server.top_k, cfg.server.tau_sim, cfg.kernels.backend, cfg.server.descriptor) == (
+        4, None, "warp", "xfeat-vlad")
+
+
 def test_demo_reads_the_file_over_its_preset(tmp_path):
     f = _write(tmp_path / "c.yaml", "team: {render_views: 1}\nmapping: {iterations: 4}\n")
     out = tmp_path / "demo"

@@ -33,7 +33,8 @@ def split_team(tmp_path_factory):
     cfg = SlamConfig().override(FAST)
     kernels.use(cfg.kernels.backend, cfg.kernels.device)
     team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg,
-                ServerConfig(tau_sim=0.5, coarse="learned", descriptor="xfeat-vlad", vocabulary_keyframes=3))
+                ServerConfig(tau_sim=0.5, coarse="learned", descriptor="xfeat-vlad", vocabulary="train",
+                             vocabulary_keyframes=3))
     team.run(ds.agents)
     return team
 
@@ -88,7 +89,7 @@ def test_agent_xfeat_vlad_descriptor_trains_from_its_own_keyframes():
 
     cam = default_camera(160, 120)
     room = TexturedRoom(seed=0)
-    lc = LoopCloser(LoopClosureConfig(descriptor="xfeat-vlad", vocabulary_keyframes=3))
+    lc = LoopCloser(LoopClosureConfig(descriptor="xfeat-vlad", vocabulary="train", vocabulary_keyframes=3))
     kfs = []
     for i, (x, yaw) in enumerate(((0.0, 0.0), (0.3, 70.0), (0.6, 140.0), (0.05, 3.0))):
         c, d = room.render(look_pose((x, 0.0, 0.0), yaw), cam)

@@ -89,8 +89,9 @@ def disjoint_team(tiny):
     seqs = [sub_sequence(load_dataset(tiny[s]).agents[0], 0, 4, f"agent_{s}") for s in (0, 1)]
     cfg = SlamConfig().override(FAST)
     kernels.use(cfg.kernels.backend, cfg.kernels.device)
-    # Similarity gate off: every best-matching keyframe pair of the two worlds goes to registration.
-    team = Team([s.camera for s in seqs], [s.name for s in seqs], cfg, ServerConfig(tau_sim=-1.0))
+    # The default server: no similarity gate, so the best-matching keyframe pairs of the two worlds go to
+    # registration, and the verification alone must refuse them.
+    team = Team([s.camera for s in seqs], [s.name for s in seqs], cfg, ServerConfig())
     team.run(seqs, limits=[4, 2])
     return team, seqs
 

@@ -81,3 +81,49 @@ def test_ate_against_ground_truth(real_split):
     assert all(e < ATE_BOUND_M for e in per_agent)
     # Agent 0 alone (3 frames, its own alignment) as well; agent 1's 2 positions cannot fix a rotation alone.
     assert ate(ds.agents[0].timestamps, ds.agents[0].gt_poses, *est[0], align="se3").rmse < ATE_BOUND_M
+
+
+# ---- two stretches of one real recording, 90 frames apart, as two agents -----------------------------------------
+
+# Redwood 211 frames 0-59 and 150-209: the second stretch stands ~1 m from the first and looks ~55 deg away, yet
+# sees 53-78 % of its depth pixels (ground-truth reprojection). The team runs with the default loop closure and
+# server (descriptor, candidates, coarse start, join rule); mapping is cut down and the merged-map refinement is
+# off, which the join does not depend on. ~40 s on a loaded 2-core machine.
+FRAGMENTS = [(0, 60), (150, 210)]
+FRAGMENT_SPEEDUP = {"mapping": {"iterations": 10, "first_iterations": 30}, "map_refine": {"iterations_per_keyframe": 0}}
+# Team ATE bound (one SE(3) alignment over both agents): measured 0.97 cm with the full defaults; the issue's
+# acceptance figure for two real fragments is 0.25 m, and an unjoined or wrongly joined agent 1 is off by ~1 m.
+FRAGMENT_ATE_M = 0.03
+
+
+@pytest.fixture(scope="module")
+def fragments():
+    from swarmsplat import kernels
+
+    seq = load_dataset(shared_data("redwood_livingroom1_211")).agents[0]
+    ds = split_sequence(seq, FRAGMENTS)
+    cfg = SlamConfig().override(FRAGMENT_SPEEDUP)
+    kernels.use(cfg.kernels.backend, cfg.kernels.device)
+    team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg)
+    team.run(ds.agents)
+    team.finish()
+    return seq, team
+
+
+def test_real_fragments_join_with_the_defaults(fragments):
+    _, team = fragments
+    srv = team.server
+    assert srv.components() == {0: [0, 1]}, [r.reason for r in srv.records if r.kind == "inter"][:6]
+    assert srv.joins == 1 and srv.joins_undone == 0
+    inter = [r for r in srv.records if r.kind == "inter" and r.source == "descriptor"]
+    assert sum(r.accepted for r in inter) >= 0.1 * len(inter)  # the issue's floor: >= 10 % of descriptor candidates
+
+
+def test_real_fragments_team_ate(fragments):
+    seq, team = fragments
+    est = [team.trajectory(a) for a in range(2)]
+    t_est = np.concatenate([t for t, _ in est])
+    T_est = np.concatenate([T for _, T in est])
+    team_ate = ate(seq.timestamps, seq.gt_poses, t_est, T_est, align="se3")
+    print(f"team ATE {100 * team_ate.rmse:.2f} cm over {team_ate.matched} frames")
+    assert team_ate.matched == 120 and team_ate.rmse < FRAGMENT_ATE_M

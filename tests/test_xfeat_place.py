@@ -66,3 +66,27 @@ def test_vocabulary_file_round_trip_keeps_its_kind(rec, views, tmp_path):
 def test_untrained_recognizer_says_so(views):
     with pytest.raises(InputError, match="not trained"):
         make_recognizer("xfeat-vlad").describe(views[0][0])
+
+
+def test_generic_vocabulary_ships_with_the_package_and_ranks_revisits(views):
+    """The shipped vocabulary (generated worlds only) describes views it never saw: revisits rank first."""
+    from swarmsplat.registration.place_recognition import GENERIC, GENERIC_VOCABULARY
+
+    assert GENERIC_VOCABULARY.is_file()
+    rec = make_recognizer("xfeat-vlad", checkpoint=GENERIC)
+    assert rec.trained and rec.n_clusters == 32 and rec.dim == 32 * 64
+    db = rec.describe_many([f for f, _ in views])
+    q = rec.describe_many([a for _, a in views])
+    assert np.mean(np.argmax(q @ db.T, axis=1) == np.arange(len(views))) >= 0.75
+    with pytest.raises(InputError, match="only xfeat-vlad"):
+        make_recognizer("bow", checkpoint=GENERIC)
+
+
+def test_recognizer_pickles_without_its_network(views):
+    """A run's checkpoint pickles the agent, descriptor included: the XFeat network is left out and rebuilt."""
+    import pickle
+
+    rec = make_recognizer("xfeat-vlad", checkpoint="generic")
+    d = rec.describe(views[0][0])
+    back = pickle.loads(pickle.dumps(rec))
+    assert back._extractor is None and np.allclose(back.describe(views[0][0]), d, atol=1e-6)

@@ -30,6 +30,9 @@ class XFeatVLADRecognizer(VLADRecognizer):
         super().__init__(centroids, n_clusters=n_clusters, n_features=n_features, max_side=max_side, idf=idf)
         self._extractor = None
 
+    def __getstate__(self) -> dict:  # the XFeat network is rebuilt on first use: a checkpoint pickles the vocabulary
+        return {**self.__dict__, "_extractor": None}
+
     def _local(self, rgb: np.ndarray) -> np.ndarray:
         if self._extractor is None:
             from swarmsplat.registration.pair.xfeat import XFeatRegistrar

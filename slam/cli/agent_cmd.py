@@ -81,7 +81,7 @@ def run_server(args) -> int:
     from swarmsplat.slam.run.team_link.processes import serve_command
 
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
-                                    "--device": ("kernels.device", args.device)}, preset=args.preset)
+                                    "--device": ("kernels.device", args.device)}, preset=args.preset, sets=args.config_set)
     from swarmsplat.kernels.errors import InputError
 
     dataset = args.dataset
@@ -150,7 +150,7 @@ def run(args) -> int:
             raise InputError(f"{flag} must be >= 0, got {value}")
     topics = parse_topics(args.topics)
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
-                                    "--device": ("kernels.device", args.device)}, preset=args.preset)
+                                    "--device": ("kernels.device", args.device)}, preset=args.preset, sets=args.config_set)
     if args.server:
         return _team_member(args, source, cfg)
     for flag in ("id", "split"):

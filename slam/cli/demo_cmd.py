@@ -37,7 +37,7 @@ def run(args) -> int:
 
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device),
-                                    "--seed": ("demo.seed", args.seed)}, preset=PRESETS[args.preset])
+                                    "--seed": ("demo.seed", args.seed)}, preset=PRESETS[args.preset], sets=args.config_set)
     live = live_view(args)  # a taken port fails before the run starts
     m = run_demo(args.out, preset=args.preset, config=cfg, progress=not args.quiet, observer=live)
     keys = ["ate_rmse_team", "ate_rmse_team_agents", "joined_agents", "unjoined_agents", "psnr", "ssim", "depth_l1",

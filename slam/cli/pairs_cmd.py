@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
 
     flags = section_flags(args, "pairs", ("backend", "place", "checkpoint", "place_checkpoint", "threshold", "top_k",
                                           "stride", "r_thr", "k", "device", "strict"))
-    cfg = load_config(args.config, flags, preset=args.preset)
+    cfg = load_config(args.config, flags, preset=args.preset, sets=args.config_set)
     summary = run_pairs(args.dataset, args.out, cfg, vocabulary_out=args.save_vocabulary,
                         trust_checkpoint=args.trust_checkpoint, progress=not args.quiet)
     print(summary.line())

@@ -83,7 +83,7 @@ def run(args) -> int:
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device),
                                     "--realtime": ("runtime.realtime", args.realtime or None),
-                                    "--rate": ("runtime.rate", args.rate)}, preset=args.preset)
+                                    "--rate": ("runtime.rate", args.rate)}, preset=args.preset, sets=args.config_set)
     if args.rate is not None and not cfg.runtime.realtime:
         raise InputError("--rate sets the replay rate of real-time mode: give --realtime too")
     from swarmsplat.slam.io.datasets import load_dataset

@@ -39,7 +39,7 @@ def swarm_config(args):
 
     flags = section_flags(args, "swarm", ("formulation", "solver", "uniform_noise", "schedule", "stride", "place",
                                           "place_checkpoint", "backend", "r_thr", "k", "strict", "port_base"))
-    return load_config(args.config, flags, preset=args.preset)
+    return load_config(args.config, flags, preset=args.preset, sets=args.config_set)
 
 
 def register(sub) -> None:

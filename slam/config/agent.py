@@ -186,13 +186,17 @@ class SubmapConfig(_Section):
 class LoopClosureConfig(_Section):
     enabled: bool = Field(True, description="look for loop closures (a team: the server looks for them)")
     descriptor: Literal["thumbnail", "bow", "vlad", "xfeat-vlad", "auto"] = Field(
-        "thumbnail", description="keyframe descriptor from registration.place_recognition; 'thumbnail' needs no "
-                                 "weights or vocabulary, 'bow'/'vlad' need `vocabulary`; 'xfeat-vlad' (VLAD over "
-                                 "XFeat) takes `vocabulary` "
-                                 "or trains one from the agent's first `vocabulary_keyframes` keyframes; "
-                                 "'auto' = thumbnail")
-    vocabulary: str | None = Field(None, description="BoW/VLAD vocabulary (.npz) for descriptor bow/vlad/xfeat-vlad")
-    vocabulary_keyframes: int = Field(8, ge=2, description="xfeat-vlad without `vocabulary`: keyframes the agent "
+        "auto", description="keyframe descriptor from registration.place_recognition; 'thumbnail' needs no "
+                            "weights or vocabulary, 'bow'/'vlad' need `vocabulary`; 'xfeat-vlad' (VLAD over XFeat) "
+                            "uses the vocabulary shipped with the package unless `vocabulary` says otherwise; 'auto' "
+                            "= xfeat-vlad, or the thumbnail where XFeat cannot run (not installed, keyframe copies "
+                            "under 32 pixels a side)")
+    descriptor_width: int = Field(320, ge=32, description="width (pixels) of the keyframe view the descriptor "
+                                  "describes: the mapping-resolution copy downsampled to it (never upsampled)")
+    vocabulary: str | None = Field(None, description="vocabulary (.npz) for descriptor bow/vlad/xfeat-vlad; "
+                                   "xfeat-vlad: null = the shipped generic one, 'train' = trained from the agent's "
+                                   "first `vocabulary_keyframes` keyframes")
+    vocabulary_keyframes: int = Field(8, ge=2, description="xfeat-vlad with vocabulary 'train': keyframes the agent "
                                                            "trains it from (described once it is trained)")
     candidates: Literal["descriptor", "pose", "both"] = Field(
         "both", description="where candidates come from: the keyframe descriptor (top_k above tau_sim), the tracked "
@@ -203,7 +207,8 @@ class LoopClosureConfig(_Section):
     pose_max_angle_deg: float = Field(45.0, gt=0, le=180, description="... and viewing directions at most this apart")
     pose_min_overlap: float = Field(0.3, ge=0, le=1, description="... and at least this fraction of the query's "
                                     "depth pixels reprojected into the match with consistent depth")
-    tau_sim: float = Field(0.85, ge=-1, le=1, description="cosine similarity gate of a descriptor candidate")
+    tau_sim: float | None = Field(None, ge=-1, le=1, description="cosine similarity gate of a descriptor "
+                                  "candidate; null = none (the top_k best are verified)")
     min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
     min_baseline: float = Field(0.0, ge=0, description="optional spatial gap between keyframe poses (m)")
     fitness_min: float = Field(0.5, ge=0, le=1, description="τ_f: accept when ICP fitness is above")

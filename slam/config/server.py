@@ -19,10 +19,12 @@ class ServerConfig(BaseModel):
     descriptor: Literal["agent", "bow", "vlad", "xfeat-vlad"] = Field(
         "agent", description="inter-agent place descriptor: the agent's own keyframe descriptor, or a bag of "
                              "words / VLAD over RootSIFT (registration.place_recognition) with `vocabulary`, or "
-                             "VLAD over XFeat (from the cached keyframe encodings; without `vocabulary` it is "
-                             "trained from the first `vocabulary_keyframes` keyframes the server receives)")
-    vocabulary: str | None = Field(None, description="vocabulary .npz for descriptor bow / vlad / xfeat-vlad")
-    vocabulary_keyframes: int = Field(8, ge=2, description="xfeat-vlad without a vocabulary file: train it from "
+                             "VLAD over XFeat (from the cached keyframe encodings, with the shipped generic "
+                             "vocabulary unless `vocabulary` says otherwise)")
+    vocabulary: str | None = Field(None, description="vocabulary .npz for descriptor bow / vlad / xfeat-vlad; "
+                                   "xfeat-vlad: null = the shipped generic one, 'train' = trained from the first "
+                                   "`vocabulary_keyframes` keyframes the server receives")
+    vocabulary_keyframes: int = Field(8, ge=2, description="xfeat-vlad with vocabulary 'train': train it from "
                                                             "this many received keyframes (they are described then)")
     coarse: Literal["learned", "fpfh"] = Field(
         "learned", description="coarse start for agents not yet in one frame: 'learned' = XFeat + LighterGlue "

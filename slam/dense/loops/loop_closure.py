@@ -23,13 +23,23 @@ from swarmsplat.slam.dense.rgbd_registration import register_loop
 from swarmsplat.slam.dense.submaps import Keyframe, world_pose
 
 
-def _make_recognizer(cfg: LoopClosureConfig):
-    """The keyframe descriptor named in the config, from registration.place_recognition."""
-    from swarmsplat.registration.place_recognition import make_recognizer
+def _make_recognizer(cfg: LoopClosureConfig, image_side: int | None = None):
+    """The keyframe descriptor named in the config, from registration.place_recognition. 'auto' is xfeat-vlad
+    with the shipped vocabulary, or the thumbnail where XFeat cannot run (not installed, or keyframe copies of
+    fewer than 32 pixels a side: `image_side`, the smaller side)."""
+    from swarmsplat.registration.place_recognition import GENERIC, make_recognizer
 
-    name = "thumbnail" if cfg.descriptor == "auto" else cfg.descriptor
-    if name == "xfeat-vlad" and not cfg.vocabulary:
-        return make_recognizer(name)  # untrained: LoopCloser trains it from the agent's own keyframes
+    name = cfg.descriptor
+    if name == "auto":
+        from swarmsplat.registration.pair import xfeat
+
+        from swarmsplat.registration.images import MIN_SIDE
+
+        name = "xfeat-vlad" if xfeat.available() and (image_side is None or image_side >= MIN_SIDE) else "thumbnail"
+    if cfg.vocabulary == "train" and name != "xfeat-vlad":
+        raise InputError(f"loop_closure.vocabulary 'train' is for descriptor xfeat-vlad, not {name!r}")
+    if name == "xfeat-vlad":  # the shipped vocabulary, a file, or untrained: LoopCloser trains it ('train')
+        return make_recognizer(name, checkpoint={None: GENERIC, "train": None}.get(cfg.vocabulary, cfg.vocabulary))
     if name in ("bow", "vlad") and not cfg.vocabulary:
         raise InputError(f"loop_closure.descriptor {name!r} needs loop_closure.vocabulary (a .npz vocabulary file)")
     return make_recognizer(name, checkpoint=cfg.vocabulary if name != "thumbnail" else None)
@@ -74,7 +84,8 @@ class LoopCloser:
         self.optimisations = 0
         self.not_applied = 0  # optimisations whose move was not justified by the loops
         self.model = InformationModel(n_eff=cfg.information_points)
-        self._recognizer = _make_recognizer(cfg)
+        # 'auto' is decided on the first keyframe, whose size it needs; a named descriptor is checked now.
+        self._recognizer = None if cfg.descriptor == "auto" else _make_recognizer(cfg)
         self._pending: dict[int, np.ndarray] = {}  # xfeat-vlad: local descriptors of keyframes awaiting the vocabulary
 
     @property
@@ -84,14 +95,20 @@ class LoopCloser:
     # ---- the keyframe chain ---------------------------------------------------------------------------------
 
     def _describe(self, kf: Keyframe, keyframes: list[Keyframe]) -> None:
-        """kf.descriptor from the configured recogniser. An xfeat-vlad recogniser without a vocabulary file
-        trains it from the first `vocabulary_keyframes` keyframes (k-means over their XFeat descriptors), which
-        are described then; until then they have no descriptor (no descriptor candidates)."""
+        """kf.descriptor from the configured recogniser, of the keyframe's view at `descriptor_width` (its
+        mapping-resolution copy downsampled, while it has one; else the loop-closure copy). An xfeat-vlad recogniser
+        with vocabulary 'train' trains it from the first `vocabulary_keyframes` keyframes (k-means over their XFeat
+        descriptors), which are described then; until then they have no descriptor (no descriptor candidates)."""
+        view = kf.map_rgbd if kf.map_rgbd is not None and kf.map_rgbd.camera.width > kf.small.camera.width else kf.small
+        color = view.resized(self.cfg.descriptor_width).color if view.camera.width > self.cfg.descriptor_width \
+            else view.color
+        if self._recognizer is None:
+            self._recognizer = _make_recognizer(self.cfg, min(color.shape[:2]))
         rec = self._recognizer
         if getattr(rec, "trained", True):
-            kf.descriptor = rec.describe(kf.small.color)
+            kf.descriptor = rec.describe(color)
             return
-        self._pending[kf.id] = rec._local(kf.small.color)
+        self._pending[kf.id] = rec._local(color)
         if len(self._pending) >= self.cfg.vocabulary_keyframes and \
                 sum(len(x) for x in self._pending.values()) >= rec.n_clusters:
             rec.fit_local(list(self._pending.values()))
@@ -134,7 +151,7 @@ class LoopCloser:
                             key=lambda s: -s[0])
             for sim, other in scored[: cfg.top_k]:
                 c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim)
-                if sim < cfg.tau_sim:
+                if cfg.tau_sim is not None and sim < cfg.tau_sim:
                     c.reason = f"similarity {sim:.3f} < tau_sim {cfg.tau_sim}"
                     self.log.append(c)
                     continue

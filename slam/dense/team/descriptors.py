@@ -16,11 +16,14 @@ def make_recognizer_and_encoder(cfg: ServerConfig):
     """(recognizer or None for the agents' own descriptors, slam.dense.loops.learned_coarse.KeyframeEncoder or None)."""
     recognizer = encoder = None
     if cfg.descriptor != "agent":
-        from swarmsplat.registration.place_recognition import make_recognizer
+        from swarmsplat.registration.place_recognition import GENERIC, make_recognizer
 
         if not cfg.vocabulary and cfg.descriptor != "xfeat-vlad":
             raise InputError(f"server.descriptor {cfg.descriptor!r} needs server.vocabulary (a .npz file)")
-        recognizer = make_recognizer(cfg.descriptor, checkpoint=cfg.vocabulary)
+        if cfg.vocabulary == "train" and cfg.descriptor != "xfeat-vlad":
+            raise InputError(f"server.vocabulary 'train' is for descriptor xfeat-vlad, not {cfg.descriptor!r}")
+        checkpoint = {None: GENERIC, "train": None}.get(cfg.vocabulary, cfg.vocabulary)
+        recognizer = make_recognizer(cfg.descriptor, checkpoint=checkpoint)
     if cfg.coarse == "learned" or cfg.descriptor == "xfeat-vlad":
         from swarmsplat.slam.dense.loops.learned_coarse import KeyframeEncoder
 
@@ -37,8 +40,8 @@ def coarse_view(kf: Keyframe):
 def describe_keyframe(server, a: int, kf: Keyframe) -> None:
     """Agent a's keyframe into server.descriptors[(a, kf.id)], and into the encoder's cache when the server has
     one (encoded now, while the keyframe still holds its mapping-resolution view). xfeat-vlad comes from that
-    encoding; without a vocabulary file the first `vocabulary_keyframes` keyframes train it (k-means on their
-    XFeat descriptors) and are described then (server._untrained holds them until then)."""
+    encoding; with vocabulary 'train' the first `vocabulary_keyframes` keyframes train it (k-means on their XFeat
+    descriptors) and are described then (server._untrained holds them until then)."""
     cfg, rec, enc = server.cfg, server.recognizer, server.encoder
     if enc is not None:
         enc.depth_max = server.slots[a].agent.cfg.image.max_depth
