@@ -155,10 +155,13 @@ def test_tracking_does_not_wait_for_mapping_and_stop_ends_the_worker(seq):
 
 
 def test_realtime_run_writes_what_it_measured(seq, tmp_path):
+    from swarmsplat.slam.io.trajectory import read_tum
+    from swarmsplat.slam.run.realtime.run import run_realtime
+
     out = tmp_path / "rt"
-    assert main(["run", str(seq), "--out", str(out), "--config", _config(tmp_path), "--realtime", "--rate", "15",
-                 "--quiet"]) == 0
-    m = json.loads((out / "metrics.json").read_text())
+    emitted = []
+    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 15}})
+    m = run_realtime(seq, out, cfg, progress=False, on_pose=lambda *a: emitted.append(a))
     r = m["realtime"]
     assert m["status"] == "complete" and r["rate_hz"] == 15 and r["frames"] == 12
     assert r["frames_tracked"] + r["frames_dropped"] + r["frames_skipped"] == 12
@@ -166,10 +169,11 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
     assert r["pose_latency_ms"]["count"] == r["frames_tracked"] == m["frames_tracked"] >= 1
     assert r["keyframes_mapped"] == m["keyframes"] >= 1 and r["mapping_iterations"]["min"] >= 0
     assert m["gaussians"] > 0 and m["psnr"] is not None and r["ate_rmse_live"] is not None
-    from swarmsplat.slam.io.trajectory import read_tum
-
     stamps, _ = read_tum(out / "trajectory.txt")
-    assert len(stamps) == r["frames_tracked"]
+    assert len(stamps) == r["frames_tracked"] == len(emitted)  # each tracked frame's pose, emitted as it came
+    np.testing.assert_allclose([e[1] for e in emitted], stamps, atol=1e-6)
+    assert all(e[2].shape == (4, 4) and e[3] > 0 for e in emitted)
+    assert max(e[3] for e in emitted) * 1e3 == pytest.approx(r["pose_latency_ms"]["max"])
     report = (out / "report.md").read_text()
     assert "Pose latency" in report and f"{r['frames_tracked']} tracked" in report
     assert yaml_realtime(out)

@@ -30,9 +30,11 @@ from .summary import StreamLog, realtime_metrics, write_report
 
 @guarded("run")
 def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConfig | None = None, *,
-                 frames: int | None = None, progress: bool = True, strict: bool = False) -> dict:
+                 frames: int | None = None, progress: bool = True, strict: bool = False, on_pose=None) -> dict:
     """Replay `dataset_path` (a path any loader reads, or a loaded sequence) in real time with one agent; returns
-    the metrics written to out_dir/metrics.json (those of an offline run plus `realtime`)."""
+    the metrics written to out_dir/metrics.json (those of an offline run plus `realtime`). on_pose, if given, is
+    called on the tracking thread with each pose as it is emitted: on_pose(frame index, timestamp (s),
+    T_world_cam [4, 4], latency (s) from the frame's arrival); its time counts in the next frame's wait."""
     from swarmsplat.slam.io.progress import bar
 
     from ..checkpoint import PoseJournal
@@ -85,6 +87,8 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
                     if rec is not None:
                         T = agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
                         log.pose(f.timestamp, done - a.due, T)
+                        if on_pose is not None:
+                            on_pose(f.index, f.timestamp, T, done - a.due)
                     journal.follow(agent)
                 accounted = len(agent.poses) + len(agent.time.skipped) + len(feed.dropped)
                 b.update(accounted - seen, f"{len(agent.gmap)} Gaussians  {len(feed.dropped)} dropped")
