@@ -133,7 +133,8 @@ class AgentNode:
     def __init__(self, camera: PinholeCamera, cfg: SlamConfig, name: str, tx, clock=time.monotonic):
         self.cfg, self.name, self.tx = cfg, name, tx
         self.agent = LinkAgent(camera, agent_config(cfg), name=name)
-        self.agent.keep_keyframe_images = False
+        # as an agent of the in-process team (slam.run.team.Team): what it keeps is what its later steps may read
+        self.agent.keep_keyframe_images = server_needs_map_views(cfg)
         self.outbox = Outbox(tx, cfg.link, clock)
         self._join_msg = None
         self.map_views = server_needs_map_views(cfg)
