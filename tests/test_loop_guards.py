@@ -140,3 +140,25 @@ def test_view_overlap_of_tracked_poses():
     assert view_overlap(f1, f0, se3.inverse(T0) @ T1) > 0.7
     turned = se3.make(se3.so3_exp(np.array([0.0, np.pi, 0.0])), np.zeros(3))  # looking the other way
     assert view_overlap(f1, f0, turned) < 0.05
+
+
+@pytest.mark.parametrize("fallback", [False, True])
+def test_a_failing_candidate_restarts_from_fpfh_only_when_asked(monkeypatch, fallback):
+    """loop_closure.global_fallback: a candidate that fails from the tracked pose is rejected (false, the default)
+    or restarted from FPFH + RANSAC (true); the restart is what costs seconds without a similarity gate."""
+    from swarmsplat.registration import rgbd as rgbd_mod
+    from swarmsplat.registration.result import RegistrationResult
+
+    calls = []
+
+    def fake_global(*args, **kwargs):
+        calls.append(1)
+        return RegistrationResult.failure(np.eye(4), "too few points", "fpfh_ransac")
+
+    monkeypatch.setattr(rgbd_mod, "global_registration", fake_global)
+    cam = slam_scene.camera(40, 30)
+    _, gm, kfs, closer = _chain(6, cam, np.zeros(6))
+    closer.cfg = closer.cfg.model_copy(update={"global_fallback": fallback})
+    gm.place_submap(gm.submaps[0], gm.submaps[0].T_world_local @ se3.exp(np.array([0, 0, 0, 0.5, 0.3, 0.0])))
+    c = closer.verify(LoopCandidate(5, 0, kfs[5].frame_index, kfs[0].frame_index, 1.0), kfs, gm)  # 58 cm off
+    assert not c.accepted and len(calls) == int(fallback)

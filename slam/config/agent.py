@@ -215,6 +215,8 @@ class LoopClosureConfig(_Section):
     rmse_max: float = Field(0.03, gt=0, description="τ_ρ: accept when ICP inlier RMSE is below (m)")
     icp_max_distance: float = Field(0.05, gt=0, description="ICP correspondence distance (m)")
     max_correction: float = Field(0.5, gt=0, description="reject loops that move the pose by more than this (m)")
+    global_fallback: bool = Field(False, description="restart a candidate that fails the gates from FPFH + RANSAC "
+                                  "(~1-3 s CPU each) instead of rejecting it")
     information: Literal["registration", "fixed"] = Field(
         "registration", description="edge information (eqs. 10-11): from each registration's information matrix, "
                                     "RMSE and correspondence count (tracking edges chain their frame-to-frame steps; "

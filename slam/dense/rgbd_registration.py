@@ -56,12 +56,13 @@ def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, 
 
 
 def register_loop(source: RGBD, target: RGBD, init: np.ndarray, *, max_distance: float, min_fitness: float,
-                  max_rmse: float, max_depth: float = 10.0) -> Registration:
+                  max_rmse: float, max_depth: float = 10.0, global_fallback: bool = True) -> Registration:
     """Loop-closure registration from `init`: coarse RGB-D odometry, then point-to-plane ICP (with a global
-    FPFH + RANSAC restart when the result fails the fitness / RMSE gate). The caller applies the gates again to
+    FPFH + RANSAC restart when the result fails the fitness / RMSE gate and `global_fallback` is set). The caller applies the gates again to
     record why a candidate was rejected; fitness and RMSE are filled in even on failure."""
     from swarmsplat.registration.rgbd import register_rgbd
 
     r = register_rgbd(source.color, source.depth, target.color, target.depth, source.camera, rigid(init),
-                      max_distance=max_distance, min_fitness=min_fitness, max_rmse=max_rmse, depth_max=max_depth)
+                      max_distance=max_distance, min_fitness=min_fitness, max_rmse=max_rmse, depth_max=max_depth,
+                      global_fallback=global_fallback)
     return _view(r)

@@ -184,7 +184,7 @@ class LoopCloser:
         q, j = keyframes[c.query_kf], keyframes[c.match_kf]
         T_init = se3.project_rigid(se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q))  # eq. 6: T_j^-1 T_q
         r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, min_fitness=cfg.fitness_min,
-                          max_rmse=cfg.rmse_max, max_depth=self.max_depth)
+                          max_rmse=cfg.rmse_max, max_depth=self.max_depth, global_fallback=cfg.global_fallback)
         c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
         c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
         if r.fitness <= cfg.fitness_min:
