@@ -9,7 +9,7 @@ emitted and after the run (loop closures, map refinement), and the merged map's 
 PSNR beside them. The machine's 1-minute load average is recorded before and after each run: other processes on
 the same cores lengthen every latency.
 
-    python -m perf realtime                      # -> perf/results/realtime-cpu.{json,md} (5 min at load 6-10)
+    python -m perf realtime                      # -> perf/results/realtime-cpu.{json,md} (3.5-5 min, shared 2 cores)
     python -m perf realtime --rates 15 --presets realtime --no-offline
     python -m perf realtime --from-json          # rewrite perf/results/realtime-cpu.md from its JSON
 """
