@@ -148,7 +148,9 @@ def test_run_reads_the_file_and_kernels_flags_override_it(data, tmp_path):
                  "--quiet"]) == 0
     used = SlamConfig.from_yaml(out / "config.yaml")
     assert used.kernels.backend == "warp" and used.mapping.iterations == 8
-    assert json.loads((out / "metrics.json").read_text())["kernels"]["backend"] == "warp"
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["kernels"]["backend"] == "warp"
+    assert saved["verification_budget"] == {"descriptor_per_keyframe": 3, "pose_per_keyframe": 2, "tau_sim": None}
 
 
 def test_team_run_reads_the_server_and_team_sections(tmp_path):

@@ -60,6 +60,9 @@ def test_two_agents_end_to_end(split_run):
     accepted = [r for r in inter if r["accepted"] == "True"]
     assert len(accepted) >= 2, f"fewer than two inter-agent loops accepted: {[r['reason'] for r in inter]}"
     assert [r["joined"] for r in accepted].count("True") == 1 and saved["joins"]["made"] == 1
+    budget = saved["verification_budget"]  # what bounds the verification per keyframe, in the report too
+    assert (budget["descriptor_per_keyframe"], budget["intra"]["pose_per_keyframe"]) == (2, 2)
+    assert "at most 2 descriptor and 2 pose candidates per keyframe" in (out / "report.md").read_text()
     assert saved["components"] == {"agent_0": ["agent_0", "agent_1"]}
     assert all(a["in_global_frame"] for a in saved["agents"])
     assert saved["joined_agents"] == ["agent_0", "agent_1"] and saved["unjoined_agents"] == []

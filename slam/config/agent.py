@@ -217,6 +217,9 @@ class LoopClosureConfig(_Section):
     max_correction: float = Field(0.5, gt=0, description="reject loops that move the pose by more than this (m)")
     global_fallback: bool = Field(False, description="restart a candidate that fails the gates from FPFH + RANSAC "
                                   "(~1-3 s CPU each) instead of rejecting it")
+    descriptor_min_overlap: float = Field(0.1, ge=0, le=1, description="without global_fallback, a descriptor "
+                                          "candidate is registered only when the tracked poses make this fraction "
+                                          "of the query's depth pixels land in the match view (0 = always)")
     information: Literal["registration", "fixed"] = Field(
         "registration", description="edge information (eqs. 10-11): from each registration's information matrix, "
                                     "RMSE and correspondence count (tracking edges chain their frame-to-frame steps; "

@@ -125,7 +125,8 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
                   "min_loops": srv.cfg.join_min_loops},
         "verification_budget": {"descriptor_per_keyframe": srv.cfg.top_k, "tau_sim": srv.cfg.tau_sim,
                                 "pose_per_keyframe": team.cfg.loop_closure.pose_top_k
-                                if team.cfg.loop_closure.candidates != "descriptor" else 0},
+                                if team.cfg.loop_closure.candidates != "descriptor" else 0,
+                                "intra": team.agents[0].loops.budget()},
         "inter_verify": {"by_source_and_coarse": srv.inter_stats, "coarse": srv.cfg.coarse,
                          "descriptor": srv.cfg.descriptor,
                          "encoder": srv.encoder.stats() if srv.encoder is not None else None},

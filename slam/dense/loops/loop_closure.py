@@ -88,6 +88,13 @@ class LoopCloser:
         self._recognizer = None if cfg.descriptor == "auto" else _make_recognizer(cfg)
         self._pending: dict[int, np.ndarray] = {}  # xfeat-vlad: local descriptors of keyframes awaiting the vocabulary
 
+    def budget(self) -> dict:
+        """The candidates verified per keyframe at most (top_k descriptor ones, pose_top_k pose ones) and the
+        similarity gate (None: none): what bounds loop closure's cost per keyframe."""
+        c = self.cfg
+        return {"descriptor_per_keyframe": c.top_k if c.candidates != "pose" else 0,
+                "pose_per_keyframe": c.pose_top_k if c.candidates != "descriptor" else 0, "tau_sim": c.tau_sim}
+
     @property
     def active_loops(self) -> list[Edge]:
         return [e for e in self.loops if not e.rejected]
@@ -183,6 +190,14 @@ class LoopCloser:
         cfg = self.cfg
         q, j = keyframes[c.query_kf], keyframes[c.match_kf]
         T_init = se3.project_rigid(se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q))  # eq. 6: T_j^-1 T_q
+        if c.source == "descriptor" and not cfg.global_fallback and cfg.descriptor_min_overlap > 0:
+            # Local registration cannot recover a pair the tracked poses do not make overlap: skip it cheaply.
+            c.overlap = view_overlap(q.small, j.small, T_init)
+            if c.overlap < cfg.descriptor_min_overlap:
+                c.reason = f"overlap {c.overlap:.2f} < descriptor_min_overlap {cfg.descriptor_min_overlap} at the " \
+                           f"tracked poses"
+                self.log.append(c)
+                return c
         r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, min_fitness=cfg.fitness_min,
                           max_rmse=cfg.rmse_max, max_depth=self.max_depth, global_fallback=cfg.global_fallback)
         c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
