@@ -52,15 +52,14 @@ def test_every_preset_loads_and_validates():
 
 
 def test_demo_presets_hold_the_demo_settings():
-    """configs/demo.yaml and demo-tiny.yaml are the settings the demo has always used on top of the defaults."""
+    """configs/demo.yaml and demo-tiny.yaml are the demo's settings on top of the defaults."""
     demo = SlamConfig().override({
         "mapping": {"iterations": 20, "first_iterations": 60},
         "map_refine": {"iterations_per_keyframe": 12, "max_iterations": 1500},
-        "server": {"descriptor": "bow", "tau_sim": 0.5}, "team": {"stride": 2, "render_views": 8},
-        "demo": {"dataset": "default"}})
+        "team": {"stride": 2, "render_views": 8}, "demo": {"dataset": "default"}})
     tiny = SlamConfig().override({
         "mapping": {"iterations": 10, "first_iterations": 30}, "keyframes": {"every": 3},
-        "loop_closure": {"min_index_gap": 3}, "server": {"descriptor": "bow", "tau_sim": 0.5},
+        "loop_closure": {"min_index_gap": 3}, "server": {"join_min_loops": 1},
         "team": {"stride": 1, "render_views": 4}, "demo": {"dataset": "tiny"}})
     assert SlamConfig.preset("demo") == demo
     assert SlamConfig.preset("demo-tiny") == tiny
@@ -85,7 +84,7 @@ def test_preset_then_file_then_overrides(tmp_path):
     f = _write(tmp_path / "c.yaml", "mapping: {iterations: 7}\nteam: {render_views: 2}\n")
     cfg = SlamConfig.from_yaml(f, {"team": {"render_views": 3}}, preset="demo")
     assert cfg.mapping.iterations == 7 and cfg.mapping.first_iterations == 60  # file over preset, preset kept
-    assert cfg.team.render_views == 3 and cfg.team.stride == 2 and cfg.server.descriptor == "bow"
+    assert cfg.team.render_views == 3 and cfg.team.stride == 2 and cfg.map_refine.iterations_per_keyframe == 12
 
 
 # ---- one error line, the same for every command -------------------------------------------------------------------
@@ -185,10 +184,12 @@ def test_set_reaches_any_key_after_the_file_and_is_written(tmp_path):
 def test_demo_reads_the_file_over_its_preset(tmp_path):
     f = _write(tmp_path / "c.yaml", "team: {render_views: 1}\nmapping: {iterations: 4}\n")
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--preset", "tiny", "--config", f, "--quiet"]) == 0
+    assert main(["demo", "--out", str(out), "--preset", "tiny", "--config", f, "--quiet",
+                 "--set", "server.descriptor=bow", "--set", "server.tau_sim=0.5"]) == 0
     used = SlamConfig.from_yaml(out / "results" / "config.yaml")
     assert used.mapping.iterations == 4 and used.mapping.first_iterations == 30  # file over the tiny preset
-    assert used.team.render_views == 1 and used.demo.dataset == "tiny" and used.server.descriptor == "bow"
+    assert used.team.render_views == 1 and used.demo.dataset == "tiny" and used.server.join_min_loops == 1
+    assert (used.server.descriptor, used.server.tau_sim) == ("bow", 0.5)  # --set over both
     assert used.server.vocabulary and Path(used.server.vocabulary).is_file()  # trained for the run, recorded
     assert json.loads((out / "results" / "metrics.json").read_text())["render_views"] == 2  # 1 per agent
 

@@ -62,8 +62,8 @@ def test_non_finite_gaussians_are_removed_warned_and_counted(run, monkeypatch):
     real = mapper.Mapper.optimise
     calls = []
 
-    def diverge(self, submap, keyframes, iterations):
-        out = real(self, submap, keyframes, iterations)
+    def diverge(self, submap, keyframes, iterations, **kw):
+        out = real(self, submap, keyframes, iterations, **kw)
         calls.append(1)
         if len(calls) == 2:  # the second keyframe's mapping: three Gaussians diverge
             submap.params.means[:2, 0] = float("nan")
@@ -80,8 +80,8 @@ def test_non_finite_gaussians_are_removed_warned_and_counted(run, monkeypatch):
 def test_a_new_submap_left_empty_fails_the_run(run, monkeypatch):
     real = mapper.Mapper.optimise
 
-    def all_nan(self, submap, keyframes, iterations):
-        out = real(self, submap, keyframes, iterations)
+    def all_nan(self, submap, keyframes, iterations, **kw):
+        out = real(self, submap, keyframes, iterations, **kw)
         submap.params.means[:] = float("nan")
         return out
 

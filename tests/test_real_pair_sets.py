@@ -53,7 +53,8 @@ def test_recall_at_k_on_a_hand_made_matrix():
     r = recall(sim, truth, allowed)
     assert r["queries"] == 2
     assert r["recall@1"] == 0.5  # query 0 ranks 1 first, query 3 ranks 0 first
-    assert r["recall@5"] == 1.0 and r["above_tau"] == 1.0
+    assert r["recall@5"] == 1.0
+    assert r["sim_true"] == 0.5 and r["sim_other"] == np.percentile(sim[allowed & ~truth], 95)
     P = np.stack([look_pose((0, 0, 0)), look_pose((0.3, 0, 0), 20.0), look_pose((0.3, 0, 0), 40.0)])
     assert revisit_truth(P, P).tolist() == [[True, True, False], [True, True, True], [False, True, True]]
 
