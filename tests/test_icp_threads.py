@@ -1,6 +1,10 @@
 """Warp's CPU launches split over Python threads (kernels/_warp/launch.py `launch`) give exactly the single-launch
 result: the parts cover disjoint items / reduction blocks, so the sums and indices are bitwise equal."""
 
+import os
+import sys
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -49,3 +53,38 @@ def test_split_launches_equal_one_launch(warp_cpu):
         assert torch.equal(one[2].JtJ, many[2].JtJ) and torch.equal(one[2].Jtr, many[2].Jtr)
         assert one[2].count == many[2].count > 1000 and one[2].cost == many[2].cost
         assert torch.equal(one[3], many[3]) and torch.equal(one[4], many[4]) and torch.equal(one[5], many[5])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_a_lower_priority_thread_launches_on_its_own_pool(warp_cpu):
+    """A thread that lowered its priority (the real-time mapping worker) runs its parts on a pool of that nice value,
+    not in the queue of a normal thread's pool, with the same results."""
+    from swarmsplat.kernels._warp import launch as W
+
+    cam, (_, ds), (_, dt), T = synthetic.pair(160, 120)
+
+    def run():
+        tv, tn = K.vertices_normals_from_depth(torch.from_numpy(dt), cam)
+        sv, sn = K.vertices_normals_from_depth(torch.from_numpy(ds), cam)
+        return tv, tn, K.projective_normal_equations(sv.reshape(-1, 3), torch.from_numpy(T), tv, tn, cam,
+                                                     max_distance=0.05, robust="huber", robust_scale=0.02)
+
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    mine = warp_cpu(2, run)
+    out = {}
+
+    def low():
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), min(19, base + 5))
+        out["result"] = run()
+        pool = W._pool(1)
+        out["pool"] = pool
+        out["worker_nice"] = pool.submit(lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id())).result()
+
+    t = threading.Thread(target=low)
+    t.start()
+    t.join()
+    assert out["pool"] is not W._pool(1)
+    assert out["worker_nice"] == min(19, base + 5)
+    theirs = out["result"]
+    assert torch.equal(mine[0], theirs[0]) and torch.equal(mine[1], theirs[1])
+    assert torch.equal(mine[2].JtJ, theirs[2].JtJ) and mine[2].count == theirs[2].count > 1000

@@ -6,6 +6,9 @@ one line. Latency itself is measured by `python -m perf realtime`, not asserted 
 from __future__ import annotations
 
 import json
+import os
+import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,6 +138,12 @@ def test_tracking_does_not_wait_for_mapping_and_stop_ends_the_worker(seq):
         f = frames[0]
         rt.step(f.index, f.timestamp, f.color, f.depth)  # the first keyframe: 100000 iterations planned
         assert not rt.idle()
+        if sys.platform.startswith("linux"):  # the worker runs at a lower priority than the tracker
+            want = min(19, os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + cfg.runtime.mapping_nice)
+            t0 = time.perf_counter()  # set by the worker as it starts
+            while os.getpriority(os.PRIO_PROCESS, rt._thread.native_id) != want and time.perf_counter() - t0 < 5:
+                time.sleep(0.01)
+            assert os.getpriority(os.PRIO_PROCESS, rt._thread.native_id) == want
         f = frames[1]
         assert rt.step(f.index, f.timestamp, f.color, f.depth) is not None  # tracked meanwhile
         assert rt.keyframes_deferred == 1 and len(rt.keyframes) == 1  # due, deferred

@@ -8,6 +8,7 @@ import ctypes
 import math
 import os
 import struct as _struct
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -15,10 +16,10 @@ import warp as wp
 
 from .arrays import LAYOUT, Flat, as_array_t
 
-_POOL: ThreadPoolExecutor | None = None
-_POOL_PID = -1
+_POOLS: dict = {}  # nice value -> (pool, pid)
 _POOL_LOCK = threading.Lock()
 _LOADED: set = set()  # (kernel, device) launched at least once: compiled and loaded, safe to launch from threads
+_PER_THREAD_NICE = sys.platform.startswith("linux")  # Linux keeps a nice value per thread
 
 
 def _cpu_threads() -> int:
@@ -28,14 +29,37 @@ def _cpu_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _nice() -> int:
+    """The calling thread's nice value (0 where threads have none of their own)."""
+    if not _PER_THREAD_NICE:
+        return 0
+    try:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    except OSError:
+        return 0
+
+
+def _set_nice(nice: int) -> None:
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+    except OSError:
+        pass  # raising a priority needs a privilege: keep what the thread has
+
+
 def _pool(workers: int) -> ThreadPoolExecutor:
-    # One pool per process: a forked child inherits the pool object but not its threads, so it makes its own.
-    global _POOL, _POOL_PID
+    """The pool that runs the calling thread's parts: one per process and nice value, its threads at that nice
+    value. A thread that lowered its priority (slam/run/realtime's mapping worker) so never queues its parts in
+    front of a normal thread's (the tracker's), and its parts run at its own priority."""
+    nice = _nice()
     with _POOL_LOCK:
-        if _POOL is None or _POOL_PID != os.getpid():
-            _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="swarmsplat-warp-cpu")
-            _POOL_PID = os.getpid()
-    return _POOL
+        # a forked child inherits the pool objects but not their threads, so it makes its own
+        pool, pid = _POOLS.get(nice, (None, -1))
+        if pool is None or pid != os.getpid():
+            init = (_set_nice, (nice,)) if _PER_THREAD_NICE else (None, ())
+            pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"swarmsplat-warp-cpu-n{nice}",
+                                      initializer=init[0], initargs=init[1])
+            _POOLS[nice] = (pool, os.getpid())
+    return pool
 
 
 # Direct CPU calls. wp.launch spends ~85 us of Python per launch of a ~20-argument kernel (argument checks and

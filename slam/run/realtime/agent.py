@@ -13,11 +13,14 @@ the worker.
 The threads share the map without locks by construction: the worker only changes the submap it maps (the tracker
 reads the Gaussians published before), and the tracker changes the submaps and the keyframe list only while the
 worker is idle (the retired submap's keyframe images are packed by the worker, as its next job's first step). Warp's kernels and torch's operators release the GIL, so the two threads run at the same time
-(the run measures it: metrics.json realtime.cpu_s).
+(the run measures it: metrics.json realtime.cpu_s). The worker lowers its own priority (runtime.mapping_nice), so
+when the cores are short the tracker runs first and mapping takes what is left.
 """
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 import time
 
@@ -137,6 +140,7 @@ class RealtimeAgent(Agent):
     # ---- the worker's thread ------------------------------------------------------------------------------------
 
     def _work(self) -> None:
+        _lower_priority(self.cfg.runtime.mapping_nice)
         c0 = time.thread_time()
         try:
             while True:
@@ -195,3 +199,16 @@ class RealtimeAgent(Agent):
                 k.map_rgbd = pack(k.map_rgbd)
             if not isinstance(k.small, PackedRGBD):
                 k.small = pack(k.small)
+
+
+def _lower_priority(nice: int) -> None:
+    """Add `nice` to the calling thread's nice value (Linux keeps one per thread; elsewhere nothing happens). The
+    Warp launch pool runs a thread's kernel parts on pool threads of the same nice value (kernels/_warp/launch.py),
+    so the mapping worker's parts never queue in front of the tracker's either."""
+    if nice <= 0 or not sys.platform.startswith("linux"):
+        return
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except OSError:
+        pass  # not allowed here: the worker keeps the tracker's priority
