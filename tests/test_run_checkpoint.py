@@ -166,3 +166,47 @@ def test_a_team_run_journals_every_agent(sequence, tmp_path):
         # every frame up to the agent's last keyframe (one at least every keyframes.every = 3 frames)
         assert 12 - 2 <= len(stamps) <= 12 and np.all(np.isfinite(T))
         np.testing.assert_allclose(stamps, seq_stamps[first:first + len(stamps)], atol=1e-6)
+
+
+def test_a_killed_team_run_resumes_to_the_uninterrupted_result(sequence, tmp_path, capsys):
+    """The in-process team checkpoints the whole team (agents and server) as its submaps finish; `--resume`
+    after SIGKILL continues from the last round checkpointed and ends with the uninterrupted team's result."""
+    cfg = _config(tmp_path)
+    split = ["--split", "0:22,22:45"]
+    whole = tmp_path / "whole"
+    assert main(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet", *split]) == 0
+    m_whole = json.loads((whole / "metrics.json").read_text())
+    assert not (whole / "progress" / "checkpoint.pkl").exists()
+
+    out = tmp_path / "killed"
+    ckpt = out / "progress" / "checkpoint.pkl"
+    proc = _spawn(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", *split])
+    t0 = time.time()
+    while not (ckpt.is_file() and _journal_frames(out / "progress" / "agent_0.tum") >= 6):
+        assert proc.poll() is None, "the team run ended before it could be killed"
+        assert time.time() - t0 < 50, "no checkpoint within 50 s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait(timeout=10) == -signal.SIGKILL
+    with open(ckpt, "rb") as f:
+        header = pickle.load(f)
+    assert 0 < header["next_frame"] < 23 and len(header["journal"]) == 2  # a round mid-run, one journal per agent
+
+    # another split is another run: named, nothing resumed
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--split", "0:20,20:45",
+                 "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "is a checkpoint of another run" in err and "agents." in err, err
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", *split, "--resume",
+                 "--processes"]) == 2
+    assert "replays its journal" in capsys.readouterr().err
+
+    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", *split, "--resume"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and not ckpt.exists()
+    # one machine and backend: the same result; 10 % is the margin another machine's floating-point order may take
+    assert m["ate_rmse_team"] == pytest.approx(m_whole["ate_rmse_team"], rel=0.10)
+    for a, b in zip(m["agents"], m_whole["agents"]):
+        assert a["frames"] == b["frames"] and a["keyframes"] == b["keyframes"]
+    for name in ("agent_0", "agent_1"):  # every frame journaled once, in order, as the uninterrupted run's
+        assert _journal_frames(out / "progress" / f"{name}.tum") == _journal_frames(whole / "progress" / f"{name}.tum")

@@ -46,7 +46,8 @@ def register(sub) -> None:
                         "link's bytes (metrics.json link, report.md)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out that was killed or interrupted, from its last checkpoint "
-                        "(progress/checkpoint.pkl; one agent; the dataset and config must be the run's own)")
+                        "(progress/checkpoint.pkl; one agent, or a team in one process; the dataset, --split and "
+                        "config must be the run's own)")
     p.add_argument("--realtime", action="store_true",
                    help="real-time mode (one agent): frames arrive at the sensor's rate, each pose is emitted as its "
                         "frame is tracked, mapping runs beside tracking, frames the tracker cannot take in time are "
@@ -127,9 +128,9 @@ def run(args) -> int:
     if len(ds) > 1:
         if cfg.runtime.realtime:
             raise InputError(f"--realtime runs one agent, but {args.dataset} holds {len(ds)} agents' sequences")
-        if args.resume:
-            raise InputError("--resume continues a one-agent run; a team run cannot be resumed yet (its pose "
-                             "journals are in --out/progress/)")
+        if args.resume and args.processes:
+            raise InputError("--resume continues a run in one process; with --processes a restarted `swarmsplat "
+                             "server` replays its journal instead (docs/team-link.md)")
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map.
         from swarmsplat.slam.run.team import run_team
 
@@ -140,7 +141,7 @@ def run(args) -> int:
                                    progress=not args.quiet)
         else:
             m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
-                         strict=args.strict)
+                         strict=args.strict, resume=args.resume)
         keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
             "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],

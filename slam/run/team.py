@@ -91,18 +91,21 @@ class Team:
         origins.append(origins[k - 1] @ rel)
 
     def run(self, sequences: Sequence, *, limits: Sequence[int] | None = None, stride: int = 1,
-            progress: Callable[[int, int, str], None] | None = None, strict: bool = False) -> float:
+            progress: Callable[[int, int, str], None] | None = None, strict: bool = False, start: int = 0,
+            after_round: Callable[[int], None] | None = None) -> float:
         """Feed every agent its sequence, one frame per agent per round, until all have ended. `limits[a]` caps
         agent a's input frames; `stride` k uses every k-th frame (a faster, coarser run). An unreadable frame is
         skipped with a warning (strict: raise). Returns wall seconds.
-        progress: called after every round with (rounds done, rounds in all, status line)."""
+        progress: called after every round with (rounds done, rounds in all, status line); start: the first
+        round (a resumed run's); after_round: called with the next round's index after every round (the run's
+        checkpoints)."""
         if stride < 1:
             raise InputError(f"frame stride must be at least 1, got {stride}")
         n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
              for a, s in enumerate(sequences)]
-        rounds = -(-max(n, default=0) // stride)
+        rounds = self.rounds_in(sequences, limits, stride)
         t0 = time.perf_counter()
-        for i in range(rounds):
+        for i in range(start, rounds):
             self.rounds = i
             for a, seq in enumerate(sequences):
                 if i * stride < n[a]:  # an agent whose sequence has ended simply leaves the rotation
@@ -111,7 +114,20 @@ class Team:
                         self.step(a, f.index, f.timestamp, f.color, f.depth)
             if progress:
                 progress(i + 1, rounds, self.status(i + 1, rounds, time.perf_counter() - t0))
+            if after_round is not None:
+                after_round(i + 1)
         return time.perf_counter() - t0
+
+    def rounds_in(self, sequences: Sequence, limits: Sequence[int] | None, stride: int) -> int:
+        """How many rounds `run` makes over these sequences."""
+        n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
+             for a, s in enumerate(sequences)]
+        return -(-max(n, default=0) // stride)
+
+    def __getstate__(self) -> dict:  # a checkpoint pickles the team; the journals are files the run reopens
+        state = dict(self.__dict__)
+        state["journals"] = None
+        return state
 
     def finish(self) -> dict | None:
         """A last global optimisation over every keyframe (those added since the last loop included)."""
@@ -159,7 +175,7 @@ class Team:
 def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path, config: SlamConfig | None = None, *,
              server: ServerConfig | None = None, frames: int | None = None, limits: Sequence[int] | None = None,
              stride: int | None = None, progress: bool = True, render_views: int | None = None, observer=None,
-             strict: bool = False) -> dict:
+             strict: bool = False, resume: bool = False) -> dict:
     """Run the team on a multi-agent RGB-D dataset (any layout `slam.io.datasets.load_dataset` reads) and write
     every output to `out_dir` (see slam.run.team_results). Returns the metrics written to metrics.json.
     `dataset_path` may also be an already loaded MultiAgentDataset (e.g. from swarmsplat.slam.io.datasets.split.split_sequence).
@@ -173,13 +189,20 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
     (slam.view.live.LiveView, the live view).
     strict: stop at an unreadable frame (default: skip it). An interrupt or a failure writes what was done so far
     (slam.run.partial_results.write_partial_team) and re-raises.
+    As it goes the run appends each agent's keyframes' frames to out_dir/progress/<agent>.tum and checkpoints the
+    whole team (config `checkpoint`: each time that many submaps have been finished across the team, and after
+    the last round); resume: continue the run in `out_dir` from its last checkpoint (InputError naming what
+    differs when it is not a run of this dataset and config).
     """
+    from swarmsplat.kernels.fileio import atomic_write_text
     from swarmsplat.slam.io.datasets import MultiAgentDataset, load_dataset
     from swarmsplat.slam.io.progress import TeamRounds
-    from .checkpoint import PoseJournal
+    from .checkpoint import CHECKPOINT, PoseJournal, find_resume, save_checkpoint, team_identity
     from .runtime import check_device, use_kernels
 
     cfg = config or SlamConfig()
+    if server is not None:  # the server's settings given apart replace the config's `server` section (as Team)
+        cfg = cfg.model_copy(update={"server": server})
     stride = cfg.team.stride if stride is None else stride
     render_views = cfg.team.render_views if render_views is None else render_views
     ds = dataset_path if isinstance(dataset_path, MultiAgentDataset) else load_dataset(dataset_path)
@@ -193,21 +216,52 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
         c = [int(x) for x in (cap, limits[a] if limits else None) if x]
         caps.append(min(c) if c else 0)
     out = output_dir(out_dir, "--out")
-    team = Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg, server)
+    identity = team_identity(ds, cfg, caps, stride)
+    resumed = find_resume(out, identity) if resume else None
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())  # what --resume checks before the first checkpoint
+    team = resumed.agent if resumed else Team([s.camera for s in ds.agents], [s.name for s in ds.agents], cfg)
+    start = resumed.next_frame if resumed else 0
+    rounds = team.rounds_in(ds.agents, caps, stride)
+    if resume and progress:
+        print(f"[team] resuming at round {start} of {rounds}" if resumed else
+              f"[team] no checkpoint in {out} yet: starting from the first round", file=sys.stderr)
     cpu0 = time.process_time()
-    t_start = time.perf_counter()
+    t_start = time.perf_counter() - (resumed.wall_s if resumed else 0.0)  # the run's time includes the work resumed
     keep(lambda status, reason: write_partial_team(team, ds, out, status=status, reason=reason,
                                                    wall_s=time.perf_counter() - t_start,
                                                    run_info={"frame_stride": stride, "frame_caps": caps}))
-    team.journals = [PoseJournal(out / "progress" / f"{ag.name}.tum") for ag in team.agents]
+    team.journals = [PoseJournal(out / "progress" / f"{ag.name}.tum",
+                                 resume=resumed.journal[a] if resumed else None)
+                     for a, ag in enumerate(team.agents)]
+    every = cfg.checkpoint.every_submaps
+    finished = [sum(len(ag.gmap.submaps) - 1 for ag in team.agents if ag.gmap.submaps)]  # at the last checkpoint
+
+    def checkpoint(next_round: int) -> None:
+        save_checkpoint(out, identity, team, next_frame=next_round, journal=[j.state() for j in team.journals],
+                        wall_s=time.perf_counter() - t_start)
+
+    def after_round(next_round: int) -> None:  # each time `every` more submaps are finished across the team
+        done = sum(len(ag.gmap.submaps) - 1 for ag in team.agents if ag.gmap.submaps)
+        if every and done - finished[0] >= every:
+            finished[0] = done
+            checkpoint(next_round)
+
     try:
         with TeamRounds(team, enabled=progress, observer=observer) as show:
-            wall = team.run(ds.agents, limits=caps, stride=stride, progress=show, strict=strict)
+            if start:
+                show(start, rounds, team.status(start, rounds, 0.0))
+            wall = team.run(ds.agents, limits=caps, stride=stride, progress=show, strict=strict, start=start,
+                            after_round=after_round)
+        if every and start < rounds:  # every frame done: a kill in the refinement resumes at the refinement
+            checkpoint(rounds)
     finally:
         for j in team.journals:
             j.close()
-    return finish_team(team, ds, out, wall_s=wall, cpu0=cpu0, render_views=render_views, progress=progress,
-                       observer=observer, run_info={"frame_stride": stride, "frame_caps": caps})
+    wall = time.perf_counter() - t_start
+    metrics = finish_team(team, ds, out, wall_s=wall, cpu0=cpu0, render_views=render_views, progress=progress,
+                          observer=observer, run_info={"frame_stride": stride, "frame_caps": caps})
+    (out / CHECKPOINT).unlink(missing_ok=True)  # a complete run needs none; the journals stay
+    return metrics
 
 
 def finish_team(team: Team, ds, out: Path, *, wall_s: float, cpu0: float, render_views: int, progress: bool,

@@ -1,10 +1,11 @@
-"""Checkpoints of a single-agent run, and what `swarmsplat run ... --resume` continues from.
+"""Checkpoints of a run (one agent, or an in-process team), and what `swarmsplat run ... --resume` continues from.
 
 progress/checkpoint.pkl holds two pickles one after the other: a small header (format, the run's identity: the
-dataset and the config; the next frame to read; the journal's state; the seconds worked so far), then the Agent
-itself — submaps' Gaussians, keyframes with their images and descriptors, the loop closer's edges and log, the
-tracker's last frame, pose and velocity, the mapper's random generator — so the resumed run goes on exactly where
-the checkpoint was taken. It is written atomically (a kill while writing leaves the previous one), and removed when
+dataset and the config; the next frame (one agent) or round (a team) to read; the journals' state; the seconds
+worked so far), then the Agent itself — submaps' Gaussians, keyframes with their images and descriptors, the loop
+closer's edges and log, the tracker's last frame, pose and velocity, the mapper's random generator — or the Team
+(every agent so, and the server: its pose graph, loop records, joins and cached encodings), so the resumed run
+goes on exactly where the checkpoint was taken. It is written atomically (a kill while writing leaves the previous one), and removed when
 the run completes. A pickle runs code when loaded: resume only folders your own runs wrote.
 """
 
@@ -24,11 +25,11 @@ CHECKPOINT = Path("progress") / "checkpoint.pkl"
 
 @dataclass
 class Resumed:
-    """What `load_checkpoint` gives back: the agent and where its run stood."""
+    """What `load_checkpoint` gives back: the agent (or the team) and where its run stood."""
 
-    agent: object
-    next_frame: int  # the first input frame not yet read
-    journal: tuple[int, int]  # PoseJournal.state() at the checkpoint
+    agent: object  # slam.dense.agent.Agent, or slam.run.team.Team for a team run
+    next_frame: int  # the first input frame (team: round) not yet read
+    journal: tuple  # PoseJournal.state() at the checkpoint; a team: one per agent
     wall_s: float  # seconds of run time before the checkpoint
 
 
@@ -45,12 +46,31 @@ def run_identity(seq, cfg, n_frames: int) -> dict:
             "config": config}
 
 
-def save_checkpoint(out: Path, identity: dict, agent, *, next_frame: int, journal: tuple[int, int],
-                    wall_s: float) -> Path:
-    """Write out/progress/checkpoint.pkl atomically (fsync'd, then renamed over the previous one)."""
+def team_identity(ds, cfg, caps, stride: int) -> dict:
+    """`run_identity` of a team run: the dataset (folder, and per agent its name, frame count, time span and
+    camera), each agent's frame cap, the frame stride and the config (all but its `checkpoint` section)."""
+    config = cfg.model_dump(mode="json")
+    config.pop("checkpoint", None)
+    agents = []
+    for seq in ds.agents:
+        ts = seq.timestamps
+        agents.append({"name": seq.name, "frames": len(seq),
+                       "first_timestamp": round(float(ts[0]), 6) if len(ts) else None,
+                       "last_timestamp": round(float(ts[-1]), 6) if len(ts) else None,
+                       "camera": {k: float(v) for k, v in seq.camera.to_dict().items()}})
+    return {"dataset": str(Path(ds.root).resolve()), "agents": {a["name"]: a for a in agents},
+            "frame_caps": [int(c) for c in caps], "frame_stride": int(stride), "config": config}
+
+
+def save_checkpoint(out: Path, identity: dict, agent, *, next_frame: int, journal, wall_s: float) -> Path:
+    """Write out/progress/checkpoint.pkl atomically (fsync'd, then renamed over the previous one). `agent`: the
+    Agent, or a team (anything with `.agents`); `journal`: its PoseJournal.state(), a team's one per agent."""
     path = Path(out) / CHECKPOINT
-    header = {"format": FORMAT, "identity": identity, "next_frame": int(next_frame), "journal": list(journal),
-              "wall_s": float(wall_s), "keyframes": len(agent.keyframes), "submaps": len(agent.gmap.submaps)}
+    agents = getattr(agent, "agents", [agent])
+    header = {"format": FORMAT, "identity": identity, "next_frame": int(next_frame),
+              "journal": [list(j) for j in journal] if hasattr(agent, "agents") else list(journal),
+              "wall_s": float(wall_s), "keyframes": sum(len(a.keyframes) for a in agents),
+              "submaps": sum(len(a.gmap.submaps) for a in agents)}
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
@@ -82,7 +102,9 @@ def load_checkpoint(out: Path, identity: dict) -> Resumed:
         raise
     except Exception as e:  # noqa: BLE001 - a truncated or foreign file: say so in one line
         raise InputError(f"--resume: cannot read the checkpoint {path}: {type(e).__name__}: {e}") from None
-    return Resumed(agent, header["next_frame"], tuple(header["journal"]), header["wall_s"])
+    journal = header["journal"]
+    journal = [tuple(j) for j in journal] if journal and isinstance(journal[0], list) else tuple(journal)
+    return Resumed(agent, header["next_frame"], journal, header["wall_s"])
 
 
 def find_resume(out: Path, identity: dict) -> Resumed | None:
