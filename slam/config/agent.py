@@ -181,6 +181,16 @@ class SubmapConfig(_Section):
     theta_max_deg: float = Field(30.0, gt=0, description="... or rotated this much (degrees)")
     max_keyframes: int = Field(40, ge=1, description="... or the submap has this many keyframes (bounds memory)")
     keep_keyframe_width: int = Field(160, ge=16, description="stored keyframes (for loop closure) kept at this width")
+    storage: Literal["compact", "float32"] = Field("compact", description="finished submaps' Gaussians kept as: "
+                                                   "'compact' (means 16-bit in the submap's box, the rest 8-bit, "
+                                                   "zlib; about 12 bytes each, slam.dense.submap_codec) or "
+                                                   "'float32' (as optimised, 56 bytes each)")
+    offload: bool = Field(True, description="a run with an output folder writes each finished submap's Gaussians "
+                          "to submaps/NNNN.bin there (in the `storage` form) and drops them from memory; they are "
+                          "read back for the final refinement and map.ply")
+    prune_min_contribution: float = Field(0.0, ge=0, description="when a submap is finished, drop its Gaussians "
+                                          "whose total blending weight in every one of its keyframes' renders is "
+                                          "below this (pixels); 0 keeps all")
 
 
 class LoopClosureConfig(_Section):

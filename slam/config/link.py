@@ -14,9 +14,10 @@ class LinkConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    gaussians: Literal["float32", "float16"] = Field(
-        "float32", description="encoding of a finished submap's Gaussians on the link: float32 (exact) or float16 "
-                               "(half the bytes; means stay float32)")
+    gaussians: Literal["float32", "float16", "compact"] = Field(
+        "float32", description="encoding of a finished submap's Gaussians on the link: float32 (exact), float16 "
+                               "(means stay float32) or compact (submaps.storage's compact form: means 16-bit in "
+                               "the submap's box, the rest 8-bit, zlib; about 12 of float32's 56 bytes)")
     images: Literal["lossless", "compact"] = Field(
         "lossless", description="keyframe images on the link: lossless PNG (the server sees the agent's frames bit "
                                 "for bit), or compact: JPEG colour (jpeg_quality) and depth rounded to millimetres")
