@@ -20,8 +20,8 @@ from swarmsplat.kernels import se3
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
 
-from .pointcloud import (check_camera, check_color, check_depth, check_points, check_pose, gradient, intensity,
-                         level_camera, select_rows, smooth_and_stride)
+from .pointcloud import check_camera, check_color, check_depth, check_points, check_pose, level_camera, select_rows
+from .pyramid import FramePyramid
 from .result import DEGENERATE, NOT_CONVERGED, OK, TOO_FEW_POINTS, RegistrationResult
 
 
@@ -76,24 +76,13 @@ class _Level:
     photo: K.PhotometricTerm | None
 
 
-def _level(sd, td, si, ti, cam, stride, jump, depth_max, photometric_weight, dev) -> _Level:
-    lc = level_camera(cam, stride)
-    sdl = torch.from_numpy(np.ascontiguousarray(sd[::stride, ::stride])).to(dev)
-    tdl = torch.from_numpy(np.ascontiguousarray(td[::stride, ::stride])).to(dev)
-    if depth_max is not None:
-        sdl = torch.where(sdl < depth_max, sdl, torch.zeros_like(sdl))
-        tdl = torch.where(tdl < depth_max, tdl, torch.zeros_like(tdl))
-    sv, sn = K.vertices_normals_from_depth(sdl, lc, jump)
-    tv, tn = K.vertices_normals_from_depth(tdl, lc, jump)
-    m = sdl > 0
+def _level(sp: FramePyramid, tp: FramePyramid, stride, jump, depth_max, photometric_weight) -> _Level:
+    lc = level_camera(sp.camera, stride)
+    src, src_n, sil = sp.points(stride, depth_max, jump)
+    tv, tn = tp.maps(stride, depth_max, jump)
     photo = None
-    if si is not None and photometric_weight > 0:
-        src, src_n, sil = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3),
-                                      smooth_and_stride(si, stride).reshape(-1))
-        til = smooth_and_stride(ti, stride)
-        photo = K.PhotometricTerm(sil, til, gradient(til).contiguous(), lc, float(photometric_weight))
-    else:
-        src, src_n = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3))
+    if sil is not None and tp.color is not None and photometric_weight > 0:
+        photo = K.PhotometricTerm(sil, tp.smoothed(stride), tp.gradient(stride), lc, float(photometric_weight))
     return _Level(lc, src, src_n, tv, tn, photo)
 
 
@@ -109,7 +98,8 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
              depth_max: float | None = None,
              robust: str = "huber", robust_scale: float | None = None, photometric_weight: float = 0.0,
              min_points: int = 100, min_correspondences: int = 100, degenerate_ratio: float = 1e-3,
-             tolerance: tuple[float, float] = (1e-5, 1e-5)) -> RegistrationResult:
+             tolerance: tuple[float, float] = (1e-5, 1e-5),
+             pyramids: tuple[FramePyramid, FramePyramid] | None = None) -> RegistrationResult:
     """Coarse-to-fine projective point-to-plane ICP between two organised depth frames.
 
     Levels take every s-th pixel for s in `strides` (default: powers of two from the largest <= 8 that keeps the
@@ -122,6 +112,8 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
     colours and `photometric_weight` > 0 an intensity term (hybrid alignment) is added.
     Steps stop when |omega| and |v| fall below `tolerance` (rad, m). fitness / inlier_rmse are evaluated at full
     resolution with projective correspondences within `max_distance` and Open3D's definitions.
+    `pyramids` (source, target): the frames' FramePyramid (registration.pyramid) of these same depths and colours,
+    whose levels are kept for the next registration of either frame; made here when None.
     """
     camera = check_camera(camera)
     sd = check_depth("source_depth", source_depth, camera)
@@ -145,15 +137,15 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
     if min(n_src, n_tgt) < min_points:
         return RegistrationResult.failure(T0, TOO_FEW_POINTS, method)
     dev = kernels.active().torch_device
-    si = ti = None
     if source_color is not None:
-        si = torch.from_numpy(intensity(check_color("source_color", source_color, camera))).to(dev)
-        ti = torch.from_numpy(intensity(check_color("target_color", target_color, camera))).to(dev)
+        source_color = check_color("source_color", source_color, camera)
+        target_color = check_color("target_color", target_color, camera)
+    sp, tp = pyramids or (FramePyramid(sd, source_color, camera, dev), FramePyramid(td, target_color, camera, dev))
 
     T = T0.copy()
     total_iters, converged = 0, False
     for li, (stride, n_it) in enumerate(zip(strides, iterations)):
-        lv = _level(sd, td, si, ti, camera, int(stride), max_depth_jump, depth_max, photometric_weight, dev)
+        lv = _level(sp, tp, int(stride), max_depth_jump, depth_max, photometric_weight)
         gate = float(gates[li]) if gates is not None else max_distance * stride
         k = robust_scale if robust_scale is not None else 0.5 * gate
         converged = False
@@ -176,7 +168,7 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
         last_step = xi if total_iters else np.zeros(6)
 
     # Final evaluation at full resolution: Open3D's fitness / RMSE, information matrix, degeneracy.
-    lv = _level(sd, td, None, None, camera, 1, max_depth_jump, depth_max, 0.0, dev)
+    lv = _level(sp, tp, 1, max_depth_jump, depth_max, 0.0)
     idx = K.associate_projective(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=max_distance, validate=False)
     return _finish(T, T0, lv.src, lv.tv.reshape(-1, 3), lv.tn.reshape(-1, 3), idx, n_src, total_iters,
                    converged or np.linalg.norm(last_step[:3]) < 1e-4 and np.linalg.norm(last_step[3:]) < 1e-4,
@@ -195,7 +187,8 @@ def evaluate_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pi
     T = check_pose("T_target_source", T_target_source)
     dev = kernels.active().torch_device
     n_src = int(((sd > 0) & (sd < (depth_max or np.inf))).sum())
-    lv = _level(sd, td, None, None, camera, 1, max_depth_jump, depth_max, 0.0, dev)
+    lv = _level(FramePyramid(sd, None, camera, dev), FramePyramid(td, None, camera, dev), 1, max_depth_jump,
+                depth_max, 0.0)
     idx = K.associate_projective(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=max_distance, validate=False)
     return _finish(T, T, lv.src, lv.tv.reshape(-1, 3), lv.tn.reshape(-1, 3), idx, n_src, 0, True,
                    min_correspondences, degenerate_ratio, method)

@@ -181,3 +181,33 @@ def test_view_bias_is_the_views_offset_from_its_keyframe(pair):
     T_biased, _ = refine_detail(frame, shifted, T_view, T_true, tc)
     T_debiased, _ = refine_detail(frame, shifted, T_view @ se3.inverse(B), T_true, tc)
     assert _err(T_true, T_biased)[0] > 0.008 and _err(T_true, T_debiased)[0] < 0.25 * _err(T_true, T_biased)[0]
+
+
+def test_a_frames_pyramid_shared_between_registrations_changes_nothing(pair):
+    """A frame's FramePyramid kept from one registration to the next (the tracker: the coarse stage's source is the
+    next frame's target, its points the refinement's) gives bit for bit what levels computed per call give."""
+    from swarmsplat.registration.icp import icp_rgbd
+    from swarmsplat.slam.dense.rgbd_registration import coarse_odometry, pyramid
+
+    cam, T_view, T_true, view, frame = pair
+    truth = se3.inverse(T_view) @ T_true
+    pv, pf = pyramid(view), pyramid(frame)
+    kw = dict(source_color=frame.color, target_color=view.color, photometric_weight=0.3, strides=[2, 1],
+              depth_max=10.0)
+    fresh = icp_rgbd(frame.depth, view.depth, cam, np.eye(4), **kw)
+    for _ in range(2):  # the second time every level comes from the pyramids
+        shared = icp_rgbd(frame.depth, view.depth, cam, np.eye(4), pyramids=(pf, pv), **kw)
+        assert np.array_equal(fresh.T_target_source, shared.T_target_source) and fresh.success
+        assert np.array_equal(fresh.information, shared.information) and fresh.fitness == shared.fitness
+    assert pf._cache and pv._cache
+    # the other way round, as the next frame's registration against this one
+    back = coarse_odometry(view, frame, max_depth=10.0)
+    assert np.array_equal(back.T_target_source,
+                          coarse_odometry(view, frame, max_depth=10.0, pyramids=(pv, pf)).T_target_source)
+    target = ModelTarget(view, [2, 1])
+    start = truth @ se3.exp(np.array([0.01, -0.01, 0.005, 0.01, -0.008, 0.01]))
+    a = align_to_model(frame, target, start, iterations=3, photometric_weight=0.3, max_distance=0.05,
+                       evaluate_final=True)
+    b = align_to_model(frame, target, start, iterations=3, photometric_weight=0.3, max_distance=0.05,
+                       evaluate_final=True, pyramid=pf)
+    assert np.array_equal(a.T_view_cam, b.T_view_cam) and a.start == b.start and a.final == b.final

@@ -38,9 +38,11 @@ def _view(r) -> Registration:
                         np.asarray(r.information, dtype=np.float64), int(r.n_correspondences))
 
 
-def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, *, max_depth: float = 10.0) -> Registration:
+def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, *, max_depth: float = 10.0,
+                    pyramids: tuple | None = None) -> Registration:
     """Hybrid colour-depth RGB-D odometry (projective point-to-plane + intensity over a pyramid):
-    T_target_source between two frames of the same camera."""
+    T_target_source between two frames of the same camera. `pyramids`: the frames' FramePyramid (`pyramid`),
+    whose levels are kept for their next registration."""
     from swarmsplat.registration.icp import default_strides
     from swarmsplat.registration.rgbd import rgbd_odometry
 
@@ -51,8 +53,18 @@ def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, 
         strides = default_strides(source.camera.width, 40)
         kw = dict(strides=strides, iterations=[15] * len(strides))
     r = rgbd_odometry(source.color, source.depth, target.color, target.depth, source.camera,
-                      np.eye(4) if init is None else rigid(init), method="hybrid", depth_max=max_depth, **kw)
+                      np.eye(4) if init is None else rigid(init), method="hybrid", depth_max=max_depth,
+                      pyramids=pyramids, **kw)
     return _view(r)
+
+
+def pyramid(frame: RGBD):
+    """The registration.pyramid.FramePyramid of `frame` on the active kernel device: pass one per frame to
+    `coarse_odometry` and the tracker's refinement so each level is computed once."""
+    from swarmsplat import kernels
+    from swarmsplat.registration.pyramid import FramePyramid
+
+    return FramePyramid(frame.depth, frame.color, frame.camera, kernels.active().torch_device)
 
 
 def register_loop(source: RGBD, target: RGBD, init: np.ndarray, *, max_distance: float, min_fitness: float,

@@ -20,7 +20,8 @@ import torch
 from swarmsplat.kernels import icp as K
 from swarmsplat.kernels import se3
 from swarmsplat.registration.icp import solve_step
-from swarmsplat.registration.pointcloud import gradient, intensity, level_camera, select_rows, smooth_and_stride
+from swarmsplat.registration.pointcloud import gradient, intensity, level_camera, smooth_and_stride
+from swarmsplat.registration.pyramid import FramePyramid
 
 from swarmsplat.slam.dense.frames import RGBD
 
@@ -100,18 +101,12 @@ class _SourceLevel:
     photo: object  # K.PhotometricTerm or None
 
 
-def _source_level(frame: RGBD, lv: _TargetLevel, gray: torch.Tensor, photometric_weight: float,
+def _source_level(pyramid: FramePyramid, lv: _TargetLevel, photometric_weight: float,
                   max_depth: float) -> _SourceLevel:
-    d = _depth_level(frame.depth, lv.stride, max_depth)
-    sv, sn = K.vertices_normals_from_depth(d, lv.cam, MAX_DEPTH_JUMP)
-    m = d > 0
+    points, normals, si = pyramid.points(lv.stride, max_depth, MAX_DEPTH_JUMP)
     photo = None
     if photometric_weight > 0:
-        points, normals, si = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3),
-                                          smooth_and_stride(gray, lv.stride).reshape(-1))
         photo = K.PhotometricTerm(si, lv.intensity, lv.gradient, lv.cam, float(photometric_weight))
-    else:
-        points, normals = select_rows(m, sv.reshape(-1, 3), sn.reshape(-1, 3))
     return _SourceLevel(points, normals, photo)
 
 
@@ -129,22 +124,24 @@ def _residual(src: _SourceLevel, ne) -> Residual:
 def align_to_model(frame: RGBD, target: ModelTarget, T_view_cam: np.ndarray, *, iterations: int,
                    photometric_weight: float, max_distance: float, max_depth: float = 10.0,
                    min_correspondences: int = 100, tolerance: float = 1e-5,
-                   evaluate_final: bool = False) -> AlignResult:
+                   evaluate_final: bool = False, pyramid=None) -> AlignResult:
     """Gauss-Newton of `frame` (the same camera as the view) onto `target` from T_view_cam [4, 4]; `iterations`
     steps per level, correspondence gate max_distance x stride (m). Fails (returning the start pose) when a
     level has fewer than `min_correspondences` correspondences. `start` / `final` (with evaluate_final: one more
     evaluation, unless the last step moved less than `tolerance` in m and rad, when the objective it was taken
     from stands for the returned pose) are the objective at the finest level at the start and returned poses, for
-    an acceptance test."""
+    an acceptance test. `pyramid`: this frame's registration.pyramid.FramePyramid (with its colour), whose
+    levels the coarse odometry may have computed already."""
     if frame.camera != target.camera:
         raise ValueError("align_to_model: the frame must have the model view's camera")
+    if pyramid is None or pyramid.camera != frame.camera:
+        pyramid = FramePyramid(frame.depth, frame.color, frame.camera)
     T = np.asarray(T_view_cam, dtype=np.float64).copy()
     T0, total, ne = T.copy(), 0, None
-    gray = torch.from_numpy(intensity(frame.color))
     start = None
     last = len(target.levels) - 1
     for li, lv in enumerate(target.levels):
-        src = _source_level(frame, lv, gray, photometric_weight, max_depth)
+        src = _source_level(pyramid, lv, photometric_weight, max_depth)
         gate = max_distance * lv.stride
         if li == last and total > 0:  # the start pose's objective at the finest level
             start = _residual(src, _equations(src, lv, T0, gate))
@@ -178,5 +175,5 @@ def evaluate(frame: RGBD, target: ModelTarget, T_view_cam: np.ndarray, *, photom
     if frame.camera != target.camera:
         raise ValueError("evaluate: the frame must have the model view's camera")
     lv = target.levels[-1]
-    src = _source_level(frame, lv, torch.from_numpy(intensity(frame.color)), photometric_weight, max_depth)
+    src = _source_level(FramePyramid(frame.depth, frame.color, frame.camera), lv, photometric_weight, max_depth)
     return _residual(src, _equations(src, lv, np.asarray(T_view_cam, dtype=np.float64), max_distance * lv.stride))

@@ -44,7 +44,7 @@ from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from .model_align import ModelTarget, Residual, align_to_model
 from .recovery import RecoveryCounts, coarse_passes, recover
-from swarmsplat.slam.dense.rgbd_registration import Registration, coarse_odometry
+from swarmsplat.slam.dense.rgbd_registration import Registration, coarse_odometry, pyramid
 from swarmsplat.slam.dense.render import render, rgbd_loss
 
 
@@ -109,13 +109,14 @@ def refine_against_view(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_loc
 
 
 def refine_detail(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_local_cam: np.ndarray,
-                  cfg: TrackingConfig, *, max_depth: float = 10.0,
-                  target: ModelTarget | None = None) -> tuple[np.ndarray, RefineInfo]:
+                  cfg: TrackingConfig, *, max_depth: float = 10.0, target: ModelTarget | None = None,
+                  pyramid=None) -> tuple[np.ndarray, RefineInfo]:
     """`refine_against_view` with its evidence. The refined pose is accepted only when the view covers at least
     `min_model_coverage` of the image, the alignment succeeds, it moves the pose by at most `max_correction`, and
     (the per-frame acceptance test) it lowers the robust hybrid objective against the view by at least
     `min_residual_gain` of its value at the coarse pose without losing more than `max_inlier_loss` of the
-    correspondences. Returns (pose, info): the coarse pose when not accepted."""
+    correspondences. Returns (pose, info): the coarse pose when not accepted. `pyramid`: the frame's
+    FramePyramid at refine_max_width (slam.dense.rgbd_registration.pyramid), shared with the coarse stage."""
     f = frame.resized(cfg.refine_max_width)
     cov = view.valid_fraction()
     if cov < cfg.min_model_coverage:
@@ -123,7 +124,7 @@ def refine_detail(frame: RGBD, view: RGBD, T_local_view: np.ndarray, T_local_cam
     target = target or ModelTarget(view, refine_strides(cfg), max_depth=max_depth)
     r = align_to_model(f, target, se3.inverse(T_local_view) @ T_local_cam, iterations=cfg.iterations,
                        photometric_weight=cfg.photometric_weight, max_distance=cfg.max_distance, max_depth=max_depth,
-                       tolerance=cfg.step_tolerance, evaluate_final=cfg.acceptance_test)
+                       tolerance=cfg.step_tolerance, evaluate_final=cfg.acceptance_test, pyramid=pyramid)
     info = RefineInfo(False, "failed", cov, r.iterations, start=r.start, final=r.final, rmse=r.rmse)
     if not r.success:
         return T_local_cam, info
@@ -230,6 +231,7 @@ class Tracker:
         self.cfg = cfg
         self.max_depth = max_depth
         self._prev: RGBD | None = None
+        self._prev_pyramid = None  # its levels for the coarse stage (rgbd_registration.pyramid)
         self._prev_pose: np.ndarray | None = None  # T_local_cam of the previous frame (active submap frame)
         self._velocity = np.eye(4)  # T_prev_cur of the last step
         # (params it shows, T_local_view, view, its ModelTarget)
@@ -258,10 +260,12 @@ class Tracker:
             self._anchors.append((self._prev, self._prev_pose.copy()))
         coarse_ok, r, recovered = False, None, ""
         T_coarse = self._prev_pose @ self._velocity
+        src = frame.resized(self.cfg.coarse_max_width)
+        src_pyramid = pyramid(src)  # levels computed on first use, kept for the next frame's coarse stage
         if self.cfg.coarse == "rgbd_odometry":
-            src = frame.resized(self.cfg.coarse_max_width)
             tgt = self._prev.resized(self.cfg.coarse_max_width)
-            r = coarse_odometry(src, tgt, self._velocity, max_depth=self.max_depth)
+            levels = self._prev_pyramid if tgt is self._prev else pyramid(tgt)
+            r = coarse_odometry(src, tgt, self._velocity, max_depth=self.max_depth, pyramids=(src_pyramid, levels))
             coarse_ok = coarse_passes(r, self.cfg)
             if coarse_ok:
                 T_coarse = self._prev_pose @ r.T_target_source
@@ -278,13 +282,14 @@ class Tracker:
         if refine and self.cfg.iterations > 0 and len(params) > 0:
             if self.cfg.method == "gauss_newton":
                 T_view, view = self._model_view(params, frame)
+                share = self.cfg.refine_max_width == self.cfg.coarse_max_width
                 T, info = refine_detail(frame, view, T_view, T_coarse, self.cfg, max_depth=self.max_depth,
-                                        target=self._view[3])
+                                        target=self._view[3], pyramid=src_pyramid if share else None)
                 it, loss = (info.iterations, info.rmse) if info.accepted else (0, float("nan"))
             else:
                 T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg)
         self._velocity = se3.inverse(self._prev_pose) @ T
-        self._remember(frame, T)
+        self._remember(frame, T, src, src_pyramid)
         return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info, recovered)
 
     def _model_view(self, params: GaussianParams, frame: RGBD) -> tuple[np.ndarray, RGBD]:
@@ -343,6 +348,8 @@ class Tracker:
                            max_depth=self.max_depth)
         return r.T_view_cam if r.success else None
 
-    def _remember(self, frame: RGBD, T: np.ndarray) -> None:
-        self._prev = frame.resized(self.cfg.coarse_max_width)
+    def _remember(self, frame: RGBD, T: np.ndarray, small: RGBD | None = None, levels=None) -> None:
+        """Keep `frame` (`small`: it at coarse_max_width, with its pyramid `levels`) and its pose T [4, 4]."""
+        self._prev = small if small is not None else frame.resized(self.cfg.coarse_max_width)
+        self._prev_pyramid = levels if small is not None else pyramid(self._prev)
         self._prev_pose = se3.project_rigid(T)  # the base of every later pose and model view: kept rigid
