@@ -29,6 +29,9 @@ class TrackingConfig(_Section):
     coarse: Literal["rgbd_odometry", "none"] = Field("rgbd_odometry", description="coarse frame-to-frame stage: "
                                                      "hybrid colour-depth odometry, or none (constant velocity)")
     coarse_max_width: int = Field(320, ge=16, description="resolution of the coarse frame-to-frame odometry")
+    coarse_eval_max_width: int = Field(160, ge=16, description="width (pixels) at which the coarse odometry's "
+                                       "result is scored (fitness, RMSE, information matrix): every s-th pixel of "
+                                       "coarse_max_width, s = coarse_max_width // this")
     coarse_max_motion: float = Field(0.3, gt=0, description="a coarse step moving more than this (m) is "
                                                             "distrusted: constant velocity is used instead")
     recovery: bool = Field(True, description="when the coarse stage fails, retry it from a learned start (XFeat "
