@@ -99,7 +99,8 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
              robust: str = "huber", robust_scale: float | None = None, photometric_weight: float = 0.0,
              min_points: int = 100, min_correspondences: int = 100, degenerate_ratio: float = 1e-3,
              tolerance: tuple[float, float] = (1e-5, 1e-5),
-             pyramids: tuple[FramePyramid, FramePyramid] | None = None) -> RegistrationResult:
+             pyramids: tuple[FramePyramid, FramePyramid] | None = None,
+             eval_stride: int = 1) -> RegistrationResult:
     """Coarse-to-fine projective point-to-plane ICP between two organised depth frames.
 
     Levels take every s-th pixel for s in `strides` (default: powers of two from the largest <= 8 that keeps the
@@ -111,7 +112,8 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
     robust: "none" | "huber" | "tukey" with `robust_scale` metres (default half the level's gate). With both
     colours and `photometric_weight` > 0 an intensity term (hybrid alignment) is added.
     Steps stop when |omega| and |v| fall below `tolerance` (rad, m). fitness / inlier_rmse are evaluated at full
-    resolution with projective correspondences within `max_distance` and Open3D's definitions.
+    resolution (every `eval_stride`-th source pixel) with projective correspondences within `max_distance` and
+    Open3D's definitions.
     `pyramids` (source, target): the frames' FramePyramid (registration.pyramid) of these same depths and colours,
     whose levels are kept for the next registration of either frame; made here when None.
     """
@@ -168,9 +170,12 @@ def icp_rgbd(source_depth: np.ndarray, target_depth: np.ndarray, camera: Pinhole
         last_step = xi if total_iters else np.zeros(6)
 
     # Final evaluation at full resolution: Open3D's fitness / RMSE, information matrix, degeneracy.
-    lv = _level(sp, tp, 1, max_depth_jump, depth_max, 0.0)
-    idx = K.associate_projective(lv.src, _t(T, dev), lv.tv, lv.tn, lv.cam, max_distance=max_distance, validate=False)
-    return _finish(T, T0, lv.src, lv.tv.reshape(-1, 3), lv.tn.reshape(-1, 3), idx, n_src, total_iters,
+    # eval_stride > 1 scores every s-th source pixel against the whole target, so RMSE and fitness keep their scale.
+    src = sp.points(int(eval_stride), depth_max, max_depth_jump)[0]
+    tv, tn = tp.maps(1, depth_max, max_depth_jump)
+    idx = K.associate_projective(src, _t(T, dev), tv, tn, camera, max_distance=max_distance, validate=False)
+    n_eval = n_src if eval_stride == 1 else int(src.shape[0])
+    return _finish(T, T0, src, tv.reshape(-1, 3), tn.reshape(-1, 3), idx, n_eval, total_iters,
                    converged or np.linalg.norm(last_step[:3]) < 1e-4 and np.linalg.norm(last_step[3:]) < 1e-4,
                    min_correspondences, degenerate_ratio, method)
 

@@ -29,7 +29,7 @@ def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 
                   init: np.ndarray = np.eye(4), *, method: str = "hybrid", photometric_weight: float = 0.3,
                   strides: Sequence[int] | None = None, iterations: Sequence[int] | None = None,
                   max_distance: float = 0.05, depth_max: float | None = None,
-                  pyramids: tuple | None = None) -> RegistrationResult:
+                  pyramids: tuple | None = None, eval_stride: int = 1) -> RegistrationResult:
     """Coarse frame-to-frame alignment T_target_source from colour and depth.
 
     method "hybrid" (default): our projective point-to-plane + intensity term with weight `photometric_weight`
@@ -38,7 +38,8 @@ def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 
     without colour. "open3d-hybrid" / "open3d-intensity" /
     "open3d-point-to-plane": Open3D's tensor `rgbd_odometry_multi_scale` (10/5/3 iterations, depth_diff 0.2 m),
     scored with our evaluation. fitness / RMSE use projective correspondences within `max_distance`.
-    `pyramids`: the two frames' registration.pyramid.FramePyramid, kept between calls ("hybrid", "geometric").
+    `pyramids`: the two frames' registration.pyramid.FramePyramid, kept between calls; `eval_stride`: fitness,
+    RMSE and information from every s-th pixel ("hybrid", "geometric").
     """
     camera = check_camera(camera)
     check_color("source_color", source_color, camera)
@@ -50,7 +51,7 @@ def rgbd_odometry(source_color: np.ndarray, source_depth: np.ndarray,  # [H, W, 
         colors = dict(source_color=source_color, target_color=target_color) if method == "hybrid" else {}
         res = icp_rgbd(source_depth, target_depth, camera, init, max_distance=max_distance, strides=strides,
                        iterations=iterations, photometric_weight=photometric_weight if colors else 0.0,
-                       depth_max=depth_max, pyramids=pyramids, **colors)
+                       depth_max=depth_max, pyramids=pyramids, eval_stride=eval_stride, **colors)
         res.method = f"rgbd_odometry/{method}"
         return res
     if method not in OPEN3D_METHODS:

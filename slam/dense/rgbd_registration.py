@@ -39,7 +39,7 @@ def _view(r) -> Registration:
 
 
 def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, *, max_depth: float = 10.0,
-                    pyramids: tuple | None = None) -> Registration:
+                    pyramids: tuple | None = None, eval_stride: int = 1) -> Registration:
     """Hybrid colour-depth RGB-D odometry (projective point-to-plane + intensity over a pyramid):
     T_target_source between two frames of the same camera. `pyramids`: the frames' FramePyramid (`pyramid`),
     whose levels are kept for their next registration."""
@@ -54,7 +54,7 @@ def coarse_odometry(source: RGBD, target: RGBD, init: np.ndarray | None = None, 
         kw = dict(strides=strides, iterations=[15] * len(strides))
     r = rgbd_odometry(source.color, source.depth, target.color, target.depth, source.camera,
                       np.eye(4) if init is None else rigid(init), method="hybrid", depth_max=max_depth,
-                      pyramids=pyramids, **kw)
+                      pyramids=pyramids, eval_stride=eval_stride, **kw)
     return _view(r)
 
 
