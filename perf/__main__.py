@@ -33,6 +33,7 @@ SUBJECTS = {
     "bags": ".bags",
     "live": ".live",
     "long-run": ".long_run",
+    "loop-graph": ".loop_graph",
 }
 
 

@@ -220,6 +220,8 @@ class LoopClosureConfig(_Section):
     pose_max_angle_deg: float = Field(45.0, gt=0, le=180, description="... and viewing directions at most this apart")
     pose_min_overlap: float = Field(0.3, ge=0, le=1, description="... and at least this fraction of the query's "
                                     "depth pixels reprojected into the match with consistent depth")
+    pose_max_checked: int = Field(16, ge=1, description="pose candidates: the view overlap is computed for at most "
+                                  "this many keyframes, the closest in position plus angle (1 m per radian) first")
     tau_sim: float | None = Field(None, ge=-1, le=1, description="cosine similarity gate of a descriptor "
                                   "candidate; null = none (the top_k best are verified)")
     min_index_gap: int = Field(20, ge=1, description="Δ_min: candidates at least this many frames apart")
@@ -233,6 +235,10 @@ class LoopClosureConfig(_Section):
     descriptor_min_overlap: float = Field(0.1, ge=0, le=1, description="without global_fallback, a descriptor "
                                           "candidate is registered only when the tracked poses make this fraction "
                                           "of the query's depth pixels land in the match view (0 = always)")
+    solver: Literal["incremental", "batch"] = Field(
+        "incremental", description="pose-graph optimisation after a loop: 'incremental' (iSAM2 keeps the graph and "
+                                   "re-solves only the part the new edges touch; the same optimum to within 0.03 "
+                                   "mm) or 'batch' (Levenberg-Marquardt over every keyframe each time)")
     information: Literal["registration", "fixed"] = Field(
         "registration", description="edge information (eqs. 10-11): from each registration's information matrix, "
                                     "RMSE and correspondence count (tracking edges chain their frame-to-frame steps; "

@@ -16,6 +16,7 @@ from swarmsplat.kernels.errors import InputError
 
 from . import loop_check
 from swarmsplat.slam.config import LoopClosureConfig
+from .incremental import IncrementalGraph
 from .edge_information import InformationModel, fixed_information, information, registration_covariance
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianMap
@@ -83,6 +84,7 @@ class LoopCloser:
         self.log: list[LoopCandidate] = []
         self.optimisations = 0
         self.not_applied = 0  # optimisations whose move was not justified by the loops
+        self._graph: IncrementalGraph | None = None  # the pose graph iSAM2 keeps (solver 'incremental')
         self.model = InformationModel(n_eff=cfg.information_points)
         # 'auto' is decided on the first keyframe, whose size it needs; a named descriptor is checked now.
         self._recognizer = None if cfg.descriptor == "auto" else _make_recognizer(cfg)
@@ -165,15 +167,20 @@ class LoopCloser:
                 out.append(c)
         if cfg.candidates in ("pose", "both"):
             taken = {c.match_kf for c in out}
-            near = []
+            close = []  # (distance + angle as metres at 1 m per radian, T_oq, keyframe) within the limits
             for o in pool:
                 if o.id in taken:
                     continue
                 T_oq = se3.inverse(world_pose(gmap, o)) @ T_q
-                if (np.linalg.norm(T_oq[:3, 3]) > cfg.pose_max_distance
-                        or np.degrees(se3.rotation_angle(T_oq[:3, :3])) > cfg.pose_max_angle_deg):
+                dist = float(np.linalg.norm(T_oq[:3, 3]))
+                angle = float(se3.rotation_angle(T_oq[:3, :3]))
+                if dist > cfg.pose_max_distance or np.degrees(angle) > cfg.pose_max_angle_deg:
                     continue
-                near.append((view_overlap(kf.small, o.small, T_oq), o))
+                close.append((dist + angle, T_oq, o))
+            # Revisits pile up keyframes at one place: the overlap (an image decode each) is computed for the
+            # closest pose_max_checked only, so a candidate search costs the same on the tenth lap as on the first.
+            close.sort(key=lambda s: s[0])
+            near = [(view_overlap(kf.small, o.small, T_oq), o) for _, T_oq, o in close[: cfg.pose_max_checked]]
             near.sort(key=lambda s: -s[0])
             for ov, other in near[: cfg.pose_top_k]:
                 sim = float(np.dot(kf.descriptor, other.descriptor)) if other.descriptor is not None else float("nan")
@@ -248,7 +255,7 @@ class LoopCloser:
         optimised, rejected = initial, 0
         while self.active_loops:
             loops = self.active_loops
-            optimised = optimise_pose_graph(initial, self.odometry, loops, fixed=fixed)
+            optimised = self._solve(initial, loops, fixed)
             bad = loop_check.worst_violation(optimised, [(e.i, e.j, e.T_ij) for e in loops],
                                              cfg.residual_max_trans, cfg.residual_max_deg)
             if bad is None:
@@ -283,6 +290,22 @@ class LoopCloser:
             shifts.append(float(np.linalg.norm(D[:3, 3])))
         return {"submaps_moved": len(shifts), "max_shift_m": max(shifts, default=0.0), "rejected": rejected,
                 "applied": True}
+
+    def _solve(self, initial: dict[int, np.ndarray], loops: list[Edge], fixed: int) -> dict[int, np.ndarray]:
+        """The pose graph's optimum: incrementally (slam.dense.loops.incremental, config solver 'incremental')
+        or re-solved whole ('batch'); the incremental graph falls back to a batch solve, and starts anew, when
+        iSAM2 fails."""
+        if self.cfg.solver == "incremental":
+            graph = getattr(self, "_graph", None)
+            if graph is None:
+                graph = self._graph = IncrementalGraph()
+            try:
+                return graph.solve(initial, self.odometry, self.loops, fixed)
+            except RuntimeError as err:  # e.g. an indeterminate system: iSAM2's state is not to be trusted
+                warnings.warn(f"incremental pose-graph optimisation failed ({err}); solved whole instead",
+                              stacklevel=2)
+                self._graph = None
+        return optimise_pose_graph(initial, self.odometry, loops, fixed=fixed)
 
     def log_rows(self) -> list[dict]:
         return [asdict(c) for c in self.log]
