@@ -111,11 +111,13 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
            "loop_ms_per_kf_first_tenth": round(lc_first, 1), "loop_ms_per_kf_last_tenth": round(lc_last, 1),
            "loop_last_over_first": round(lc_last / lc_first, 3) if lc_first > 0 else None,
            "refine_and_write_s": round(refine_s, 1), "run_wall_s": round(wall, 1),
-           "run_folder_mb": _disk_mb(out), "ate_rmse_cm": round(100 * m["ate_rmse"], 2)
+           "run_folder_mb": _disk_mb(out), "submaps_mb": _disk_mb(out / "submaps") if (out / "submaps").is_dir()
+           else 0.0, "ate_rmse_cm": round(100 * m["ate_rmse"], 2)
            if isinstance(m.get("ate_rmse"), (int, float)) else None,
            "psnr_merged_db": m.get("psnr_merged")}
     notes = [f"generated {frames} frames 320x240 ({laps:g} laps of a 2x2-room world) in {t_gen:.0f} s; "
-             f"kernels {backends[0]} on {device}; defaults otherwise",
+             f"kernels {backends[0]} on {device}; defaults otherwise (finished submaps: submaps.storage "
+             f"{cfg.submaps.storage}, offload {str(cfg.submaps.offload).lower()}; submaps_mb: their files)",
              "peak RSS is the process's high-water mark after generation "
              + ("(VmHWM reset through /proc/self/clear_refs)" if peak_reset else
                 "(could not be reset: includes the generator's own peak)"),

@@ -19,6 +19,7 @@ from .gaussian_map import GaussianMap, GaussianParams
 from swarmsplat.slam.dense.loops.loop_closure import LoopCloser
 from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper, MappingStats
 from .render import render, viewmat_from_pose
+from .submap_codec import use_storage
 from .submaps import Keyframe, frame_local_poses, needs_new_submap, start_submap, world_pose
 from swarmsplat.slam.dense.tracking.tracker import Tracker
 
@@ -47,6 +48,7 @@ class Agent:
         self.name = name
         self.camera = camera
         self.gmap = GaussianMap()
+        use_storage(self.gmap, self.cfg.submaps.storage)  # in memory; a driver with a run folder may offload
         self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth)
         self.mapper = Mapper(self.cfg.mapping)
         self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
@@ -139,7 +141,8 @@ class Agent:
             return T_local_cam
         T_world_cam = self.gmap.active.T_world_local @ T_local_cam if self.gmap.submaps else np.eye(4)
         start_submap(self.gmap, T_world_cam, self.keyframes, keep_images=self.keep_keyframe_images,
-                     compress=self.compress_keyframes)
+                     compress=self.compress_keyframes,
+                     prune_min_contribution=self.cfg.submaps.prune_min_contribution)
         self.tracker.reset_frame(se3.inverse(T_local_cam))
         return np.eye(4)
 

@@ -14,7 +14,7 @@ optimised parameters unless asked: `merged()` applies each submap's `T_world_loc
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -148,27 +148,80 @@ def transform_params(params: GaussianParams, T: np.ndarray) -> GaussianParams:
                           params.logit_opacities.detach().clone(), params.colors.detach().clone())
 
 
-@dataclass
 class Submap:
     """One submap: Gaussians in the local frame of its first keyframe, and where that frame sits in the world.
 
     `keyframe_ids` are indices into the agent's keyframe list, in insertion order (the first is the anchor).
+    A finished submap may keep its Gaussians elsewhere (`stored`: compact bytes in memory or in the run folder,
+    `GaussianMap.retire`); reading `params` then decodes them, and assigning `params` holds them in memory again.
+    Moving a submap changes `T_world_local` only and never reads its Gaussians.
     """
 
-    id: int
-    T_world_local: np.ndarray  # [4, 4]
-    params: GaussianParams
-    keyframe_ids: list[int] = field(default_factory=list)
-    # Where the frame would be without loop closure: the previous submap's tracking-only frame composed with this
-    # frame's offset from it at creation (pure tracking). Loop closure never changes it.
-    T_world_local_no_lc: np.ndarray | None = None
+    def __init__(self, id: int, T_world_local: np.ndarray, params: GaussianParams,
+                 keyframe_ids: list[int] | None = None, T_world_local_no_lc: np.ndarray | None = None):
+        self.id = id
+        self.T_world_local = T_world_local  # [4, 4]
+        self._params: GaussianParams | None = params
+        self.stored: StoredGaussians | None = None
+        self.keyframe_ids: list[int] = [] if keyframe_ids is None else keyframe_ids
+        # Where the frame would be without loop closure: the previous submap's tracking-only frame composed with
+        # this frame's offset from it at creation (pure tracking). Loop closure never changes it.
+        self.T_world_local_no_lc = T_world_local_no_lc
+
+    @property
+    def params(self) -> GaussianParams:
+        if self._params is None:
+            return self.stored.load()
+        return self._params
+
+    @params.setter
+    def params(self, value: GaussianParams) -> None:
+        self._params, self.stored = value, None
+
+    def store(self, stored: "StoredGaussians") -> None:
+        """Keep the Gaussians only as `stored` (written already) and drop them from memory."""
+        self._params, self.stored = None, stored
 
     def __len__(self) -> int:
-        return len(self.params)
+        return self.stored.n if self._params is None else len(self._params)
+
+    def __setstate__(self, state: dict) -> None:
+        if "params" in state:  # pickled before finished submaps could be stored: the Gaussians themselves
+            state["_params"] = state.pop("params")
+        state.setdefault("stored", None)
+        self.__dict__.update(state)
+
+    def __repr__(self) -> str:
+        where = "in memory" if self._params is not None else repr(self.stored)
+        return f"Submap(id={self.id}, {len(self)} Gaussians {where}, keyframes={self.keyframe_ids})"
 
     def world_params(self) -> GaussianParams:
         """The submap's Gaussians moved to the world frame (eq. 2 / 15)."""
         return transform_params(self.params, self.T_world_local)
+
+
+class StoredGaussians:
+    """A finished submap's Gaussians kept as bytes by `store` (anything with `read(key) -> bytes`: in memory,
+    or files in the run folder) under `key`, `n` of them, decoded by `decode(bytes, source=...)` on each read.
+    The last one read stays decoded (`_CACHE`), so reading one submap's Gaussians view after view decodes once.
+    Pickles as the store's reference, the key and the count."""
+
+    def __init__(self, store, key: int, n: int, decode):
+        self.store, self.key, self.n, self.decode = store, int(key), int(n), decode
+
+    def load(self) -> GaussianParams:
+        hit = _CACHE.get("last")
+        if hit is not None and hit[0] is self.store and hit[1] == self.key:
+            return hit[2]
+        params = self.decode(self.store.read(self.key), source=self.store.describe(self.key))
+        _CACHE["last"] = (self.store, self.key, params)
+        return params
+
+    def __repr__(self) -> str:
+        return f"stored in {self.store.describe(self.key)}"
+
+
+_CACHE: dict = {}  # "last": (store, key, GaussianParams) of the last stored submap decoded
 
 
 class GaussianMap:
@@ -177,6 +230,12 @@ class GaussianMap:
     def __init__(self, device: str | torch.device = "cpu"):
         self.device = torch.device(device)
         self.submaps: list[Submap] = []
+        # Where finished submaps' Gaussians go (`retire`): None keeps them in memory as they are; else an object
+        # with write(key, bytes), read(key) -> bytes and describe(key) -> str, and `encode` / `decode` their form
+        # (slam.dense.submap_codec).
+        self.store = None
+        self.encode = None
+        self.decode = None
 
     def __len__(self) -> int:
         return sum(len(s) for s in self.submaps)
@@ -199,6 +258,16 @@ class GaussianMap:
         s = Submap(len(self.submaps), T, GaussianParams.empty(self.device), T_world_local_no_lc=T_no_lc)
         self.submaps.append(s)
         return s
+
+    def retire(self, submap: Submap) -> None:
+        """Move a finished submap's Gaussians to `store` (encoded) and drop them from memory; nothing without a
+        store or for a submap stored already."""
+        if self.store is None or submap.stored is not None:
+            return
+        params = submap.params
+        self.store.write(submap.id, self.encode(params))
+        _CACHE.clear()
+        submap.store(StoredGaussians(self.store, submap.id, len(params), self.decode))
 
     def add(self, submap: Submap, new: GaussianParams) -> int:
         """Append Gaussians (submap-local frame) to a submap; returns how many were added."""
@@ -244,4 +313,5 @@ class GaussianMap:
         return GaussianParams.concat([s.world_params() for s in self.submaps if len(s)])
 
     def nbytes(self) -> int:
-        return sum(s.params.nbytes() for s in self.submaps)
+        """Bytes of the Gaussians held in memory as tensors (stored submaps not counted)."""
+        return sum(s.params.nbytes() for s in self.submaps if s.stored is None)

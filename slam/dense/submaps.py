@@ -47,18 +47,43 @@ def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: in
 
 
 def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe], *,
-                 keep_images: bool = False, compress: bool = False) -> Submap:
+                 keep_images: bool = False, compress: bool = False, prune_min_contribution: float = 0.0) -> Submap:
     """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies, unless
     `keep_images`: a team's server refines the merged map on them) and start a new one whose local frame is the
     camera at T_world_cam. With `compress` the retired keyframes' images that stay are packed losslessly
-    (slam.dense.packed), decoded on each later read."""
-    if gmap.submaps:
-        old = gmap.active.id
-        for kf in keyframes:
-            if kf.submap_id == old:
-                kf.map_rgbd = (pack(kf.map_rgbd) if compress else kf.map_rgbd) if keep_images else None
-                kf.small = pack(kf.small) if compress else kf.small
-    return gmap.new_submap(T_world_cam)
+    (slam.dense.packed), decoded on each later read. With `prune_min_contribution` > 0 the retired submap first
+    loses the Gaussians that contribute less than that many pixels to each of its keyframes' renders. The
+    retired Gaussians then go to the map's store, if it has one (GaussianMap.retire)."""
+    if not gmap.submaps:
+        return gmap.new_submap(T_world_cam)
+    old = gmap.active
+    own = [kf for kf in keyframes if kf.submap_id == old.id]
+    if prune_min_contribution > 0 and len(old):
+        prune_unseen(old, own, prune_min_contribution)
+    for kf in own:
+        kf.map_rgbd = (pack(kf.map_rgbd) if compress else kf.map_rgbd) if keep_images else None
+        kf.small = pack(kf.small) if compress else kf.small
+    new = gmap.new_submap(T_world_cam)
+    gmap.retire(old)
+    return new
+
+
+def prune_unseen(submap: Submap, keyframes: list[Keyframe], min_contribution: float) -> int:
+    """Drop the Gaussians of `submap` whose total blending weight (pixels; slam.dense.mapping.refine_merged.
+    contributions) is below `min_contribution` in every one of `keyframes` (its own, at the mapping resolution,
+    in its local frame). Returns how many were dropped."""
+    from .mapping.refine_merged import RefineView, contributions
+    from .render import viewmat_from_pose
+
+    views = [RefineView(viewmat_from_pose(kf.T_local_cam), None, None, kf.map_rgbd.camera)
+             for kf in keyframes if kf.map_rgbd is not None]
+    if not views:
+        return 0
+    keep = contributions(submap.params, views) >= min_contribution
+    dropped = int((~keep).sum())
+    if dropped:
+        submap.params = submap.params.select(keep)
+    return dropped
 
 
 def world_pose(gmap: GaussianMap, kf: Keyframe) -> np.ndarray:

@@ -54,6 +54,7 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
     agent = resumed.agent if resumed else Agent(seq.camera, cfg, name=seq.name)
+    offload(agent, out, cfg)
     start = resumed.next_frame if resumed else 0
     if resume and progress:
         print(f"[{seq.name}] resuming at frame {start} of {n}" if resumed else
@@ -105,6 +106,18 @@ def open_sequence(dataset_path, cfg: SlamConfig, frames: int | None = None):
     if n == 0:
         raise InputError(f"{seq.root}: the sequence has no frames")
     return seq, n
+
+
+def offload(agent: Agent, out: Path, cfg: SlamConfig) -> None:
+    """With config submap.offload, the agent's finished submaps go to out/submaps/NNNN.bin (a resumed agent's
+    files are looked for there, wherever the folder has moved)."""
+    from swarmsplat.slam.dense.submap_codec import use_storage
+    from swarmsplat.slam.io.submap_files import SubmapFiles
+
+    if isinstance(agent.gmap.store, SubmapFiles):
+        agent.gmap.store.folder = (out / "submaps").resolve()
+    elif cfg.submaps.offload:
+        use_storage(agent.gmap, cfg.submaps.storage, SubmapFiles(out / "submaps"))
 
 
 def refines(cfg: SlamConfig) -> bool:
