@@ -190,3 +190,22 @@ def test_a_full_disk_stops_with_one_line_naming_the_file(tmp_path, monkeypatch):
         files.write(3, b"abc")
     assert not (tmp_path / "s" / "0003.bin").exists()
 
+
+def test_the_link_sends_a_stored_submap_as_its_compact_bytes_and_refuses_corrupt_ones():
+    from swarmsplat.slam.flocc.swarm.messages import MessageError
+    from swarmsplat.slam.run.team_link import messages as L
+
+    m = _map_with_two_submaps()
+    s0 = m.submaps[0]
+    msg = L.SubmapData.pack(5, s0, "compact")
+    assert msg.blob.tobytes() == m.store.read(0)  # the stored bytes, not encoded again
+    h, back = L.LINK.decode(L.LINK.encode(msg, 2, 9))
+    assert back.id == 0 and all(torch.equal(a, b) for a, b in zip(back.params().tensors(), s0.params.tensors()))
+    # a submap held as tensors (the active one) is encoded on the way out
+    _, back = L.LINK.decode(L.LINK.encode(L.SubmapData.pack(6, m.active, "compact"), 2, 10))
+    assert len(back.params()) == 30
+    bad = L.SubmapData.pack(7, s0, "compact")
+    bad.blob = bad.blob.copy()
+    bad.blob[-1] ^= 0xFF
+    with pytest.raises(MessageError, match="SubmapData: corrupt compact submap"):
+        L.LINK.decode(L.LINK.encode(bad, 2, 11))

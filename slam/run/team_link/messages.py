@@ -12,7 +12,8 @@ by id, so duplicates and reordering change nothing):
   KeyframeImage  the keyframe's images, losslessly packed (slam.dense.packed): the loop-closure copy, and the
                  mapping-resolution copy when the server refines the merged map on it; sent once
   Frames         tracked poses of every frame since the last batch, the rounds done and keyframes made so far
-  SubmapData     a finished submap's Gaussians (local frame; float32, or float16 for all but the means)
+  SubmapData     a finished submap's Gaussians (local frame; float32, float16 for all but the means, or the
+                 compact form of slam.dense.submap_codec)
   Done           the agent's totals after its last frame (times, skipped frames, its own byte counts)
 
 Server -> agent: Welcome, Ack (message ids received), Correction (each submap's new origin in the agent's world
@@ -27,10 +28,11 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from swarmsplat.slam.dense.submap_codec import CodecError, CodecSpec, decode, encode, stored_compact
 from swarmsplat.slam.flocc.swarm.messages import Codec, Message, MessageError, _check_poses
 
 MAGIC = b"GSLK"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: SubmapData's compact form (blob)
 SERVER = 0  # the server's node id; agent k is node k + 1
 
 
@@ -156,15 +158,24 @@ class Frames(Message):
 class SubmapData(Message):
     TYPE: ClassVar[int] = 5
     SCALARS: ClassVar[dict] = {"mid": int, "id": int, "keyframe_ids": list}
-    ARRAYS: ClassVar[dict] = {"means": ("<f4", 2), "rest32": ("<f4", 2), "rest16": ("<f2", 2)}
+    ARRAYS: ClassVar[dict] = {"means": ("<f4", 2), "rest32": ("<f4", 2), "rest16": ("<f2", 2), "blob": ("|u1", 1)}
     mid: int = 0
     id: int = 0
     keyframe_ids: list = field(default_factory=list)
     means: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))  # [N, 3] local frame
     rest32: np.ndarray = field(default_factory=lambda: np.zeros((0, 11), np.float32))  # [N, 11] or [0, 11]
     rest16: np.ndarray = field(default_factory=lambda: np.zeros((0, 11), np.float16))  # [0, 11] or [N, 11]
+    blob: np.ndarray = field(default_factory=_u8)  # the compact form (slam.dense.submap_codec), or empty
 
     def validate(self) -> None:
+        if len(self.blob):
+            if len(self.means) or len(self.rest32) or len(self.rest16) or self.id < 0:
+                raise MessageError("SubmapData: the compact form alone expected")
+            try:  # decoded here to refuse a corrupt one on arrival; the receiver keeps the bytes
+                decode(self.blob.tobytes(), source="SubmapData")
+            except CodecError as e:
+                raise MessageError(str(e)) from None
+            return
         n = len(self.means)
         rest = self.rest32 if len(self.rest32) else self.rest16
         if self.means.shape[1:] != (3,) or rest.shape[1:] != (11,) or len(rest) != n \
@@ -175,12 +186,18 @@ class SubmapData(Message):
 
     @classmethod
     def pack(cls, mid: int, submap, encoding: str) -> "SubmapData":
-        """A finished submap (slam.dense.gaussian_map.Submap) on the link; encoding 'float32' or 'float16'."""
+        """A finished submap (slam.dense.gaussian_map.Submap) on the link; encoding 'float32', 'float16' or
+        'compact' (the bytes the agent stores it as, when it stores it compact)."""
+        head = dict(mid=mid, id=submap.id, keyframe_ids=[int(k) for k in submap.keyframe_ids])
+        if encoding == "compact":
+            blob = stored_compact(submap)
+            if blob is None:
+                blob = encode(submap.params, CodecSpec())
+            return cls(**head, blob=np.frombuffer(blob, np.uint8))
         p = submap.params.detached()
         rest = torch.cat([p.log_scales, p.quats, p.logit_opacities[:, None], p.colors], 1).cpu().numpy()
         half = encoding == "float16"
-        return cls(mid=mid, id=submap.id, keyframe_ids=[int(k) for k in submap.keyframe_ids],
-                   means=p.means.cpu().numpy().astype(np.float32),
+        return cls(**head, means=p.means.cpu().numpy().astype(np.float32),
                    rest32=np.zeros((0, 11), np.float32) if half else rest.astype(np.float32),
                    rest16=rest.astype(np.float16) if half else np.zeros((0, 11), np.float16))
 
@@ -188,6 +205,8 @@ class SubmapData(Message):
         """The Gaussians as slam.dense.gaussian_map.GaussianParams (float32)."""
         from swarmsplat.slam.dense.gaussian_map import GaussianParams
 
+        if len(self.blob):
+            return decode(self.blob.tobytes(), source="SubmapData")
         rest = torch.from_numpy((self.rest32 if len(self.rest32) else self.rest16).astype(np.float32))
         return GaussianParams(torch.from_numpy(self.means.astype(np.float32)), rest[:, 0:3].contiguous(),
                               rest[:, 3:7].contiguous(), rest[:, 7].contiguous(), rest[:, 8:11].contiguous())
