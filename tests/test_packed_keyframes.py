@@ -128,3 +128,17 @@ def torch_seed():
 
     torch.manual_seed(0)
     np.random.seed(0)
+
+
+def test_lossy_pack_keeps_full_resolution_colour():
+    """Stripes one pixel wide that differ in colour, not brightness: chroma at half resolution (JPEG's usual
+    4:2:0) would average them to one colour, an error of half their difference (50 in red); full-resolution
+    chroma keeps them apart."""
+    from swarmsplat.slam.dense.packed import pack_lossy
+
+    color = np.empty((48, 64, 3), np.uint8)
+    color[:, 0::2] = (200, 100, 100)
+    color[:, 1::2] = (100, 152, 100)  # the same luma within 1
+    f = RGBD(color, np.full((48, 64), 1.5, np.float32), PinholeCamera(60, 60, 32, 24, 64, 48))
+    err = np.abs(pack_lossy(f, 90).color.astype(float) - color)
+    assert err[..., 0].mean() < 25

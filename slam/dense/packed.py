@@ -86,11 +86,16 @@ class PackedRGBD:
 
 def pack_lossy(frame: RGBD | PackedRGBD, quality: int = 90) -> PackedRGBD:
     """`frame` compressed for a link, not losslessly: colour as JPEG at `quality`, depth rounded to millimetres
-    (16-bit PNG). Reads like any PackedRGBD."""
+    (16-bit PNG). Reads like any PackedRGBD.
+
+    The JPEG keeps full-resolution chroma (4:4:4): the usual 4:2:0 halves the colour resolution, which on
+    colourful fine texture costs more than the quality setting (the demo's frames at q90: 29.4 dB from the
+    original with 4:2:0, 34.0 dB with 4:4:4, for 33 against 46 kB at 320x240; Redwood 211: 37.7 against 39.7 dB)."""
     depth = np.asarray(frame.depth, dtype=np.float64)
     mm = np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(np.ascontiguousarray(frame.color), cv2.COLOR_RGB2BGR),
-                           [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+                           [cv2.IMWRITE_JPEG_QUALITY, int(quality),
+                            cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
     if not ok:
         raise RuntimeError(f"JPEG encoding failed for an image {list(frame.color.shape)}")
     return PackedRGBD.from_png(frame.camera, jpg.tobytes(), _encode(mm), True)
