@@ -2,9 +2,12 @@
 RGB-D topics over Zenoh (the Zenoh-ROS 2 bridge or rmw_zenoh) and publishes each tracked pose back as
 geometry_msgs/PoseStamped; any other SOURCE is a recording (a sequence folder or a bag), run as `swarmsplat run`
 runs it. With --server ENDPOINT the agent is a member of a team served by `swarmsplat server` (also registered
-here): it sends its keyframes and submaps over Zenoh and the server closes the loops."""
+here): it sends its keyframes and submaps over Zenoh and the server closes the loops; on live topics it also
+publishes its poses back (--id K required)."""
 
 from __future__ import annotations
+
+import contextlib
 
 from swarmsplat.slam.cli import add_backend_flags
 from swarmsplat.slam.cli.config_flags import add_config_flags
@@ -106,7 +109,7 @@ def _team_member(args, source: str, cfg) -> int:
     from swarmsplat.slam.run.team_link.processes import run_team_agent
 
     if source.startswith(LIVE):
-        raise InputError("--server: a team member runs on a recording for now; live topics run alone (no --server)")
+        return _live_team_member(args, source, cfg)
     ds = load_dataset(source)
     if args.split:
         from swarmsplat.slam.io.datasets.split import parse_ranges, split_sequence
@@ -167,21 +170,50 @@ def run(args) -> int:
         m = run_sequence(seq, args.out, cfg, frames=args.frames or None, progress=not args.quiet)
         print(f"wrote {args.out} ({m['frames_tracked']} frames tracked)")
         return 0
-    from swarmsplat.slam.io.live import PosePublisher, ZenohRos2Source
     from swarmsplat.slam.run.live import run_live
+
+    with _live_topics(args, source, topics) as (src, pub):
+        m = run_live(src, args.out, cfg, publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
+                     camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
+                     progress=not args.quiet)
+    lat = m["pose_latency_ms"]
+    p50 = f", pose latency p50 {lat['p50']:.1f} ms / p95 {lat['p95']:.1f} ms" if lat["count"] else ""
+    print(f"{m['frames_tracked']} frames tracked ({m['reason']}){p50}; wrote {args.out}")
+    return 0
+
+
+def _live_team_member(args, source: str, cfg) -> int:
+    """`swarmsplat agent zenoh/[PREFIX] --server ENDPOINT --id K`: a team member on live ROS 2 topics."""
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.io.bags import parse_topics
+    from swarmsplat.slam.run.team_link.live_agent import run_live_team_agent
+
+    if args.id is None:
+        raise InputError("--id: a team member on live topics needs its index in the team (0 .. N-1)")
+    if args.split:
+        raise InputError("--split cuts a recording into agents; live topics are one agent")
+    with _live_topics(args, source, parse_topics(args.topics)) as (src, pub):
+        m = run_live_team_agent(src, args.id, cfg, name=args.name, connect=args.server, run=args.run,
+                                publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
+                                camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
+                                progress=not args.quiet, out=args.out)
+    print(f"{args.name}: {m['frames_tracked']} frames tracked ({m['reason']}), {m['poses_published']} poses "
+          f"published, {m['bytes']['sent_total'] / 1e6:.2f} MB sent"
+          + ("" if m["acknowledged"] else "; NOT all acknowledged by the server"))
+    return 0 if m["acknowledged"] else 1
+
+
+@contextlib.contextmanager
+def _live_topics(args, source: str, topics: dict):
+    """(the live source on `source`'s topics, the publisher of its poses), closed on the way out."""
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.io.live import PosePublisher, ZenohRos2Source
 
     unknown = set(topics) - {"color", "depth", "info"}
     if unknown:
         raise InputError(f"--topics: {', '.join(sorted(unknown))} cannot be read live; expected color, depth, info")
     src = ZenohRos2Source(source[len(LIVE):], topics, name=args.name, connect=args.connect, listen=args.listen)
     try:
-        pub = PosePublisher(src.session, args.publish or f"swarmsplat/{args.name}/pose")
-        m = run_live(src, args.out, cfg, publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
-                     camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
-                     progress=not args.quiet)
+        yield src, PosePublisher(src.session, args.publish or f"swarmsplat/{args.name}/pose")
     finally:
         src.close()
-    lat = m["pose_latency_ms"]
-    p50 = f", pose latency p50 {lat['p50']:.1f} ms / p95 {lat['p95']:.1f} ms" if lat["count"] else ""
-    print(f"{m['frames_tracked']} frames tracked ({m['reason']}){p50}; wrote {args.out}")
-    return 0

@@ -202,17 +202,21 @@ class AgentNode:
 
     def step_round(self, seq, i: int, stride: int, strict: bool = False) -> None:
         """Round i: frame i * stride of `seq` (skipped with a warning when unreadable), then what it produced."""
+        self.step_frame(read_frame(seq, i * stride, self.agent, strict=strict), i)
+
+    def step_frame(self, f, i: int):
+        """Round i on frame `f` (a slam.io.datasets Frame; None: nothing to track this round), then send what it
+        produced. Returns the frame's pose record (None when it was not tracked)."""
         ag = self.agent
         n_kf, n_sm = len(ag.keyframes), len(ag.gmap.submaps)
-        f = read_frame(seq, i * stride, ag, strict=strict)
-        if f is not None:
-            ag.step(f.index, f.timestamp, f.color, f.depth)
+        rec = ag.step(f.index, f.timestamp, f.color, f.depth) if f is not None else None
         if len(ag.gmap.submaps) > n_sm and n_sm > 0:
             self._send_submap(n_sm - 1)
         if len(ag.keyframes) > n_kf:
             self._send_keyframe(ag.keyframes[-1], i)
         self._send_frames(i + 1)
         self.service()
+        return rec
 
     def _send_keyframe(self, kf, round_: int) -> None:
         ag = self.agent

@@ -31,6 +31,15 @@ def _transport(node: int, nodes: list[int], *, listen: list[str], connect: list[
     return ZenohTransport(node, nodes, run=run, codec=L.LINK, listen=listen, connect=connect, block=True)
 
 
+def check_member(index: int, connect, listen) -> list[str]:
+    """A team agent's index and endpoints checked (InputError naming the flag); returns the endpoints to connect."""
+    if not 0 <= index <= 25:
+        raise InputError(f"--id: expected 0 to 25, got {index}")
+    _check_endpoints("--server/--connect", list(connect or []))
+    _check_endpoints("--listen", list(listen or []))
+    return list(connect or [])
+
+
 def _check_endpoints(flag: str, endpoints: list[str]) -> None:
     for e in endpoints:
         proto, _, addr = str(e).partition("/")
@@ -177,17 +186,11 @@ def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: s
     and map every stride-th frame, send keyframes / submaps / poses, then wait for the server to acknowledge
     everything (link.finish_timeout_s). out: also write this agent's own view (trajectory as corrected,
     link.json). Returns the agent's link figures."""
-    import json
-
     from swarmsplat.slam.run.runtime import use_kernels
     from .agent_node import AgentNode
 
     cfg = config or SlamConfig()
-    if not 0 <= index <= 25:
-        raise InputError(f"--id: expected 0 to 25, got {index}")
-    connect = list(connect or [])
-    _check_endpoints("--server/--connect", connect)
-    _check_endpoints("--listen", list(listen or []))
+    connect = check_member(index, connect, listen)
     stride = cfg.team.stride if stride is None else stride
     cap = frames if frames is not None else cfg.max_frames
     n = len(seq) if not cap else min(len(seq), int(cap))
@@ -206,22 +209,32 @@ def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: s
                 last = time.monotonic()
                 say(f"[{name}] round {i + 1}/{rounds}  keyframes {len(node.agent.keyframes)}  "
                     f"queued {len(node.outbox.items)}  {time.monotonic() - t0:.0f}s", file=sys.stderr)
-        acked = node.finish(rounds, cfg.link.finish_timeout_s)
-        if not acked:
-            say(f"[{name}] the server did not acknowledge {len(node.outbox.items)} messages within "
-                f"{cfg.link.finish_timeout_s:.0f} s (link.finish_timeout_s)", file=sys.stderr)
-        figures = {"name": name, "acknowledged": acked, **node.outbox.stats(), "bytes": tx.stats.to_dict(),
-                   "corrections": node.corrections}
-        if out is not None:
-            from swarmsplat.slam.io.trajectory import write_tum
-
-            d = output_dir(out, "--out")
-            stamps, T = node.agent.trajectory()
-            if len(stamps):
-                write_tum(d / "trajectory.txt", stamps, T)
-            atomic_write_text(d / "link.json", json.dumps(figures, indent=1))
+        figures = finish_agent(node, rounds, tx, name, out, say)
     finally:
         tx.close()
+    return figures
+
+
+def finish_agent(node, rounds: int, tx, name: str, out, say) -> dict:
+    """A team agent's end: its last messages, acknowledged within link.finish_timeout_s; its link figures (written
+    with its trajectory as corrected to `out`/link.json and trajectory.txt when `out` is given)."""
+    import json
+
+    cfg = node.cfg
+    acked = node.finish(rounds, cfg.link.finish_timeout_s)
+    if not acked:
+        say(f"[{name}] the server did not acknowledge {len(node.outbox.items)} messages within "
+            f"{cfg.link.finish_timeout_s:.0f} s (link.finish_timeout_s)", file=sys.stderr)
+    figures = {"name": name, "acknowledged": acked, **node.outbox.stats(), "bytes": tx.stats.to_dict(),
+               "corrections": node.corrections}
+    if out is not None:
+        from swarmsplat.slam.io.trajectory import write_tum
+
+        d = output_dir(out, "--out")
+        stamps, T = node.agent.trajectory()
+        if len(stamps):
+            write_tum(d / "trajectory.txt", stamps, T)
+        atomic_write_text(d / "link.json", json.dumps(figures, indent=1))
     return figures
 
 

@@ -5,7 +5,9 @@ Order. The in-process team hands the server agent a's keyframe of round r right 
 agents in index order. The node keeps that order whatever the link does: keyframe (r, a) is handed over once every
 other agent b has reported all its keyframes of the rounds before it (b < a: rounds <= r; b > a: rounds < r), or
 has finished, or is lost. So the server sees the same keyframes in the same order and makes the same decisions
-as in one process, however the agents' processes interleave.
+as in one process, however the agents' processes interleave. An agent on live topics joins without a frame count
+(Join rounds 0): nobody waits for it (its rounds are its frames, which come at the camera's pace), and its
+keyframes go to the server as they arrive and the recorded agents' rounds allow.
 
 Faults. Messages are kept by id (a duplicate or a late copy changes nothing) and acknowledged; every new message
 is appended to `link/journal.bin` in the output folder before it is acknowledged, so a server restarted on the
@@ -52,6 +54,7 @@ class Peer:
     submaps: dict = field(default_factory=dict)  # submap id -> SubmapData
     claims: list = field(default_factory=list)  # (rounds done, keyframes made by then), from Frames
     rounds_done: int = 0  # rounds whose keyframes have all arrived
+    open_ended: bool = False  # joined without a frame count (a live agent): the others never wait for it
     done: L.Done | None = None
     processed: int = 0  # keyframes handed to the server
     last_heard: float = 0.0
@@ -163,7 +166,7 @@ class ServerNode:
         if not p.joined:
             ag = self.team.agents[a]
             ag.name, ag.camera = msg.name, _camera(msg.camera)
-            p.name, p.joined = msg.name, True
+            p.name, p.joined, p.open_ended = msg.name, True, int(msg.rounds) == 0
             self.say(f"[server] {msg.name} joined as agent {a}")
         self.tx.send(a + 1, L.Welcome(agent=a, ok=1))
 
@@ -210,7 +213,7 @@ class ServerNode:
             return None
         (r, a), _, m = best
         for b, q in enumerate(self.peers):
-            if b != a and not self._ended(b) and q.rounds_done < (r + 1 if b < a else r):
+            if b != a and not self._ended(b) and not q.open_ended and q.rounds_done < (r + 1 if b < a else r):
                 return None
         return a, m
 

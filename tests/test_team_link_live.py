@@ -1,0 +1,97 @@
+"""A team member on live ROS 2 topics, over real Zenoh on localhost: `swarmsplat server` serves two agents, one
+on a recording (`swarmsplat agent DATA --server ...`, its own process) and one on live topics (this process:
+slam.run.team_link.live_agent, fed CDR images as the Zenoh-ROS 2 bridge names them). The live agent tracks every
+frame it receives, publishes each pose back, and the server takes its keyframes without waiting for it and writes
+the team's outputs. Skipped without eclipse-zenoh or rosbags."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("rosbags")
+
+from test_live_zenoh import _cdr, _connected, _free_port  # noqa: E402
+from test_team_link import FAST  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SPLIT = "0:5,2:8"
+
+
+def test_a_live_agent_is_a_team_member(tmp_path):
+    from rosbags.typesys import Stores, get_typestore
+
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.io.datasets import load_dataset
+    from swarmsplat.slam.io.datasets.split import parse_ranges, split_sequence
+    from swarmsplat.slam.io.live import PosePublisher, ZenohRos2Source, zenoh_config
+    from swarmsplat.slam.run.team_link.live_agent import run_live_team_agent
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    data = generate(tmp_path / "data", GeneratorConfig.preset("tiny", seed=0, agents=1, frames=8))
+    cfg = SlamConfig().override(FAST)
+    (tmp_path / "cfg.yaml").write_text(cfg.to_yaml())
+    live_seq = split_sequence(load_dataset(data).agents[0], parse_ranges(SPLIT)).agents[1]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    port = _free_port()
+    server_at = f"tcp/127.0.0.1:{port}"
+    cli = [sys.executable, "-m", "swarmsplat.slam"]
+    server = subprocess.Popen([*cli, "server", "--agents", "2", "--out", str(tmp_path / "team"), "--config",
+                               str(tmp_path / "cfg.yaml"), "--dataset", str(data), "--split", SPLIT, "--listen",
+                               server_at, "--quiet"], env=env, cwd=REPO, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    recorded = subprocess.Popen([*cli, "agent", str(data), "--split", SPLIT, "--id", "0", "--server", server_at,
+                                 "--config", str(tmp_path / "cfg.yaml"), "--quiet"], env=env, cwd=REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    cam_port = _free_port()
+    src = ZenohRos2Source("", name="robot_b", listen=[f"tcp/127.0.0.1:{cam_port}"])
+    _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{cam_port}"])
+    robot = zenoh.open(conf)
+    poses: list[bytes] = []
+    sub = robot.declare_subscriber("swarmsplat/robot_b/pose", lambda s: poses.append(s.payload.to_bytes()))
+    try:
+        _connected(src.session, robot)
+
+        def camera_driver():
+            for i in range(len(live_seq)):
+                robot.put("camera/color/camera_info", _cdr(store, live_seq, i, "info"))
+                robot.put("camera/color/image_raw", _cdr(store, live_seq, i, "color"))
+                robot.put("camera/depth/image_raw", _cdr(store, live_seq, i, "depth"))
+                time.sleep(1 / 15)
+
+        driver = threading.Thread(target=camera_driver, daemon=True)
+        driver.start()
+        m = run_live_team_agent(src, 1, cfg, name="robot_b", connect=[server_at],
+                                publisher=PosePublisher(src.session, "swarmsplat/robot_b/pose"),
+                                max_frames=len(live_seq), camera_timeout=30, progress=False)
+        driver.join()
+        time.sleep(0.3)
+    finally:
+        sub.undeclare()
+        robot.close()
+        src.close()
+        try:
+            out_r = recorded.communicate(timeout=180)[0]
+            out_s = server.communicate(timeout=180)[0]
+        finally:
+            for p in (recorded, server):
+                if p.poll() is None:
+                    p.kill()
+    assert m["reason"] == "max_frames" and m["frames_tracked"] == len(live_seq), m
+    assert m["acknowledged"] and m["poses_published"] == len(live_seq) and len(poses) == len(live_seq)
+    assert recorded.returncode == 0, out_r
+    assert server.returncode == 0, out_s
+    team = json.loads((tmp_path / "team" / "metrics.json").read_text())
+    assert team["status"] == "complete"
+    by_name = {a["name"]: a for a in team["agents"]}
+    assert by_name["robot_b"]["frames_tracked"] == len(live_seq) and by_name["robot_b"]["keyframes"] >= 2
+    assert team["link"]["agents"]["robot_b"]["bytes_total"] > 0 and not team["link"]["lost_agents"]
