@@ -1,8 +1,8 @@
 """A team member on live ROS 2 topics, over real Zenoh on localhost: `swarmsplat server` serves two agents, one
 on a recording (`swarmsplat agent DATA --server ...`, its own process) and one on live topics (this process:
 slam.run.team_link.live_agent, fed CDR images as the Zenoh-ROS 2 bridge names them). The live agent tracks every
-frame it receives, publishes each pose back, and the server takes its keyframes without waiting for it and writes
-the team's outputs. Skipped without eclipse-zenoh or rosbags."""
+frame it receives, publishes each pose back, journals its poses, and the server takes its keyframes without
+waiting for it and writes the team's outputs. Skipped without eclipse-zenoh or rosbags."""
 
 from __future__ import annotations
 
@@ -72,7 +72,8 @@ def test_a_live_agent_is_a_team_member(tmp_path):
         driver.start()
         m = run_live_team_agent(src, 1, cfg, name="robot_b", connect=[server_at],
                                 publisher=PosePublisher(src.session, "swarmsplat/robot_b/pose"),
-                                max_frames=len(live_seq), camera_timeout=30, progress=False)
+                                max_frames=len(live_seq), camera_timeout=30, progress=False,
+                                out=tmp_path / "robot_b")
         driver.join()
         time.sleep(0.3)
     finally:
@@ -95,3 +96,9 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     by_name = {a["name"]: a for a in team["agents"]}
     assert by_name["robot_b"]["frames_tracked"] == len(live_seq) and by_name["robot_b"]["keyframes"] >= 2
     assert team["link"]["agents"]["robot_b"]["bytes_total"] > 0 and not team["link"]["lost_agents"]
+    # the live agent's own folder: its pose journal up to its last keyframe, and its trajectory as corrected
+    journal = [ln for ln in (tmp_path / "robot_b" / "progress" / "poses.tum").read_text().splitlines()
+               if ln and not ln.startswith("#")]
+    assert 2 <= len(journal) <= len(live_seq)
+    traj = (tmp_path / "robot_b" / "trajectory.txt").read_text().splitlines()
+    assert len([ln for ln in traj if not ln.startswith("#")]) == len(live_seq)

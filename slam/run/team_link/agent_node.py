@@ -144,6 +144,7 @@ class AgentNode:
         self._sent_frames = 0  # agent.poses already sent
         self._sent_skips = 0
         self._sent_submaps = 0
+        self.journal = None  # slam.run.checkpoint.PoseJournal of an agent given an output folder
 
     # ---- the link ----------------------------------------------------------------------------------------------
 
@@ -210,6 +211,8 @@ class AgentNode:
         ag = self.agent
         n_kf, n_sm = len(ag.keyframes), len(ag.gmap.submaps)
         rec = ag.step(f.index, f.timestamp, f.color, f.depth) if f is not None else None
+        if self.journal is not None:
+            self.journal.follow(ag)
         if len(ag.gmap.submaps) > n_sm and n_sm > 0:
             self._send_submap(n_sm - 1)
         if len(ag.keyframes) > n_kf:

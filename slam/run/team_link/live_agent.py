@@ -26,7 +26,7 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
     from swarmsplat.slam.run.runtime import check_device, use_kernels
     from . import messages as L
     from .agent_node import AgentNode
-    from .processes import _transport, check_member, finish_agent
+    from .processes import _transport, agent_journal, check_member, finish_agent
 
     cfg = config or SlamConfig()
     connect = check_member(index, connect, listen)
@@ -38,6 +38,7 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
     tx = _transport(index + 1, [L.SERVER, index + 1], listen=list(listen or []), connect=connect, run=run)
     try:
         node = AgentNode(camera, cfg, name, tx)
+        node.journal = agent_journal(out)
         node.join(0, cfg.link.connect_timeout_s, say=say)  # 0 rounds: a live stream's length is not known
         i, reason, last = 0, "source ended", time.monotonic()
         with _Stop() as stop:

@@ -31,6 +31,16 @@ def _transport(node: int, nodes: list[int], *, listen: list[str], connect: list[
     return ZenohTransport(node, nodes, run=run, codec=L.LINK, listen=listen, connect=connect, block=True)
 
 
+def agent_journal(out):
+    """The pose journal of a team agent given an output folder (out/progress/poses.tum: every frame up to its last
+    keyframe, fsync'd at each keyframe, as `swarmsplat run` keeps one); None without a folder."""
+    if out is None:
+        return None
+    from swarmsplat.slam.run.checkpoint import PoseJournal
+
+    return PoseJournal(output_dir(out, "--out") / "progress" / "poses.tum")
+
+
 def check_member(index: int, connect, listen) -> list[str]:
     """A team agent's index and endpoints checked (InputError naming the flag); returns the endpoints to connect."""
     if not 0 <= index <= 25:
@@ -184,8 +194,8 @@ def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: s
                    strict: bool = False, out: str | Path | None = None) -> dict:
     """Agent `index` of a team (node index + 1) on sequence `seq`, sending to the server at `connect`: join, track
     and map every stride-th frame, send keyframes / submaps / poses, then wait for the server to acknowledge
-    everything (link.finish_timeout_s). out: also write this agent's own view (trajectory as corrected,
-    link.json). Returns the agent's link figures."""
+    everything (link.finish_timeout_s). out: also write this agent's pose journal as it goes (progress/poses.tum)
+    and its own view (trajectory as corrected, link.json). Returns the agent's link figures."""
     from swarmsplat.slam.run.runtime import use_kernels
     from .agent_node import AgentNode
 
@@ -201,6 +211,7 @@ def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: s
     say = (lambda *a, **k: print(*a, **k)) if progress else (lambda *a, **k: None)
     try:
         node = AgentNode(seq.camera, cfg, name, tx)
+        node.journal = agent_journal(out)
         node.join(rounds, cfg.link.connect_timeout_s, say=say)
         t0, last = time.monotonic(), time.monotonic()
         for i in range(rounds):
@@ -222,6 +233,8 @@ def finish_agent(node, rounds: int, tx, name: str, out, say) -> dict:
 
     cfg = node.cfg
     acked = node.finish(rounds, cfg.link.finish_timeout_s)
+    if node.journal is not None:
+        node.journal.close()
     if not acked:
         say(f"[{name}] the server did not acknowledge {len(node.outbox.items)} messages within "
             f"{cfg.link.finish_timeout_s:.0f} s (link.finish_timeout_s)", file=sys.stderr)
