@@ -211,3 +211,23 @@ def test_a_frames_pyramid_shared_between_registrations_changes_nothing(pair):
     b = align_to_model(frame, target, start, iterations=3, photometric_weight=0.3, max_distance=0.05,
                        evaluate_final=True, pyramid=pf)
     assert np.array_equal(a.T_view_cam, b.T_view_cam) and a.start == b.start and a.final == b.final
+
+
+def test_tracker_scores_its_coarse_stage_at_coarse_eval_max_width(pair):
+    """tracking.coarse_eval_max_width half the coarse width: the same coarse pose, scored from a quarter of the
+    source pixels (stride 2) with the same fitness scale."""
+    from swarmsplat.slam.config import TrackingConfig
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams
+    from swarmsplat.slam.dense.tracking.tracker import Tracker
+
+    cam, T_view, T_true, view, frame = pair
+    out = {}
+    for w in (96, 48):
+        tr = Tracker(TrackingConfig(coarse_max_width=96, coarse_eval_max_width=w, refine=False, recovery=False))
+        tr.track(view, GaussianParams.empty())
+        out[w] = tr.track(frame, GaussianParams.empty())
+    full, half = out[96], out[48]
+    assert full.coarse_ok and half.coarse_ok
+    assert np.array_equal(full.T_local_cam_coarse, half.T_local_cam_coarse)
+    assert 0.2 < half.coarse.n_correspondences / full.coarse.n_correspondences < 0.3
+    assert abs(half.coarse.fitness - full.coarse.fitness) < 0.05

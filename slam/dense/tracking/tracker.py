@@ -265,7 +265,8 @@ class Tracker:
         if self.cfg.coarse == "rgbd_odometry":
             tgt = self._prev.resized(self.cfg.coarse_max_width)
             levels = self._prev_pyramid if tgt is self._prev else pyramid(tgt)
-            r = coarse_odometry(src, tgt, self._velocity, max_depth=self.max_depth, pyramids=(src_pyramid, levels))
+            r = coarse_odometry(src, tgt, self._velocity, max_depth=self.max_depth, pyramids=(src_pyramid, levels),
+                                eval_stride=max(1, src.camera.width // self.cfg.coarse_eval_max_width))
             coarse_ok = coarse_passes(r, self.cfg)
             if coarse_ok:
                 T_coarse = self._prev_pose @ r.T_target_source
