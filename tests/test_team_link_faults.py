@@ -238,3 +238,20 @@ def test_link_messages_round_trip_and_compact_encodings():
     data[4] = L.SCHEMA_VERSION + 1
     with pytest.raises(MessageError, match="schema version"):
         L.LINK.decode(bytes(data))
+
+
+def test_agent_ids_by_name():
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.run.team_link.registry import Registry
+
+    r = Registry(3)  # no dataset: the lowest free index, in the order agents ask; a name asked again keeps it
+    assert [r.assign(n) for n in ("robot_c", "robot_a", "robot_c", "robot_b")] == [0, 1, 0, 2]
+    with pytest.raises(InputError, match="the team is full: 3 agents"):
+        r.assign("robot_d")
+    d = Registry(2, fixed=["agent_0", "agent_1"])  # a dataset's names keep its order, whoever asks first
+    assert d.assign("agent_1") == 1 and d.assign("agent_0") == 0
+    with pytest.raises(InputError, match="none of the server's dataset's agents"):
+        Registry(2, fixed=["agent_0", "agent_1"]).assign("robot_x")
+    assert Registry(2, taken={"robot_a": 1}).assign("robot_b") == 0  # a restarted server keeps who had what
+    with pytest.raises(InputError):
+        r.assign("")

@@ -53,6 +53,11 @@ def test_a_live_agent_is_a_team_member(tmp_path):
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     store = get_typestore(Stores.ROS2_HUMBLE)
     cam_port = _free_port()
+    from swarmsplat.slam.run.team_link.registry import ask_index
+
+    # no --id: the server gives the index by name (the name of its dataset's second sequence: 1)
+    assert ask_index("agent_1", connect=[server_at], timeout=60) == 1
+    assert ask_index("agent_1", connect=[server_at], timeout=60) == 1  # asked again: the same
     src = ZenohRos2Source("", name="robot_b", listen=[f"tcp/127.0.0.1:{cam_port}"])
     _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{cam_port}"])
     robot = zenoh.open(conf)
@@ -102,3 +107,16 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     assert 2 <= len(journal) <= len(live_seq)
     traj = (tmp_path / "robot_b" / "trajectory.txt").read_text().splitlines()
     assert len([ln for ln in traj if not ln.startswith("#")]) == len(live_seq)
+
+
+def test_an_agent_without_an_id_and_no_server_says_so(tmp_path, capsys):
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    data = generate(tmp_path / "data", GeneratorConfig.preset("tiny", seed=0, agents=1, frames=3))
+    t0 = time.monotonic()
+    assert main(["agent", str(data / "agent_0"), "--name", "robot_x", "--server", f"tcp/127.0.0.1:{_free_port()}",
+                 "--set", "link.connect_timeout_s=2", "--quiet"]) == 1
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("swarmsplat agent:")]
+    assert len(err) == 1 and "robot_x: no team server answered within 2 s" in err[0], err
+    assert time.monotonic() - t0 < 30

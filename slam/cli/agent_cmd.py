@@ -45,7 +45,7 @@ def register(sub) -> None:
                         "endpoint, e.g. tcp/192.168.1.10:7447 (recordings only)")
     p.add_argument("--id", type=int, metavar="K",
                    help="--server: this agent's index in the team, 0 .. N-1 (default: its position in a "
-                        "multi-agent SOURCE)")
+                        "multi-agent SOURCE, else the index the server gives --name)")
     p.add_argument("--split", metavar="RANGES",
                    help="--server: SOURCE is one sequence cut into agents as `swarmsplat run --split` cuts it; "
                         "this agent is the range named by --name or --id")
@@ -119,16 +119,16 @@ def _team_member(args, source: str, cfg) -> int:
         ds = split_sequence(ds.agents[0], parse_ranges(args.split))
     names = [s.name for s in ds.agents]
     k = args.id
-    if k is None:
-        if len(names) == 1:
-            raise InputError("--id: give this agent's index in the team (0 .. N-1)")
+    if k is None and len(names) > 1:
         if args.name not in names:
             raise InputError(f"--name {args.name}: {source} holds agents {', '.join(names)}; name one or give --id")
         k = names.index(args.name)
-    seq = ds.agents[0] if len(names) == 1 else (ds.agents[k] if k < len(names) else None)
-    if seq is None:
+    if k is not None and len(names) > 1 and k >= len(names):
         raise InputError(f"--id {k}: {source} holds agents 0 .. {len(names) - 1}")
+    seq = ds.agents[0] if len(names) == 1 else ds.agents[k]
     name = args.name if args.name != "live" else seq.name
+    if k is None:  # one sequence and no --id: the server gives this agent its index by name
+        k = _ask_index(args, name, cfg)
     m = run_team_agent(seq, k, cfg, name=name, connect=args.server + args.connect, listen=args.listen, run=args.run,
                        frames=args.frames or None, progress=not args.quiet, out=args.out)
     print(f"{name}: {m['bytes']['sent_total'] / 1e6:.2f} MB sent, {m['resent']} resent, {m['dropped_images']} "
@@ -188,12 +188,11 @@ def _live_team_member(args, source: str, cfg) -> int:
     from swarmsplat.slam.io.bags import parse_topics
     from swarmsplat.slam.run.team_link.live_agent import run_live_team_agent
 
-    if args.id is None:
-        raise InputError("--id: a team member on live topics needs its index in the team (0 .. N-1)")
     if args.split:
         raise InputError("--split cuts a recording into agents; live topics are one agent")
     with _live_topics(args, source, parse_topics(args.topics)) as (src, pub):
-        m = run_live_team_agent(src, args.id, cfg, name=args.name, connect=args.server, run=args.run,
+        k = args.id if args.id is not None else _ask_index(args, args.name, cfg)
+        m = run_live_team_agent(src, k, cfg, name=args.name, connect=args.server, run=args.run,
                                 publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
                                 camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
                                 progress=not args.quiet, out=args.out)
@@ -217,3 +216,19 @@ def _live_topics(args, source: str, topics: dict):
         yield src, PosePublisher(src.session, args.publish or f"swarmsplat/{args.name}/pose")
     finally:
         src.close()
+
+
+def _ask_index(args, name: str, cfg) -> int:
+    """This agent's index, asked of the team server by name (slam.run.team_link.registry)."""
+    import sys
+
+    from swarmsplat.slam.run.team_link.processes import check_member
+    from swarmsplat.slam.run.team_link.registry import ask_index
+
+    check_member(0, args.server + args.connect, args.listen)
+    k = ask_index(name, connect=args.server + args.connect, listen=args.listen, run=args.run,
+                  timeout=cfg.link.connect_timeout_s,
+                  say=None if args.quiet else (lambda text: print(text, file=sys.stderr)))
+    if not args.quiet:
+        print(f"{name}: the team server gave this agent index {k}", file=sys.stderr)
+    return k

@@ -91,6 +91,11 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
     cpu0, t0 = time.process_time(), time.perf_counter()
     try:
         node = ServerNode(team, tx, journal=out / "link" / "journal.bin")
+        from .registry import Registry, serve_registry  # agents without --id ask for their index by name
+
+        registry = Registry(agents, fixed=names if ds is not None else None,
+                            taken={p.name: a for a, p in enumerate(node.peers) if p.joined})
+        queryable = serve_registry(tx.session, run, registry)
         if progress:
             print(f"[server] waiting for {agents} agents on {', '.join(listen + connect)}", file=sys.stderr)
         node.run(progress=progress, timeout=timeout)
@@ -108,6 +113,7 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
         metrics["link"] = node.link_metrics()
         _add_link(out, metrics)
         node.finished()
+        queryable.undeclare()
     finally:
         tx.close()
     return metrics
