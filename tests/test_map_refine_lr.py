@@ -64,3 +64,29 @@ def test_the_optimiser_gets_the_decayed_rates(monkeypatch, optimizer):
     assert lrs.shape[0] == 5
     assert np.allclose(lrs / lrs[0], [[lr_factor(0.25, i, 5)] for i in range(5)])
     assert lrs[0][0] == pytest.approx(MappingConfig().lr_means * cfg.lr_scale)
+
+
+def test_views_of_stored_keyframes_decode_through_a_bounded_cache():
+    """A refinement view of a packed keyframe reads the same images as the frame itself; the shared cache keeps
+    decoded views up to its byte bound, least recently used dropped first."""
+    from swarmsplat.slam.dense.frames import RGBD
+    from swarmsplat.slam.dense.mapping.refine_merged import RefineView, ViewCache
+    from swarmsplat.slam.dense.packed import pack
+    from swarmsplat.kernels.camera import PinholeCamera
+
+    cam = PinholeCamera(40.0, 40.0, 16.0, 12.0, 32, 24)
+    rng = np.random.default_rng(0)
+    frames = [pack(RGBD(rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
+                        rng.uniform(0.5, 3.0, (24, 32)).astype(np.float32), cam)) for _ in range(3)]
+    one = 24 * 32 * 4 * (3 + 1)  # bytes of one decoded view (float32 colour and depth)
+    cache = ViewCache(2 * one)
+    views = [RefineView(viewmat_from_pose(np.eye(4)), None, None, cam, frame=f, cache=cache) for f in frames]
+    for v, f in zip(views, frames):
+        assert torch.equal(v.color, f.color_tensor()) and torch.equal(v.depth, f.depth_tensor())
+    assert cache.decoded == 3 and cache.bytes == 2 * one  # the first view was dropped for the third
+    views[2].color, views[1].depth  # noqa: B018 - hits
+    assert cache.decoded == 3
+    views[0].color  # noqa: B018 - dropped before: decoded again
+    assert cache.decoded == 4 and cache.bytes <= 2 * one
+    assert torch.equal(RefineView(viewmat_from_pose(np.eye(4)), None, None, cam, frame=frames[0]).depth,
+                       frames[0].depth_tensor())  # no cache: decoded at each read

@@ -177,6 +177,9 @@ class MapRefineConfig(_Section):
                                                     "correction (slam.dense.mapping.selective_adam); 'adam': torch's Adam over "
                                                     "the whole merged map every step")
     seed: int = Field(0, description="seed of the keyframe order")
+    view_cache_mb: float = Field(256.0, ge=0, description="decoded keyframe images the refinement keeps between "
+                                 "steps (MB, float tensors, least recently used dropped first); the rest stay as "
+                                 "stored (PNG) and are decoded at each step (0 = decode every time)")
 
 
 class SubmapConfig(_Section):

@@ -167,21 +167,8 @@ class LoopCloser:
                 out.append(c)
         if cfg.candidates in ("pose", "both"):
             taken = {c.match_kf for c in out}
-            close = []  # (distance + angle as metres at 1 m per radian, T_oq, keyframe) within the limits
-            for o in pool:
-                if o.id in taken:
-                    continue
-                T_oq = se3.inverse(world_pose(gmap, o)) @ T_q
-                dist = float(np.linalg.norm(T_oq[:3, 3]))
-                angle = float(se3.rotation_angle(T_oq[:3, :3]))
-                if dist > cfg.pose_max_distance or np.degrees(angle) > cfg.pose_max_angle_deg:
-                    continue
-                close.append((dist + angle, T_oq, o))
-            # Revisits pile up keyframes at one place: the overlap (an image decode each) is computed for the
-            # closest pose_max_checked only, so a candidate search costs the same on the tenth lap as on the first.
-            close.sort(key=lambda s: s[0])
-            near = [(view_overlap(kf.small, o.small, T_oq), o) for _, T_oq, o in close[: cfg.pose_max_checked]]
-            near.sort(key=lambda s: -s[0])
+            near = nearest_by_overlap(kf.small, [(se3.inverse(world_pose(gmap, o)) @ T_q, o.small, o) for o in pool
+                                                 if o.id not in taken], cfg)
             for ov, other in near[: cfg.pose_top_k]:
                 sim = float(np.dot(kf.descriptor, other.descriptor)) if other.descriptor is not None else float("nan")
                 c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim, source="pose", overlap=ov)
@@ -309,6 +296,24 @@ class LoopCloser:
 
     def log_rows(self) -> list[dict]:
         return [asdict(c) for c in self.log]
+
+
+def nearest_by_overlap(query: RGBD, others: list, cfg: LoopClosureConfig) -> list:
+    """Pose candidates: of `others` [(T_other_query, the other's RGBD, payload)], those within
+    cfg.pose_max_distance and cfg.pose_max_angle_deg of the query, as [(view overlap, payload)], best overlap
+    first. Revisits pile up keyframes at one place, so the overlap (an image decode each) is computed for the
+    closest cfg.pose_max_checked only (distance plus angle, 1 m per radian): a search costs the same on the tenth
+    lap as on the first."""
+    close = []
+    for T_oq, other, payload in others:
+        dist = float(np.linalg.norm(T_oq[:3, 3]))
+        angle = float(se3.rotation_angle(T_oq[:3, :3]))
+        if dist <= cfg.pose_max_distance and np.degrees(angle) <= cfg.pose_max_angle_deg:
+            close.append((dist + angle, len(close), T_oq, other, payload))
+    close.sort(key=lambda c: c[:2])
+    near = [(view_overlap(query, other, T_oq), i, payload) for _, i, T_oq, other, payload in close[:cfg.pose_max_checked]]
+    near.sort(key=lambda s: (-s[0], s[1]))  # ties in the given order
+    return [(ov, payload) for ov, _, payload in near]
 
 
 def view_overlap(query: RGBD, match: RGBD, T_match_query: np.ndarray, *, stride: int = 4,

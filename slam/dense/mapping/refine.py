@@ -18,14 +18,20 @@ import torch
 from swarmsplat.kernels import se3
 
 from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, transform_params
-from swarmsplat.slam.dense.mapping.refine_merged import RefineView, refine_map
+from swarmsplat.slam.dense.mapping.refine_merged import RefineView, ViewCache, refine_map
+from swarmsplat.slam.dense.packed import PackedRGBD
 from .mapper import fallback_depth
 from .overlap_cull import OwnerView, owner_keep
 from swarmsplat.slam.dense.render import viewmat_from_pose
 
 
-def _view(kf, T_frame_cam, cfg) -> RefineView:
+def _view(kf, T_frame_cam, cfg, cache: ViewCache | None = None) -> RefineView:
     f = kf.map_rgbd if cfg.views == "mapping" and kf.map_rgbd is not None else kf.small
+    # A stored keyframe's images stay as stored and are decoded when used, through `cache` (bounded memory over a
+    # long mission); the active submap's raw ones are made tensors once.
+    if isinstance(f, PackedRGBD):
+        return RefineView(viewmat_from_pose(se3.project_rigid(T_frame_cam)), None, None, f.camera, frame=f,
+                          cache=cache)
     return RefineView(viewmat_from_pose(se3.project_rigid(T_frame_cam)), f.color_tensor(), f.depth_tensor(),
                       f.camera)
 
@@ -106,12 +112,13 @@ def refine_components(server, cfg, mapping) -> dict:
     out = {}
     for root, members in server.components().items():
         parts, views, view_keyframes, fixed = [], [], [], set()
+        cache = ViewCache(cfg.view_cache_mb * 1e6)
         for a in members:
             s = server.slots[a]
             if s.agent.keyframes:  # each agent's first keyframe holds its gauge (its place in the team's frame)
                 fixed.add(len(views))
             parts += [(sm, s.T_global_world @ sm.T_world_local) for sm in s.agent.gmap.submaps]
-            views += [_view(kf, _start_pose(server, a, kf, cfg), cfg) for kf in s.agent.keyframes]
+            views += [_view(kf, _start_pose(server, a, kf, cfg), cfg, cache) for kf in s.agent.keyframes]
             view_keyframes += [(s.agent.gmap.submaps[kf.submap_id], kf) for kf in s.agent.keyframes]
         out[server.slots[root].agent.name] = _refine_parts(parts, views, view_keyframes, cfg, mapping,
                                                            fixed or None)
@@ -124,6 +131,7 @@ def refine_agent(agent, cfg, mapping) -> dict | None:
     if cfg.iterations_per_keyframe <= 0 or cfg.max_iterations <= 0 or not agent.keyframes:
         return None
     poses = agent.keyframe_world_poses()
-    views = [_view(kf, T, cfg) for kf, T in zip(agent.keyframes, poses)]
+    cache = ViewCache(cfg.view_cache_mb * 1e6)
+    views = [_view(kf, T, cfg, cache) for kf, T in zip(agent.keyframes, poses)]
     view_keyframes = [(agent.gmap.submaps[kf.submap_id], kf) for kf in agent.keyframes]
     return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping)

@@ -44,14 +44,63 @@ from swarmsplat.slam.dense.render import NEAR, render
 from .selective_adam import SelectiveAdam
 
 
-@dataclass
 class RefineView:
-    """One keyframe as refinement sees it: the map-to-camera matrix and its images."""
+    """One keyframe as refinement sees it: the map-to-camera matrix and its images.
 
-    viewmat: torch.Tensor  # [4, 4] map frame -> camera (OpenCV axes)
-    color: torch.Tensor  # [H, W, 3] float in [0, 1]
-    depth: torch.Tensor  # [H, W] metres, 0 = invalid
-    camera: PinholeCamera
+    The images are tensors given as they are, or (`frame`: an RGBD or a packed keyframe, slam.dense.packed)
+    made from the frame when they are read, through `cache` (a ViewCache shared by the views): a refinement over a
+    long mission's keyframes then holds them as stored (PNG for a finished submap's keyframes) plus the decoded
+    ones the cache keeps, instead of every view as float tensors at once (1.2 MB each at 320x240)."""
+
+    __slots__ = ("viewmat", "camera", "_color", "_depth", "frame", "cache")
+
+    def __init__(self, viewmat: torch.Tensor, color: torch.Tensor | None, depth: torch.Tensor | None,
+                 camera: PinholeCamera, *, frame=None, cache: "ViewCache | None" = None):
+        self.viewmat = viewmat  # [4, 4] map frame -> camera (OpenCV axes)
+        self.camera = camera
+        self._color, self._depth, self.frame, self.cache = color, depth, frame, cache
+
+    def _images(self) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.cache is None:
+            return self.frame.color_tensor(), self.frame.depth_tensor()
+        return self.cache.get(self.frame)
+
+    @property
+    def color(self) -> torch.Tensor | None:  # [H, W, 3] float in [0, 1]
+        return self._images()[0] if self._color is None and self.frame is not None else self._color
+
+    @property
+    def depth(self) -> torch.Tensor | None:  # [H, W] metres, 0 = invalid
+        return self._images()[1] if self._depth is None and self.frame is not None else self._depth
+
+
+class ViewCache:
+    """Decoded keyframe images (colour and depth tensors) by frame, least recently used dropped first once they
+    pass `max_bytes`. `decoded` counts the decodes (hits are the other reads)."""
+
+    def __init__(self, max_bytes: float):
+        from collections import OrderedDict
+
+        self.max_bytes = float(max_bytes)
+        self.items: OrderedDict = OrderedDict()  # id(frame) -> (frame, color, depth)
+        self.bytes = 0
+        self.decoded = 0
+
+    def get(self, frame) -> tuple[torch.Tensor, torch.Tensor]:
+        hit = self.items.get(id(frame))
+        if hit is not None and hit[0] is frame:
+            self.items.move_to_end(id(frame))
+            return hit[1], hit[2]
+        color, depth = frame.color_tensor(), frame.depth_tensor()
+        self.decoded += 1
+        size = color.numel() * color.element_size() + depth.numel() * depth.element_size()
+        if size <= self.max_bytes:
+            self.items[id(frame)] = (frame, color, depth)
+            self.bytes += size
+            while self.bytes > self.max_bytes:
+                _, (_, c, d) = self.items.popitem(last=False)
+                self.bytes -= c.numel() * c.element_size() + d.numel() * d.element_size()
+        return color, depth
 
 
 @dataclass
@@ -200,7 +249,8 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     else:  # mapping's Adam, fused: a step over a 211k-Gaussian map takes 2.7 ms instead of 9.0 ms (for-loop Adam)
         opt = make_optimizer(p, mapping, lr)
     # Visibility from the starting means: refinement moves a Gaussian by millimetres, far less than the margin.
-    subsets = [visible_indices(p.means.detach(), v, cfg.view_margin) for v in views]
+    # Kept as int32 (a long mission's views each see ~1e5 Gaussians: half the memory of int64), widened per step.
+    subsets = [visible_indices(p.means.detach(), v, cfg.view_margin).to(torch.int32) for v in views]
     poses = (_PoseSteps(views, cfg.lr_pose_rotation, cfg.lr_pose_translation,
                         fixed={0} if fixed_views is None else set(fixed_views))
              if cfg.refine_poses and len(views) > 1 else None)
@@ -220,7 +270,7 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         if not order:
             order = torch.randperm(len(views), generator=gen).tolist()
         j = order.pop()
-        idx = subsets[j]
+        idx = subsets[j].long()
         if len(idx) == 0:
             continue
         v = views[j]
