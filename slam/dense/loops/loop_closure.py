@@ -167,8 +167,8 @@ class LoopCloser:
                 out.append(c)
         if cfg.candidates in ("pose", "both"):
             taken = {c.match_kf for c in out}
-            near = nearest_by_overlap(kf.small, [(se3.inverse(world_pose(gmap, o)) @ T_q, o.small, o) for o in pool
-                                                 if o.id not in taken], cfg)
+            rest = [o for o in pool if o.id not in taken]
+            near = nearest_by_overlap(kf.small, T_q, keyframe_poses(gmap, rest), [o.small for o in rest], rest, cfg)
             for ov, other in near[: cfg.pose_top_k]:
                 sim = float(np.dot(kf.descriptor, other.descriptor)) if other.descriptor is not None else float("nan")
                 c = LoopCandidate(kf.id, other.id, kf.frame_index, other.frame_index, sim, source="pose", overlap=ov)
@@ -298,22 +298,32 @@ class LoopCloser:
         return [asdict(c) for c in self.log]
 
 
-def nearest_by_overlap(query: RGBD, others: list, cfg: LoopClosureConfig) -> list:
-    """Pose candidates: of `others` [(T_other_query, the other's RGBD, payload)], those within
-    cfg.pose_max_distance and cfg.pose_max_angle_deg of the query, as [(view overlap, payload)], best overlap
-    first. Revisits pile up keyframes at one place, so the overlap (an image decode each) is computed for the
-    closest cfg.pose_max_checked only (distance plus angle, 1 m per radian): a search costs the same on the tenth
-    lap as on the first."""
-    close = []
-    for T_oq, other, payload in others:
-        dist = float(np.linalg.norm(T_oq[:3, 3]))
-        angle = float(se3.rotation_angle(T_oq[:3, :3]))
-        if dist <= cfg.pose_max_distance and np.degrees(angle) <= cfg.pose_max_angle_deg:
-            close.append((dist + angle, len(close), T_oq, other, payload))
-    close.sort(key=lambda c: c[:2])
-    near = [(view_overlap(query, other, T_oq), i, payload) for _, i, T_oq, other, payload in close[:cfg.pose_max_checked]]
-    near.sort(key=lambda s: (-s[0], s[1]))  # ties in the given order
-    return [(ov, payload) for ov, _, payload in near]
+def nearest_by_overlap(query: RGBD, T_q: np.ndarray, poses: np.ndarray, others: list, payloads: list,
+                       cfg: LoopClosureConfig) -> list:
+    """Pose candidates of the query (its view `query`, its pose T_q [4, 4]) among keyframes at `poses` [M, 4, 4]
+    (the same frame as T_q) with views `others` [M]: those within cfg.pose_max_distance and
+    cfg.pose_max_angle_deg, as [(view overlap, payload)], best overlap first (ties in the given order). The pose
+    test is one array operation over all M; the overlap (an image decode each) is computed for the closest
+    cfg.pose_max_checked only (distance plus angle, 1 m per radian), since revisits pile up keyframes at one
+    place: a search costs about the same on the tenth lap as on the first."""
+    if not len(others):
+        return []
+    T_oq = se3.inverse(np.asarray(poses, dtype=np.float64)) @ T_q  # [M, 4, 4]
+    dist = np.linalg.norm(T_oq[:, :3, 3], axis=1)
+    angle = se3.rotation_angle(T_oq[:, :3, :3])
+    ok = np.nonzero((dist <= cfg.pose_max_distance) & (np.degrees(angle) <= cfg.pose_max_angle_deg))[0]
+    closest = ok[np.argsort(dist[ok] + angle[ok], kind="stable")][: cfg.pose_max_checked]
+    near = [(view_overlap(query, others[i], T_oq[i]), int(i)) for i in closest]
+    near.sort(key=lambda s: (-s[0], s[1]))
+    return [(ov, payloads[i]) for ov, i in near]
+
+
+def keyframe_poses(gmap: GaussianMap, keyframes: list[Keyframe]) -> np.ndarray:
+    """[M, 4, 4] world poses of `keyframes` (world_pose for each, as one batched product)."""
+    if not keyframes:
+        return np.zeros((0, 4, 4))
+    sub = np.stack([gmap.submaps[k.submap_id].T_world_local for k in keyframes])
+    return sub @ np.stack([k.T_local for k in keyframes])
 
 
 def view_overlap(query: RGBD, match: RGBD, T_match_query: np.ndarray, *, stride: int = 4,

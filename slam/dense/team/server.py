@@ -140,7 +140,7 @@ class Server(JoinRules):
         """Once agents share a frame, their poses propose candidates too (as intra-agent ones, eq. 6): keyframes
         of the other agents of a's component near kf's pose, by view overlap; loop_closure.pose_top_k of them,
         skipping those the descriptor already proposed."""
-        from swarmsplat.slam.dense.loops.loop_closure import nearest_by_overlap
+        from swarmsplat.slam.dense.loops.loop_closure import keyframe_poses, nearest_by_overlap
 
         lc = self.slots[a].agent.cfg.loop_closure
         if lc.candidates == "descriptor" or lc.pose_top_k == 0:
@@ -148,11 +148,17 @@ class Server(JoinRules):
         T_q = self.global_pose(a, kf)
         taken = {(r.match_agent, r.match_kf) for r in self.records[-2 * self.cfg.top_k:]
                  if r.kind == INTER and r.query_agent == self.slots[a].agent.name and r.query_kf == kf.id}
-        others = [(se3.inverse(self.global_pose(b, m)) @ T_q, m.small, (b, m))
-                  for b, slot in enumerate(self.slots) if b != a and slot.component == self.slots[a].component
-                  for m in slot.agent.keyframes if (slot.agent.name, m.id) not in taken]
+        poses, smalls, payloads = [], [], []
+        for b, slot in enumerate(self.slots):
+            if b == a or slot.component != self.slots[a].component:
+                continue
+            rest = [m for m in slot.agent.keyframes if (slot.agent.name, m.id) not in taken]
+            poses.append(slot.T_global_world @ keyframe_poses(slot.agent.gmap, rest))
+            smalls += [m.small for m in rest]
+            payloads += [(b, m) for m in rest]
+        poses = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
         out = []
-        for ov, (b, m) in nearest_by_overlap(kf.small, others, lc)[: lc.pose_top_k]:
+        for ov, (b, m) in nearest_by_overlap(kf.small, T_q, poses, smalls, payloads, lc)[: lc.pose_top_k]:
             d, e = self.descriptors.get((a, kf.id)), self.descriptors.get((b, m.id))
             sim = float(np.dot(d, e)) if d is not None and e is not None else float("nan")
             if ov < lc.pose_min_overlap:
