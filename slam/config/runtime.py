@@ -28,6 +28,6 @@ class RuntimeConfig(_Section):
     max_mapping_iterations: int = Field(0, ge=0, description="real time: iterations a keyframe gets at most while "
                                         "no keyframe waits (0 = mapping.iterations, mapping.first_iterations for a "
                                         "submap's first keyframe)")
-    mapping_nice: int = Field(19, ge=0, le=19, description="real time: how much the mapping worker lowers its "
+    mapping_nice: int = Field(5, ge=0, le=19, description="real time: how much the mapping worker lowers its "
                               "threads' priority (nice value added; Linux), so tracking gets the cores first; "
                               "0 = the same priority")
