@@ -48,8 +48,9 @@ def _overlap_keep(parts, views, view_submaps, cfg, mapping, merged):
             return None
         return torch.as_tensor(fallback_depth(v.depth.numpy(), mapping.no_depth_min_region) > 0)
 
-    owners = [OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera, no_depth(v))
-              for v, sm in zip(views, view_submaps) if id(sm) in index]
+    # one view at a time (its depth decoded when the cull reaches it), not every view's images at once
+    owners = (OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera, no_depth(v))
+              for v, sm in zip(views, view_submaps) if id(sm) in index)
     return owner_keep(merged.means, part, owners, tol_abs=cfg.overlap_depth_tolerance,
                       tol_rel=cfg.overlap_depth_tolerance_rel)
 

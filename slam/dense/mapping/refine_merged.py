@@ -249,8 +249,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     else:  # mapping's Adam, fused: a step over a 211k-Gaussian map takes 2.7 ms instead of 9.0 ms (for-loop Adam)
         opt = make_optimizer(p, mapping, lr)
     # Visibility from the starting means: refinement moves a Gaussian by millimetres, far less than the margin.
-    # Kept as int32 (a long mission's views each see ~1e5 Gaussians: half the memory of int64), widened per step.
-    subsets = [visible_indices(p.means.detach(), v, cfg.view_margin).to(torch.int32) for v in views]
+    # Found again at each step from a copy of them rather than kept per view: in a revisited place every view
+    # sees a large share of the map, and views x visible indices grew with the square of the mission.
+    means0 = p.means.detach().clone()
     poses = (_PoseSteps(views, cfg.lr_pose_rotation, cfg.lr_pose_translation,
                         fixed={0} if fixed_views is None else set(fixed_views))
              if cfg.refine_poses and len(views) > 1 else None)
@@ -270,7 +271,7 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         if not order:
             order = torch.randperm(len(views), generator=gen).tolist()
         j = order.pop()
-        idx = subsets[j].long()
+        idx = visible_indices(means0, views[j], cfg.view_margin)
         if len(idx) == 0:
             continue
         v = views[j]
