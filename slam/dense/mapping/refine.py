@@ -36,8 +36,9 @@ def _view(kf, T_frame_cam, cfg, cache: ViewCache | None = None) -> RefineView:
                       f.camera)
 
 
-def _overlap_keep(parts, views, view_submaps, cfg, mapping, merged):
-    """keep [N] of slam.dense.mapping.overlap_cull over `merged` (the parts' Gaussians in order); view_submaps[i]: the submap
+def _overlap_keep(parts, views, view_submaps, cfg, mapping, means):
+    """keep [N] of slam.dense.mapping.overlap_cull over `means` (the parts' Gaussians' centres in the frame, in
+    order); view_submaps[i]: the submap
     of views[i]. With mapping.seed_without_depth, each view's large no-depth regions (where mapping seeded without
     depth, slam.dense.mapping.mapper.fallback_depth) decide the owner of the Gaussians there."""
     index = {id(sm): i for i, (sm, _, _) in enumerate(parts)}
@@ -51,8 +52,16 @@ def _overlap_keep(parts, views, view_submaps, cfg, mapping, merged):
     # one view at a time (its depth decoded when the cull reaches it), not every view's images at once
     owners = (OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera, no_depth(v))
               for v, sm in zip(views, view_submaps) if id(sm) in index)
-    return owner_keep(merged.means, part, owners, tol_abs=cfg.overlap_depth_tolerance,
+    return owner_keep(means, part, owners, tol_abs=cfg.overlap_depth_tolerance,
                       tol_rel=cfg.overlap_depth_tolerance_rel)
+
+
+def _frame_means(params: GaussianParams, T: np.ndarray) -> torch.Tensor:
+    """[N, 3] the centres of `params` in the frame T [4, 4] (frame <- local): transform_params's means alone."""
+    R = torch.as_tensor(np.asarray(T, dtype=np.float64)[:3, :3], dtype=params.means.dtype)
+    t = torch.as_tensor(np.asarray(T, dtype=np.float64)[:3, 3], dtype=params.means.dtype)
+    with torch.no_grad():
+        return params.means @ R.T + t
 
 
 def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) -> dict:
@@ -62,13 +71,18 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) 
     t0 = time.perf_counter()
     view_submaps = [sm for sm, _ in view_keyframes]
     parts = [(sm, T, len(sm)) for sm, T in parts if len(sm)]
-    merged = GaussianParams.concat([transform_params(sm.params, T) for sm, T, _ in parts])
-    runs = cfg.iterations_per_keyframe > 0 and cfg.max_iterations > 0 and views and len(merged)
-    owned = torch.ones(len(merged), dtype=torch.bool)
-    if runs and cfg.overlap_cull:
-        owned = _overlap_keep(parts, views, view_submaps, cfg, mapping, merged)
+    total = sum(n for _, _, n in parts)
+    runs = cfg.iterations_per_keyframe > 0 and cfg.max_iterations > 0 and views and total
+    owned = torch.ones(total, dtype=torch.bool)
+    if runs and cfg.overlap_cull:  # on the centres alone: a revisited place merges several copies of each surface
+        owned = _overlap_keep(parts, views, view_submaps, cfg, mapping,
+                              torch.cat([_frame_means(sm.params, T) for sm, T, _ in parts]))
     cull_s = time.perf_counter() - t0
-    refined, kept, st = refine_map(merged.select(owned), views, cfg, mapping, fixed_views=fixed_views)
+    # The merged map holds the owned Gaussians only, each part selected before they are put together.
+    starts = np.cumsum([0] + [n for _, _, n in parts])
+    merged = GaussianParams.concat([transform_params(sm.params, T).select(owned[a:a + n])
+                                    for (sm, T, n), a in zip(parts, starts)])
+    refined, kept, st = refine_map(merged, views, cfg, mapping, fixed_views=fixed_views)
     keep = owned.clone()
     keep[owned] = kept
     overlap, hidden = int((~owned).sum()), int((~kept).sum())
@@ -90,7 +104,7 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) 
         poses = {"pose_rotation_deg_median": float(np.degrees(np.median(rot))),
                  "pose_rotation_deg_max": float(np.degrees(rot.max())),
                  "pose_translation_m_median": float(np.median(trans)), "pose_translation_m_max": float(trans.max())}
-    return {"iterations": st.iterations, "keyframes": st.views, "gaussians": len(merged), "overlap_dropped": overlap,
+    return {"iterations": st.iterations, "keyframes": st.views, "gaussians": total, "overlap_dropped": overlap,
             "hidden_dropped": hidden,
             "pruned": pruned, "loss_first": st.loss_first, "loss_last": st.loss_last,
             "overlap_cull_seconds": cull_s, **poses, "seconds": time.perf_counter() - t0}
