@@ -74,7 +74,7 @@ CASES = [  # (argv with placeholders, a fragment the error line must contain)
     ("server --agents 2 --out NEW --listen 127.0.0.1", "--listen"),
     ("server --agents 2 --out NEW --split 0:1,1:", "--dataset"),
     ("agent SEQ --server 127.0.0.1:7447 --id 0", "--server"),
-    ("agent SEQ --server 127.0.0.1:7447", "--id"),
+    ("agent SEQ --server 127.0.0.1:7447 --split 0:1,1:", "--id"),  # which part: --name one of them or --id
     ("agent SEQ --server 127.0.0.1:7447 --id 30", "--id"),
     ("agent SEQ --id 0 --out NEW", "--server"),
     ("agent SEQ", "--out"),
