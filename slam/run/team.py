@@ -101,9 +101,8 @@ class Team:
         checkpoints)."""
         if stride < 1:
             raise InputError(f"frame stride must be at least 1, got {stride}")
-        n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
-             for a, s in enumerate(sequences)]
-        rounds = self.rounds_in(sequences, limits, stride)
+        n = _frame_counts(sequences, limits)
+        rounds = -(-max(n, default=0) // stride)
         t0 = time.perf_counter()
         for i in range(start, rounds):
             self.rounds = i
@@ -120,9 +119,7 @@ class Team:
 
     def rounds_in(self, sequences: Sequence, limits: Sequence[int] | None, stride: int) -> int:
         """How many rounds `run` makes over these sequences."""
-        n = [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a]))
-             for a, s in enumerate(sequences)]
-        return -(-max(n, default=0) // stride)
+        return -(-max(_frame_counts(sequences, limits), default=0) // stride)
 
     def __getstate__(self) -> dict:  # a checkpoint pickles the team; the journals are files the run reopens
         state = dict(self.__dict__)
@@ -169,6 +166,16 @@ class Team:
 
     def keyframe_pose_no_lc(self, a: int, kf) -> np.ndarray:
         return self._origins_no_lc[a][kf.submap_id] @ kf.T_local_cam
+
+
+def _frame_counts(sequences: Sequence, limits: Sequence[int] | None) -> list[int]:
+    """Input frames per agent: its sequence's length, capped by limits[a] when given (0 = no cap)."""
+    return [len(s) if limits is None or not limits[a] else min(len(s), int(limits[a])) for a, s in enumerate(sequences)]
+
+
+def _finished_submaps(team: Team) -> int:
+    """Submaps finished (frozen) across the team."""
+    return sum(len(ag.gmap.submaps) - 1 for ag in team.agents if ag.gmap.submaps)
 
 
 @guarded("team")
@@ -234,16 +241,17 @@ def run_team(dataset_path: "str | Path | MultiAgentDataset", out_dir: str | Path
                                  resume=resumed.journal[a] if resumed else None)
                      for a, ag in enumerate(team.agents)]
     every = cfg.checkpoint.every_submaps
-    finished = [sum(len(ag.gmap.submaps) - 1 for ag in team.agents if ag.gmap.submaps)]  # at the last checkpoint
+    finished = _finished_submaps(team)  # at the last checkpoint
 
     def checkpoint(next_round: int) -> None:
         save_checkpoint(out, identity, team, next_frame=next_round, journal=[j.state() for j in team.journals],
                         wall_s=time.perf_counter() - t_start)
 
     def after_round(next_round: int) -> None:  # each time `every` more submaps are finished across the team
-        done = sum(len(ag.gmap.submaps) - 1 for ag in team.agents if ag.gmap.submaps)
-        if every and done - finished[0] >= every:
-            finished[0] = done
+        nonlocal finished
+        done = _finished_submaps(team)
+        if every and done - finished >= every:
+            finished = done
             checkpoint(next_round)
 
     try:

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from swarmsplat.kernels import se3
+
 ANCHOR_SIGMA = 1e-6  # as graph.formulations anchors a component's first pose
 
 
@@ -76,8 +78,6 @@ class IncrementalGraph:
             self._replayed = len(self.log)
         est = self._isam.calculateEstimate()
         out = {k: est.atPose3(k).matrix() for k in initial}
-        from swarmsplat.kernels import se3
-
         D = initial[fixed] @ se3.inverse(out[fixed])  # re-anchor (the prior holds it to within ANCHOR_SIGMA)
         return {k: D @ T for k, T in out.items()}
 
