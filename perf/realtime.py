@@ -66,6 +66,7 @@ def measure(data: Path, rate: float | None, preset: str | None) -> dict:
                     "step_p95_ms": step["p95"], "ate_live_cm": 100 * r["ate_rmse_live"],
                     "mapping_iterations_mean": r["mapping_iterations"]["mean"],
                     "keyframes_deferred": r["keyframes_deferred"], "stream_s": r["stream_s"],
+                    "refinements_skipped": r.get("refinements_skipped", 0),
                     "cpu_tracker_s": r["cpu_s"]["tracker_thread"], "cpu_mapping_s": r["cpu_s"]["mapping_thread"],
                     "cpu_process_s": r["cpu_s"]["process"]})
     else:
@@ -105,7 +106,8 @@ COLUMNS = ["mode", "rate_hz", "preset", "tracked_pct", "dropped", "latency_p50_m
            "latency_max_ms", "step_p50_ms", "ate_live_cm", "ate_cm", "ate_vs_offline_pct", "psnr_merged_db",
            "psnr_vs_offline_db", "keyframes", "mapping_iterations_mean", "load_before", "load_after"]
 CPU_COLUMNS = ["mode", "rate_hz", "preset", "stream_s", "cpu_tracker_s", "cpu_mapping_s", "cpu_process_s",
-               "cores_used", "tracker_cpu_ms_per_frame", "keyframes_deferred", "dropped_by_reason"]
+               "cores_used", "tracker_cpu_ms_per_frame", "keyframes_deferred", "refinements_skipped",
+               "dropped_by_reason"]
 
 
 def _cpu_row(r: dict) -> dict:
@@ -132,7 +134,8 @@ def markdown(res: dict) -> str:
              "had the rest. Tracker CPU per frame: the tracker thread's own CPU per tracked frame, a lower bound "
              "of a step's cost (the process figure also holds the reader's decoding and Warp's launch pool, "
              "which runs half of either thread's larger kernels); step_p50_ms above it is waiting for a core "
-             "or the GIL:", "",
+             "or the GIL. Refinements skipped: frames posed from the coarse stage alone because the frame-to-model "
+             "refinement would have passed the latency budget (runtime.skip_late_refinement):", "",
              markdown_table([_cpu_row(r) for r in rt], CPU_COLUMNS), ""]
     for r in rt:
         if r.get("targets_met"):

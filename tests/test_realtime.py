@@ -65,6 +65,24 @@ def test_feed_drops_and_counts_what_a_slow_tracker_cannot_take(queue):
     assert taken == sorted(taken)  # in order, the oldest waiting frame first
 
 
+def test_feed_prepares_each_frame_on_its_reader_thread():
+    """`prepare` runs before a frame is due, on the reader's thread; a frame it refuses (None) does not arrive."""
+    from swarmsplat.slam.run.realtime.feed import FrameFeed
+
+    threads = set()
+
+    def prepare(f):
+        threads.add(threading.current_thread().name)
+        return None if f.index % 3 == 1 else ("ready", f.index)
+
+    feed = FrameFeed(_Seq(), np.arange(9) / 200.0, queue=9, skipper=_Skips(), prepare=prepare)
+    feed.start()
+    got = []
+    while (a := feed.take()) is not None:
+        got.append(a.prepared)
+    assert got == [("ready", i) for i in range(9) if i % 3 != 1] and threads == {"realtime-feed"}
+
+
 def test_rate_from_timestamps_or_flag():
     from swarmsplat.kernels.errors import InputError
     from swarmsplat.slam.run.realtime.feed import arrival_offsets
@@ -90,8 +108,9 @@ def _frames(seq_path: Path, n: int):
 def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
     """Stepping the real-time agent and letting its worker finish each keyframe before the next frame gives the
     offline agent's trajectory and map: the split over two threads changes when mapping runs, not what it does
-    (across submaps too: the worker packs a retired submap's keyframe images where the offline agent packs them
-    when it starts the next submap)."""
+    (across submaps too: the worker packs a retired submap's keyframe images and stores its Gaussians where the
+    offline agent does both when it starts the next submap). Each pose goes out before its keyframe is handed
+    over, and a new submap started then leaves the emitted world pose as it was."""
     from swarmsplat.slam.dense.agent import Agent
     from swarmsplat.slam.dense.packed import PackedRGBD
     from swarmsplat.slam.run.realtime.agent import RealtimeAgent
@@ -106,7 +125,11 @@ def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
     try:
         for f in frames:
             off.step(f.index, f.timestamp, f.color, f.depth)
-            rt.step(f.index, f.timestamp, f.color, f.depth)
+            rec = rt.track(f.index, f.timestamp, f.color, f.depth)  # the pose goes out before the hand-over
+            emitted = rt.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
+            rt.hand_over_keyframe()  # may start a submap: the record moves to its frame, the world pose stays
+            np.testing.assert_allclose(rt.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam, emitted,
+                                       atol=1e-9)
             assert rt._idle.wait(60)
         rt.finish(60)
     finally:
@@ -158,6 +181,34 @@ def test_tracking_does_not_wait_for_mapping_and_stop_ends_the_worker(seq):
     finally:
         rt.stop()
     assert len(rt.poses) == 4
+
+
+def test_a_refinement_that_would_pass_the_deadline_is_left_out(seq):
+    """A frame whose pose is already due is posed from the coarse stage alone (and counted), but never two frames
+    in a row, so the refinement's time keeps being measured; without a deadline, or with
+    runtime.skip_late_refinement off, the refinement runs as offline."""
+    from swarmsplat.slam.run.realtime.agent import RealtimeAgent
+    from swarmsplat.slam.run.runtime import use_kernels
+
+    for skip in (True, False):
+        cfg = SlamConfig().override({**QUICK, "loop_closure": {"enabled": False},
+                                     "runtime": {"skip_late_refinement": skip}})
+        use_kernels(cfg.kernels)
+        s, frames = _frames(seq, 7)
+        rt = RealtimeAgent(s.camera, cfg)
+        try:
+            for f in frames[:5]:
+                rt.step(f.index, f.timestamp, f.color, f.depth)  # no deadline: refined, and timed
+                assert rt._idle.wait(60)
+            assert rt.tracker.refines_skipped == 0 and len(rt.tracker._refine_s) > 0
+            n = len(rt.tracker._refine_s)
+            for f in frames[5:]:  # both already late: the first goes without, the next refines (never twice)
+                assert rt.track(f.index, f.timestamp, f.color, f.depth, deadline=time.monotonic() - 1.0) is not None
+                rt.hand_over_keyframe()
+            assert rt.tracker.refines_skipped == (1 if skip else 0) and rt.tracker.deadline is None
+            assert len(rt.tracker._refine_s) == n + (1 if skip else 2)  # the refinement timed when it ran
+        finally:
+            rt.stop()
 
 
 # ---- the command ---------------------------------------------------------------------------------------------------

@@ -20,9 +20,12 @@ class RuntimeConfig(_Section):
                                                "timestamps")
     queue: int = Field(1, ge=1, description="real time: frames waiting for the tracker at most; an arrival at a "
                                             "full queue drops the oldest waiting frame")
-    max_latency_ms: float = Field(0.0, ge=0, description="real time: a waiting frame is dropped when its wait plus "
-                                  "the expected tracking time exceed this (ms) while the tracking time alone does "
-                                  "not; 0 = one frame interval")
+    max_latency_ms: float = Field(0.0, ge=0, description="real time: the pose latency budget (ms): a waiting frame "
+                                  "is dropped when its wait plus the expected time to its pose exceed it while a "
+                                  "fresh frame's would not; 0 = one frame interval")
+    skip_late_refinement: bool = Field(True, description="real time: when a frame's frame-to-model refinement "
+                                       "would end after its latency budget (its median time), the coarse pose "
+                                       "goes out instead; counted in metrics.json realtime.refinements_skipped")
     min_mapping_iterations: int = Field(5, ge=0, description="real time: mapping iterations a keyframe gets at "
                                         "least before it yields to the next keyframe")
     max_mapping_iterations: int = Field(0, ge=0, description="real time: iterations a keyframe gets at most while "

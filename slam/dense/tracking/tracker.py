@@ -14,7 +14,9 @@ few millimetres off its keyframe does not pull every later frame by that offset,
 keyframe and made plain refinement worse than coarse-only on generated data. Measured with perf.tracking_refine
 (loop closure off, README "Frame-to-model refinement"): Redwood 211 10.08 vs 10.25 mm coarse-only at 1.40x the
 coarse tracking time; the demo's three agents 6.3 / 2.8 / 5.5 vs 7.4 / 8.0 / 6.0 mm at 1.24-1.28x. A per-frame
-acceptance test keeps the coarse pose unless the refinement lowers the robust residual against the view.
+acceptance test keeps the coarse pose unless the refinement lowers the robust residual against the view. In
+real-time mode a frame may come with a deadline (Tracker.deadline): when the refinement's median time would pass
+it, the coarse pose goes out instead (counted; never two frames in a row).
 
 `method: adam` is the paper's literal eq. 5: Adam on a twist xi = [omega, v] applied on the left of the
 world(local)-to-camera matrix, viewmat = exp(xi) @ viewmat0, through the rasteriser's pose gradient, separate step
@@ -32,6 +34,9 @@ default) alpha is 0.996 and D̂ within 0.2 mm.
 
 from __future__ import annotations
 
+import collections
+import statistics
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -241,6 +246,12 @@ class Tracker:
         self._anchors: list[tuple[RGBD, np.ndarray]] = []
         self._anchor_params: GaussianParams | None = None
         self.recoveries = RecoveryCounts()
+        # A time.monotonic() value by which the pose is due (slam.run.realtime sets it per frame; None offline):
+        # the refinement is left out when its expected time would pass it.
+        self.deadline: float | None = None
+        self.refines_skipped = 0  # frames posed without the refinement for the deadline
+        self._refine_s: collections.deque[float] = collections.deque(maxlen=20)  # s, the last refinements
+        self._skipped_last = False
 
     def reset_frame(self, T_new_old: np.ndarray) -> None:
         """Re-express the stored previous pose after the active submap's frame changes (new submap)."""
@@ -280,7 +291,8 @@ class Tracker:
                     coarse_ok = r is not None
         T, it, loss, info = T_coarse, 0, float("nan"), None
         refine = self.cfg.refine or (self.cfg.refine_on_coarse_failure and not coarse_ok)
-        if refine and self.cfg.iterations > 0 and len(params) > 0:
+        if refine and self.cfg.iterations > 0 and len(params) > 0 and not self._past_deadline():
+            t0 = time.monotonic()
             if self.cfg.method == "gauss_newton":
                 T_view, view = self._model_view(params, frame)
                 share = self.cfg.refine_max_width == self.cfg.coarse_max_width
@@ -289,9 +301,21 @@ class Tracker:
                 it, loss = (info.iterations, info.rmse) if info.accepted else (0, float("nan"))
             else:
                 T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg)
+            self._refine_s.append(time.monotonic() - t0)
         self._velocity = se3.inverse(self._prev_pose) @ T
         self._remember(frame, T, src, src_pyramid)
         return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info, recovered)
+
+    def _past_deadline(self) -> bool:
+        """Whether the refinement, taking the median of its last runs, would end after `deadline` (then it is
+        left out and counted: the coarse pose goes out in time). Never twice in a row: the frame after a skipped
+        one refines, so the estimate stays measured (a first run slowed by loading its kernels would otherwise
+        leave every later refinement out)."""
+        late = (self.deadline is not None and bool(self._refine_s) and not self._skipped_last
+                and time.monotonic() + statistics.median(self._refine_s) > self.deadline)
+        self._skipped_last = late
+        self.refines_skipped += late
+        return late
 
     def _model_view(self, params: GaussianParams, frame: RGBD) -> tuple[np.ndarray, RGBD]:
         return self.view_of(params, frame.resized(self.cfg.refine_max_width).camera)

@@ -1,20 +1,22 @@
 """One GRAND-SLAM agent split over two threads: tracking on the caller's thread, mapping and loop closure on a
 worker thread beside it.
 
-`RealtimeAgent.step` tracks a frame against the map mapping finished last and returns its pose without waiting
-for the map. When the frame is due to be a keyframe and the worker is idle, it starts a submap if needed, adds
-the keyframe and hands it over; when the worker is still busy, the keyframe is deferred (the next frame is asked
-again) and the worker is told to finish: it gives each keyframe `runtime.min_mapping_iterations` at least and
-otherwise stops as soon as the next keyframe waits (at most mapping.iterations, or runtime.max_mapping_iterations).
-After mapping, the worker renders the tracker's model view of the new map (slam.dense.tracking.tracker
-build_view) and publishes both; the tracker takes them up at its next frame. Loop closure runs after that, on
-the worker.
+`RealtimeAgent.track` tracks a frame against the map mapping finished last and returns its pose without waiting
+for the map. Then `hand_over_keyframe`, after the pose went out: when the frame is due to be a keyframe and the
+worker is idle, it starts a submap if needed, adds the keyframe and hands it over; when the worker is still busy,
+the keyframe is deferred (the next frame is asked again) and the worker is told to finish: it gives each keyframe
+`runtime.min_mapping_iterations` at least and otherwise stops as soon as the next keyframe waits (at most
+mapping.iterations, or runtime.max_mapping_iterations). `step` does both. After mapping, the worker renders the
+tracker's model view of the new map (slam.dense.tracking.tracker build_view) and publishes both; the tracker takes
+them up at its next frame. Loop closure runs after that, on the worker.
 
 The threads share the map without locks by construction: the worker only changes the submap it maps (the tracker
 reads the Gaussians published before), and the tracker changes the submaps and the keyframe list only while the
-worker is idle (the retired submap's keyframe images are packed by the worker, as its next job's first step). Warp's kernels and torch's operators release the GIL, so the two threads run at the same time
-(the run measures it: metrics.json realtime.cpu_s). The worker lowers its own priority (runtime.mapping_nice), so
-when the cores are short the tracker runs first and mapping takes what is left.
+worker is idle (the worker packs a retired submap's keyframe images and moves its Gaussians to the map's store, as
+its next job's first step).
+Warp's kernels and torch's operators release the GIL, so the two threads run at the same time (the run measures
+it: metrics.json realtime.cpu_s). The worker lowers its own priority (runtime.mapping_nice), so when the cores are
+short the tracker runs first and mapping takes what is left.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ class RealtimeAgent(Agent):
         self._pending = threading.Event()  # a keyframe waits for the worker
         self._stop = threading.Event()
         self._job = None  # (keyframe, odometry information, frame) for the worker
+        self._due = None  # (index, timestamp, frame) of the frame just posed when it is to be handed over
         self._cv = threading.Condition()
         self.error: BaseException | None = None  # what ended the worker, raised on the tracker's thread
         self.keyframes_deferred = 0  # frames due to be keyframes while the worker was busy
@@ -60,27 +63,61 @@ class RealtimeAgent(Agent):
     # ---- the tracker's thread -----------------------------------------------------------------------------------
 
     def step(self, index: int, timestamp: float, color: np.ndarray, depth: np.ndarray | None) -> FramePose | None:
-        """Track one frame and return its pose (None when it was skipped); hand a keyframe to the worker when it
-        is idle. Never waits for the map."""
+        """Track one frame and hand its keyframe over (`track`, then `hand_over_keyframe`); returns its pose (None
+        when it was skipped). Never waits for the map."""
+        rec = self.track(index, timestamp, color, depth)
+        self.hand_over_keyframe()
+        return rec
+
+    def prepare(self, frame) -> RGBD | None:
+        """A dataset frame (index, color, depth) as `track` takes it (`prepared`), or None when it is skipped
+        (too little valid depth; recorded): what the real-time feed does on its reader thread."""
+        return self._prepare(frame.index, frame.color, frame.depth)
+
+    def track(self, index: int, timestamp: float, color: np.ndarray | None, depth: np.ndarray | None, *,
+              prepared: RGBD | None = None, deadline: float | None = None) -> FramePose | None:
+        """Track one frame against the map published last and return its pose (None when it was skipped), at once:
+        a keyframe it is due to be is handed over by `hand_over_keyframe`, after the pose went out. `prepared`:
+        the frame as `prepare` made it (then color and depth are not read). `deadline`: the time.monotonic() value
+        by which the pose is due; with runtime.skip_late_refinement the tracker leaves its refinement out when it
+        would end later (slam.dense.tracking.tracker Tracker.deadline)."""
         if self.error is not None:
             raise self.error
-        frame = self._prepare(index, color, depth)
+        self._due = None
+        frame = prepared if prepared is not None else self._prepare(index, color, depth)
         if frame is None:
             return None
         self._take_handover()
         t0 = time.perf_counter()
-        T_local_cam = self._track(frame)
+        self.tracker.deadline = deadline if self.cfg.runtime.skip_late_refinement else None
+        try:
+            T_local_cam = self._track(frame)
+        finally:
+            self.tracker.deadline = None
         self.time.tracking += time.perf_counter() - t0
         if self._is_keyframe(T_local_cam):
             if self._idle.is_set():
-                T_local_cam = self._hand_over(index, timestamp, frame, T_local_cam)
+                self._due = (index, timestamp, frame)
             else:
                 self.keyframes_deferred += 1
                 self._pending.set()
         self.time.frames += 1
-        rec = FramePose(index, timestamp, self.gmap.active.id, T_local_cam)
+        rec = FramePose(index, timestamp, self.gmap.active.id if self.gmap.submaps else -1, T_local_cam)
         self.poses.append(rec)
+        if rec.submap_id < 0:  # the first frame: its pose is in the frame of the submap it starts
+            self.hand_over_keyframe()
         return rec
+
+    def hand_over_keyframe(self) -> None:
+        """When the frame `track` posed last is due to be a keyframe (and the worker was idle): start a submap if
+        needed, add the keyframe and hand it to the worker. The frame's pose record moves to the new submap's frame
+        then; its world pose stays what was emitted."""
+        if self._due is None:
+            return
+        (index, timestamp, frame), self._due = self._due, None
+        rec = self.poses[-1]
+        rec.T_local_cam = self._hand_over(index, timestamp, frame, rec.T_local_cam)
+        rec.submap_id = self.gmap.active.id
 
     def _tracking_params(self) -> GaussianParams:
         return self._published
@@ -97,15 +134,19 @@ class RealtimeAgent(Agent):
 
     def _hand_over(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> np.ndarray:
         before = self.gmap.active.id if self.gmap.submaps else None
-        compress, self.compress_keyframes = self.compress_keyframes, False  # packed on the worker (_pack)
+        # A retired submap's keyframe images are packed and its Gaussians encoded for the map's store on the worker
+        # (_retire; tens of ms each), not here between two frames.
+        compress, self.compress_keyframes = self.compress_keyframes, False
+        store, self.gmap.store = self.gmap.store, None
         try:
             T_local_cam = self._maybe_start_submap(T_local_cam)
         finally:
-            self.compress_keyframes = compress
-        retired = []
+            self.compress_keyframes, self.gmap.store = compress, store
+        retired = None
         if self.gmap.active.id != before:
             self._published = self.gmap.active.params  # a new submap: nothing mapped in it yet
-            retired = [k for k in self.keyframes if k.submap_id == before] if compress else []
+            if before is not None:
+                retired = (before, [k for k in self.keyframes if k.submap_id == before] if compress else [])
         kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
         information = self._chain.information()
         self._chain.reset()
@@ -161,10 +202,11 @@ class RealtimeAgent(Agent):
             self.worker_cpu_s = time.thread_time() - c0
             self._idle.set()
 
-    def _keyframe(self, kf: Keyframe, information, frame: RGBD, retired: list[Keyframe]) -> None:
+    def _keyframe(self, kf: Keyframe, information, frame: RGBD, retired: tuple[int, list[Keyframe]] | None) -> None:
         rt = self.cfg.runtime
         t0 = time.perf_counter()
-        self._pack(retired)
+        if retired is not None:
+            self._retire(*retired)
         first = len(self.gmap.submaps[kf.submap_id].keyframe_ids) == 1
         planned = rt.max_mapping_iterations or (self.cfg.mapping.first_iterations if first else
                                                 self.cfg.mapping.iterations)
@@ -190,15 +232,15 @@ class RealtimeAgent(Agent):
         self.mapping_log.append({"keyframe": kf.id, "frame": kf.frame_index, "iterations": stats.iterations,
                                  "planned": planned, "mapping_s": t1 - t0, "loop_closure_s": t2 - t1})
 
-    @staticmethod
-    def _pack(retired: list[Keyframe]) -> None:
-        """Pack the images of a retired submap's keyframes as slam.dense.submaps.start_submap does with `compress`
-        (tens of ms per keyframe: on the worker, not in a frame's latency); lossless, so reads are unchanged."""
-        for k in retired:
+    def _retire(self, submap_id: int, keyframes: list[Keyframe]) -> None:
+        """What slam.dense.submaps.start_submap does to the submap it retires, with the map's store and `compress`:
+        pack its keyframes' images (lossless, so reads are unchanged) and move its Gaussians to the store."""
+        for k in keyframes:
             if k.map_rgbd is not None and not isinstance(k.map_rgbd, PackedRGBD):
                 k.map_rgbd = pack(k.map_rgbd)
             if not isinstance(k.small, PackedRGBD):
                 k.small = pack(k.small)
+        self.gmap.retire(self.gmap.submaps[submap_id])
 
 
 def _lower_priority(nice: int) -> None:

@@ -1,7 +1,8 @@
 """The sensor of a real-time run: a sequence's frames replayed at their timestamps (or at a fixed rate) into a
 bounded queue, as a camera driver hands frames over.
 
-A reader thread decodes each frame ahead of its arrival time, then puts it in the queue at that time; a frame that
+A reader thread decodes each frame ahead of its arrival time (and converts it for the agent: `prepare`), then
+puts it in the queue at that time; a frame that
 arrives at a full queue pushes the oldest waiting frame out (dropped, reason "queue_full"), so nothing queues
 without bound. Arrival times are `time.monotonic()` values: a frame's pose latency is measured from the moment
 it was due, so a reader that decodes too slowly shows up as latency, not as a faster sensor.
@@ -25,6 +26,7 @@ from ..guard import read_frame
 class Arrival:
     frame: object  # slam.io.datasets Frame: index, timestamp, color, depth
     due: float  # time.monotonic() at which it arrived
+    prepared: object = None  # what the feed's `prepare` made of it (None without one)
 
 
 def arrival_offsets(timestamps: np.ndarray, n: int, rate: float) -> tuple[np.ndarray, float]:
@@ -44,11 +46,13 @@ def arrival_offsets(timestamps: np.ndarray, n: int, rate: float) -> tuple[np.nda
 class FrameFeed:
     """Frames 0..n-1 of `seq` arriving at `offsets` (s after `start`) into a queue of at most `queue` frames.
     `skipper.skip_frame` records an unreadable frame (slam.run.guard.read_frame; strict: the error stops the run,
-    raised from `take`)."""
+    raised from `take`). `prepare(frame)`, if given, runs on the reader's thread before the frame is due, as a
+    camera driver converts its images (Arrival.prepared); when it returns None the frame does not arrive (it
+    recorded why, as the skipper does)."""
 
-    def __init__(self, seq, offsets: np.ndarray, *, queue: int, skipper, strict: bool = False):
+    def __init__(self, seq, offsets: np.ndarray, *, queue: int, skipper, strict: bool = False, prepare=None):
         self.seq, self.offsets, self.size = seq, offsets, queue
-        self.skipper, self.strict = skipper, strict
+        self.skipper, self.strict, self.prepare = skipper, strict, prepare
         self._q: collections.deque[Arrival] = collections.deque()
         self._cv = threading.Condition()
         self._stop = threading.Event()
@@ -71,16 +75,17 @@ class FrameFeed:
                 if self._stop.is_set():
                     break
                 f = read_frame(self.seq, i, self.skipper, strict=self.strict)  # decoded before it is due
+                ready = None if f is None or self.prepare is None else self.prepare(f)
                 due = self.start_time + float(self.offsets[i])
                 if self._stop.wait(max(0.0, due - time.monotonic())):
                     break
                 self.late.append(max(0.0, time.monotonic() - due))
-                if f is None:
+                if f is None or (self.prepare is not None and ready is None):
                     continue
                 with self._cv:
                     if len(self._q) >= self.size:
                         self.dropped.append((int(self._q.popleft().frame.index), "queue_full"))
-                    self._q.append(Arrival(f, due))
+                    self._q.append(Arrival(f, due, ready))
                     self.arrived += 1
                     self._cv.notify()
         except BaseException as e:  # noqa: BLE001 - handed to the tracker's thread, which raises it

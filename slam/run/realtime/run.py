@@ -3,8 +3,9 @@
 Frames arrive at their timestamps or at `runtime.rate` (feed.FrameFeed); the calling thread tracks each one it can
 take in time and emits its pose (arrival -> pose latency measured per frame); mapping and loop closure run on the
 agent's worker thread on keyframes (agent.RealtimeAgent). A frame the tracker cannot take in time is dropped and
-counted: pushed out of the full queue by a newer one, or "stale" (its wait plus the expected tracking time would
-pass the latency budget, runtime.max_latency_ms, while the next frame, tracked on arrival, would not). After the
+counted: pushed out of the full queue by a newer one, or "stale" (schedule.Scheduler: its wait plus the expected
+time to its pose would pass the latency budget, runtime.max_latency_ms, while a fresh frame's would not). A pose
+goes out as soon as tracking has it; a keyframe's hand-over to the worker comes after it. After the
 stream the worker finishes its keyframe and the run ends as an offline run does (map refinement, evaluation,
 results; slam.run.sequence.finish_agent_run), with metrics.json `realtime` and report.md (summary). Ctrl-C stops
 the replay and the worker and keeps every pose tracked so far (slam.run.guard).
@@ -25,6 +26,7 @@ from ..guard import guarded, keep
 from ..partial_results import write_partial_agent
 from .agent import RealtimeAgent
 from .feed import FrameFeed, arrival_offsets
+from .schedule import Scheduler
 from .summary import StreamLog, realtime_metrics, write_report
 
 
@@ -54,9 +56,10 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
 
     agent = RealtimeAgent(seq.camera, cfg, name=seq.name)
     agent.keep_keyframe_images = refines(cfg) and cfg.map_refine.views == "mapping"
-    feed = FrameFeed(seq, offsets, queue=rt.queue, skipper=agent, strict=strict)
+    feed = FrameFeed(seq, offsets, queue=rt.queue, skipper=agent, strict=strict, prepare=agent.prepare)
     journal = PoseJournal(out / JOURNAL)
     log = StreamLog()
+    sched = Scheduler(budget)
     t0 = time.perf_counter()
 
     def save(status: str, reason: str):
@@ -76,23 +79,25 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
             seen = 0
             while (a := feed.take()) is not None:
                 now = time.monotonic()
-                expected = log.expected_step()
-                if log.steps and expected <= budget < now - a.due + expected:  # no step yet: no estimate
-                    feed.drop(a, "stale")
+                if (why := sched.take(now, a.due)) is not None:
+                    feed.drop(a, why)
                 else:
                     f = a.frame
-                    rec = agent.step(f.index, f.timestamp, f.color, f.depth)
-                    done = time.monotonic()
-                    log.steps.append(done - now)
+                    rec = agent.track(f.index, f.timestamp, None, None, prepared=a.prepared, deadline=a.due + budget)
+                    posed = time.monotonic()
                     if rec is not None:
+                        sched.posed(now, posed)
                         T = agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
-                        log.pose(f.timestamp, done - a.due, T)
+                        log.pose(f.timestamp, posed - a.due, T)
                         if on_pose is not None:
-                            on_pose(f.index, f.timestamp, T, done - a.due)
+                            on_pose(f.index, f.timestamp, T, posed - a.due)
+                    agent.hand_over_keyframe()  # after the pose went out: its cost falls in the idle time
+                    log.steps.append(time.monotonic() - now)
                     journal.follow(agent)
                 accounted = len(agent.poses) + len(agent.time.skipped) + len(feed.dropped)
                 b.update(accounted - seen, f"{len(agent.gmap)} Gaussians  {len(feed.dropped)} dropped")
                 seen = accounted
+                sched.free(time.monotonic())
             log.end()
             agent.finish()  # the keyframe being mapped, then the worker stops
     finally:

@@ -7,7 +7,6 @@ reader's decoding and Warp's launch pool, which runs half of either thread's lar
 from __future__ import annotations
 
 import collections
-import statistics
 import time
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from ..live import latency_ms
 
 DROP_REASONS = {
     "queue_full": "arrived while the tracker was busy and the queue was full: pushed out by a newer frame",
-    "stale": "waited so long that tracking it would have passed the latency budget; the next frame was taken",
+    "stale": "waited so long that its pose would have passed the latency budget, which the next frame's would not",
     "not_arrived": "the run was stopped before the frame arrived",
 }
 
@@ -28,7 +27,7 @@ class StreamLog:
     """The tracker thread's record of a stream: each step's duration and each emitted pose with its latency."""
 
     def __init__(self):
-        self.steps: list[float] = []  # s per agent step (tracking, plus the hand-over of a keyframe)
+        self.steps: list[float] = []  # s per tracked frame: taken -> pose emitted and keyframe handed over
         self.latency: list[float] = []  # s from a frame's arrival to its pose
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []  # T_world_cam [4, 4] as emitted (the map's frame at that moment)
@@ -44,10 +43,6 @@ class StreamLog:
         self.wall_s = time.perf_counter() - self._t
         self.cpu_s = time.process_time() - self._c
         self.tracker_cpu_s = time.thread_time() - self._ct
-
-    def expected_step(self, window: int = 20) -> float:
-        """The median of the last `window` steps (s), 0 before the first (then nothing is dropped as stale)."""
-        return statistics.median(self.steps[-window:]) if self.steps else 0.0
 
     def pose(self, timestamp: float, latency_s: float, T_world_cam: np.ndarray) -> None:
         self.stamps.append(float(timestamp))
@@ -78,6 +73,7 @@ def realtime_metrics(log: StreamLog, feed, agent, *, n_frames: int, rate_hz: flo
         "ate_rmse_live": ate_live,
         "keyframes": len(agent.keyframes), "keyframes_mapped": len(agent.mapping_log),
         "keyframes_deferred": agent.keyframes_deferred,
+        "refinements_skipped": agent.tracker.refines_skipped,
         "mapping_iterations": {"mean": float(np.mean(its)) if its else None, "min": min(its, default=None),
                                "max": max(its, default=None),
                                "cut_short": sum(1 for a, b in zip(its, planned) if a < b),
@@ -108,7 +104,9 @@ def report_markdown(m: dict) -> str:
          "| | p50 | p95 | max |", "|---|---:|---:|---:|",
          f"| latency [ms] | {_ms(lat['p50'])} | {_ms(lat['p95'])} | {_ms(lat['max'])} |",
          f"| tracker step [ms] | {_ms(step['p50'])} | {_ms(step['p95'])} | {_ms(step['max'])} |", "",
-         f"Latency budget {r['latency_budget_ms']:.1f} ms, queue of {r['queue']} frame(s).", ""]
+         f"Latency budget {r['latency_budget_ms']:.1f} ms, queue of {r['queue']} frame(s); "
+         f"{r.get('refinements_skipped', 0)} frames posed without the frame-to-model refinement, which would have "
+         "passed the budget.", ""]
     if r["frames_dropped"]:
         L += ["## Dropped frames", "", "| reason | frames | what happened |", "|---|---:|---|"]
         L += [f"| {k} | {v} | {DROP_REASONS.get(k, k)} |" for k, v in r["dropped_by_reason"].items()]
