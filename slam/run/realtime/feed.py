@@ -2,9 +2,9 @@
 bounded queue, as a camera driver hands frames over.
 
 A reader thread decodes each frame ahead of its arrival time (and converts it for the agent: `prepare`), then
-puts it in the queue at that time; a frame that
-arrives at a full queue pushes the oldest waiting frame out (dropped, reason "queue_full"), so nothing queues
-without bound. Arrival times are `time.monotonic()` values: a frame's pose latency is measured from the moment
+puts it in the queue at that time; a reader that fell a whole frame behind skips to the frame due now (dropped,
+reason "reader_late"), so its lag never grows. A frame that arrives at a full queue pushes the oldest waiting
+frame out (dropped, reason "queue_full"), so nothing queues without bound. Arrival times are `time.monotonic()` values: a frame's pose latency is measured from the moment
 it was due, so a reader that decodes too slowly shows up as latency, not as a faster sensor.
 """
 
@@ -71,9 +71,13 @@ class FrameFeed:
 
     def _run(self) -> None:
         try:
-            for i in range(len(self.offsets)):
+            n = len(self.offsets)
+            for i in range(n):
                 if self._stop.is_set():
                     break
+                if i + 1 < n and time.monotonic() >= self.start_time + float(self.offsets[i + 1]):
+                    self.dropped.append((i, "reader_late"))  # a newer frame is due already: skip to it
+                    continue
                 f = read_frame(self.seq, i, self.skipper, strict=self.strict)  # decoded before it is due
                 ready = None if f is None or self.prepare is None else self.prepare(f)
                 due = self.start_time + float(self.offsets[i])

@@ -19,6 +19,7 @@ from ..live import latency_ms
 DROP_REASONS = {
     "queue_full": "arrived while the tracker was busy and the queue was full: pushed out by a newer frame",
     "stale": "waited so long that its pose would have passed the latency budget, which the next frame's would not",
+    "reader_late": "the reader, decoding too slowly, fell a frame behind and skipped it for the one due now",
     "not_arrived": "the run was stopped before the frame arrived",
 }
 
