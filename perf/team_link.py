@@ -2,9 +2,10 @@
 `python -m perf team-link [--quick] [--only demo|redwood-split] [--out-dir perf/results]`.
 
   demo           the `swarmsplat demo` dataset and config (3 generated agents, every 2nd of 120 frames, 320x240):
-                 `swarmsplat run DATA --config demo.yaml` in one process, then with --processes (lossless images,
-                 float32 Gaussians), with link.gaussians compact (slam.dense.submap_codec), and compact
-                 (link.images compact: JPEG colour and millimetre depth, and compact Gaussians)
+                 `swarmsplat run DATA --config demo.yaml` in one process, then with --processes and a lossless
+                 link (images lossless, gaussians float32, no cull: the in-process outputs), with compact
+                 Gaussians alone (link.gaussians compact, slam.dense.submap_codec's link form, no cull), and
+                 with the link's defaults (compact images, compact Gaussians, culled as the server would)
   redwood-split  ../shared/data/redwood_livingroom1_211 cut in two (--split 0:106,106:), default config, the
                  same four runs
 
@@ -95,7 +96,8 @@ def _r(x):
     return None if x is None else round(x, 2)
 
 
-COMPACT = {"images": "compact", "gaussians": "compact"}
+LOSSLESS = {"images": "lossless", "gaussians": "float32", "cull_gaussians": False}
+GAUSSIANS = {"images": "lossless", "gaussians": "compact", "cull_gaussians": False}
 
 
 def run_case(name: str, scratch: Path, quick: bool) -> list[dict]:
@@ -111,9 +113,9 @@ def run_case(name: str, scratch: Path, quick: bool) -> list[dict]:
         cfg = scratch / "default.yaml"
         cfg.write_text(SlamConfig().to_yaml())
         source = [str(REDWOOD), "--split", "0:106,106:"]
-    variants = [("in-process", cfg, []), ("processes", cfg, ["--processes"]),
-                ("processes compact gaussians", _with_link(cfg, {"gaussians": "compact"}), ["--processes"]),
-                ("processes compact", _with_link(cfg, COMPACT), ["--processes"])]
+    variants = [("in-process", cfg, []), ("processes lossless", _with_link(cfg, LOSSLESS, "lossless"), ["--processes"]),
+                ("processes compact gaussians", _with_link(cfg, GAUSSIANS, "gaussians"), ["--processes"]),
+                ("processes", cfg, ["--processes"])]
     if quick:
         variants.pop(2)
     rows, outs = [], {}
@@ -125,16 +127,19 @@ def run_case(name: str, scratch: Path, quick: bool) -> list[dict]:
         row["link"] = r["metrics"].get("link")
         rows.append(row)
         print(f"{name} {mode}: " + ", ".join(f"{k} {v}" for k, v in row.items() if k != "link"), file=sys.stderr)
-    rows[1]["same_files_as_in_process"] = _same_files(outs["in-process"], outs["processes"])
+    rows[1]["same_files_as_in_process"] = _same_files(outs["in-process"], outs["processes lossless"])
+    for row in rows[1:]:
+        if row["psnr"] is not None and rows[0]["psnr"] is not None:
+            row["psnr_vs_in_process"] = round(row["psnr"] - rows[0]["psnr"], 2)
     return rows
 
 
-def _with_link(cfg: Path, link: dict) -> Path:
+def _with_link(cfg: Path, link: dict, name: str) -> Path:
     import yaml
 
     d = yaml.safe_load(cfg.read_text())
     d.setdefault("link", {}).update(link)
-    out = cfg.with_name(cfg.stem + "-" + "-".join(str(v) for v in link.values()) + ".yaml")
+    out = cfg.with_name(f"{cfg.stem}-{name}.yaml")
     out.write_text(yaml.safe_dump(d, sort_keys=False))
     return out
 
@@ -154,8 +159,8 @@ def main(argv: list[str] | None = None) -> int:
         scratch.mkdir(parents=True, exist_ok=True)
         for name in names:
             report["cases"][name] = run_case(name, scratch / name, args.quick)
-    cols = ["case", "mode", "wall_s", "ate_team_cm", "psnr", "loops", "joined", "MB_per_agent", "kB_per_keyframe",
-            "kB_per_submap", "pct_of_raw"]
+    cols = ["case", "mode", "wall_s", "ate_team_cm", "psnr", "psnr_vs_in_process", "loops", "joined", "MB_per_agent",
+            "kB_per_keyframe", "kB_per_submap", "pct_of_raw"]
     rows = [r for rs in report["cases"].values() for r in rs]
     md = ["# team-link: the GRAND-SLAM team in one process and across processes (Zenoh on localhost)", "",
           markdown_table([{k: r.get(k) for k in cols} for r in rows], cols), ""]
@@ -171,7 +176,14 @@ def main(argv: list[str] | None = None) -> int:
                               f"{sum(s['bytes_to_agent'].values()) / 1e3:.1f} kB")
     md.append("")
     md.append("pct_of_raw: all bytes an agent and the server exchanged, against sending each keyframe as raw "
-              "640x480 RGB-D (8-bit RGB + 16-bit depth, 1.536 MB).")
+              "640x480 RGB-D (8-bit RGB + 16-bit depth, 1.536 MB). psnr: the merged map rendered at keyframes' "
+              "poses against the dataset's own frames (not the link's copies).")
+    md.append("")
+    md.append("processes: the link's defaults (link.images compact: JPEG colour of the mapping copy and the "
+              "loop-closure copy's depth in inverse-depth steps; link.gaussians compact: the link form of "
+              "slam.dense.submap_codec; link.cull_gaussians: without what the server's overlap cull drops anyway). "
+              "The agents store finished submaps compact (submaps.storage, the default), so every mode sends the "
+              "same Gaussian values: float32 sends their decoded values.")
     suffix = "-quick" if args.quick else ""
     out_dir = Path(args.out_dir)
     write_results(str(out_dir / f"team-link{suffix}-cpu.json"), str(out_dir / f"team-link{suffix}-cpu.md"), report,

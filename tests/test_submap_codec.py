@@ -125,10 +125,74 @@ def test_foreign_truncated_or_corrupt_bytes_name_the_source_and_what_was_expecte
     with pytest.raises(CodecError, match=r"x\.bin: corrupt compact submap .*CRC-32"):
         decode(bytes(flipped), source="x.bin")
     newer = bytearray(blob)
-    newer[4] += 1
-    with pytest.raises(CodecError, match=r"x\.bin: compact submap format version 2, this version reads 1"):
+    newer[4] = 9
+    with pytest.raises(CodecError, match=r"x\.bin: compact submap format version 9, this version reads 1 and 2"):
         decode(bytes(newer), source="x.bin")
     assert issubclass(CodecError, InputError)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3000])
+def test_the_link_form_decodes_to_the_stored_values_in_morton_order(n):
+    """for_link keeps every quantised value (the stored form's box and ranges), reorders along the Morton curve,
+    and with `keep` sends exactly the kept Gaussians; on a smooth surface it is far smaller than the stored form."""
+    from swarmsplat.slam.dense.submap_codec import LINK_VERSION, for_link
+
+    p = random_params(n, seed=5)
+    blob = encode(p)
+    stored, link = decode(blob), for_link(blob)
+    assert link[4] == LINK_VERSION and len(decode(link)) == n
+
+    def rows(q):  # the Gaussians as a set of rows, whatever their order
+        a = torch.cat([q.means, q.log_scales, q.quats, q.logit_opacities[:, None], q.colors], 1).numpy()
+        return a[np.lexsort(a.T[::-1])]
+
+    assert np.array_equal(rows(decode(link)), rows(stored))
+    keep = np.arange(n) % 3 == 0
+    assert np.array_equal(rows(decode(for_link(blob, keep))), rows(stored.select(torch.as_tensor(keep))))
+    if n > 1:
+        step = lambda m: np.median(np.linalg.norm(np.diff(m, axis=0), axis=1))  # noqa: E731
+        assert step(decode(link).means.numpy()) < 0.25 * step(stored.means.numpy())  # neighbours along the curve
+        u, v = np.meshgrid(np.linspace(0, 1, 60), np.linspace(0, 1, 50))
+        z = 0.3 * np.sin(3 * u) * np.cos(2 * v)  # Gaussians seeded on a surface, as mapping seeds them
+        s = GaussianParams.from_points(torch.tensor(np.stack([u, v, z], -1).reshape(-1, 3), dtype=torch.float32),
+                                       torch.rand(3000, 3), torch.full((3000,), 0.01), opacity=0.9)
+        surface = encode(s)
+        assert len(for_link(surface)) < 0.8 * len(surface)
+
+
+def test_the_link_form_with_fewer_mean_bits_stays_within_half_a_step():
+    from swarmsplat.slam.dense.submap_codec import for_link
+
+    p = random_params(2000, seed=7)
+    blob = encode(p)
+    stored = decode(blob).means.double().numpy()
+    back = decode(for_link(blob, mean_bits=12)).means.double().numpy()
+    step12, step16 = 2 * error_bounds(p, CodecSpec())["means"] / 4095 * 65535, 2 * error_bounds(p)["means"]
+    # every decoded mean is within half a 12-bit step of a stored one (a nearest neighbour, any order)
+    d = np.abs(back[:, None, :] - stored[None, :, :]).max(-1)  # [N, N] Chebyshev in units of metres
+    assert np.all(d.min(1) <= (0.5 * step12 + 0.5 * step16).max() + 1e-6)
+    assert len(for_link(blob, mean_bits=12)) < len(for_link(blob))
+    with pytest.raises(InputError, match="mean_bits must be 10-16"):
+        for_link(blob, mean_bits=8)
+
+
+def test_the_link_form_refuses_bad_bytes_and_exact_input():
+    from swarmsplat.slam.dense.submap_codec import for_link
+
+    blob = encode(random_params(200))
+    link = for_link(blob)
+    with pytest.raises(CodecError, match=r"SubmapData: corrupt compact submap"):
+        decode(link[:-7], source="SubmapData")
+    broken = bytearray(link)
+    broken[-9] ^= 0x55
+    with pytest.raises(CodecError, match=r"CRC-32"):
+        decode(bytes(broken))
+    with pytest.raises(CodecError, match=r"the link form is made from a quantised stored form"):
+        for_link(encode(random_params(10), EXACT))
+    with pytest.raises(CodecError, match=r"the link form is made from a quantised stored form"):
+        for_link(link)
+    with pytest.raises(InputError, match=r"keep must be \[200\] bool"):
+        for_link(blob, np.ones(7, bool))
 
 
 def _map_with_two_submaps(store=None, storage="compact") -> GaussianMap:
@@ -192,15 +256,18 @@ def test_a_full_disk_stops_with_one_line_naming_the_file(tmp_path, monkeypatch):
 
 
 def test_the_link_sends_a_stored_submap_as_its_compact_bytes_and_refuses_corrupt_ones():
+    from swarmsplat.slam.dense.submap_codec import _morton, _parse, _quantised, for_link
     from swarmsplat.slam.flocc.swarm.messages import MessageError
     from swarmsplat.slam.run.team_link import messages as L
 
     m = _map_with_two_submaps()
     s0 = m.submaps[0]
     msg = L.SubmapData.pack(5, s0, "compact")
-    assert msg.blob.tobytes() == m.store.read(0)  # the stored bytes, not encoded again
+    assert msg.blob.tobytes() == for_link(m.store.read(0))  # the stored values, not quantised again
     h, back = L.LINK.decode(L.LINK.encode(msg, 2, 9))
-    assert back.id == 0 and all(torch.equal(a, b) for a, b in zip(back.params().tensors(), s0.params.tensors()))
+    order = np.argsort(_morton(_quantised(*_parse(m.store.read(0), "x"))["means"]), kind="stable")
+    assert back.id == 0 and all(torch.equal(a, b[order]) for a, b in zip(back.params().tensors(),
+                                                                          s0.params.tensors()))
     # a submap held as tensors (the active one) is encoded on the way out
     _, back = L.LINK.decode(L.LINK.encode(L.SubmapData.pack(6, m.active, "compact"), 2, 10))
     assert len(back.params()) == 30

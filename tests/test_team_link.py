@@ -23,6 +23,8 @@ from swarmsplat.slam.flocc.swarm.zenoh_transport import zenoh_available
 pytestmark = pytest.mark.skipif(not zenoh_available(), reason="eclipse-zenoh is not installed")
 
 SPLIT = "0:5,2:8"
+# a lossless link: the in-process team's outputs byte for byte
+LOSSLESS = {"images": "lossless", "gaussians": "float32", "cull_gaussians": False, "submap_delay": 0}
 FAST = {  # as tests/test_team.py: the team's logic, not the map's quality
     "mapping": {"iterations": 8, "first_iterations": 25},
     "tracking": {"refine": False},
@@ -30,7 +32,7 @@ FAST = {  # as tests/test_team.py: the team's logic, not the map's quality
     "loop_closure": {"min_index_gap": 2},
     "server": {"tau_sim": 0.5},
     "team": {"render_views": 2},
-    "link": {"resend_s": 1.0, "agent_timeout_s": 60.0, "finish_timeout_s": 60.0},
+    "link": {"resend_s": 1.0, "agent_timeout_s": 60.0, "finish_timeout_s": 60.0, **LOSSLESS},
 }
 SAME = ["loops.csv", "map.ply", "pose_graph_initial.g2o", "pose_graph_optimized.g2o", "trajectories/agent_0.txt",
         "trajectories/agent_1.txt", "trajectories_no_lc/agent_0.txt", "trajectories_no_lc/agent_1.txt"]

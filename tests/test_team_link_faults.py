@@ -14,10 +14,11 @@ import pytest
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.flocc.swarm.transport import Faults, InProcessNetwork
 from test_team_link import FAST as LINK_TEST_CONFIG
+from test_team_link import LOSSLESS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-FAST = {**LINK_TEST_CONFIG, "link": {"resend_s": 3.0, "agent_timeout_s": 8.0}}  # ticks of the test's clock
+FAST = {**LINK_TEST_CONFIG, "link": {"resend_s": 3.0, "agent_timeout_s": 8.0, **LOSSLESS}}  # ticks of the test's clock
 SAME = ["loops.csv", "map.ply", "pose_graph_optimized.g2o", "trajectories/agent_0.txt", "trajectories/agent_1.txt",
         "trajectories_no_lc/agent_1.txt"]
 
@@ -114,6 +115,28 @@ def test_duplicates_delays_and_reordering_change_nothing(reference, tmp_path):
     assert m["loops"] == m_in["loops"] and m["ate_rmse_team"] == m_in["ate_rmse_team"]
     dup = sum(p.recv_count.get("KeyframeMeta", 0) for r, p in link.server.tx.peer_stats.items())
     assert dup > sum(len(a.keyframes) for a in link.server.team.agents)  # duplicates did arrive
+
+
+def test_the_compact_link_sends_less_and_keeps_the_team(reference, tmp_path):
+    """The link's defaults (compact images and Gaussians, without what the server's overlap cull drops anyway):
+    the same team (every agent joins, loops and ATE as in one process within 10 %) for a fraction of the bytes;
+    the server holds fewer Gaussians than the agents made, and every agent still sends every submap."""
+    root, ds, cfg, m_in = reference
+    lossless = Linked(ds, cfg)
+    lossless.run()
+    compact = Linked(ds, cfg.override({"link": {**SlamConfig().link.model_dump(), **FAST["link"],
+                                                **{k: SlamConfig().link.model_dump()[k] for k in LOSSLESS}}}))
+    assert compact.cfg.link.images == "compact" and compact.cfg.link.gaussians == "compact"
+    compact.run()
+    m = compact.write(tmp_path)
+    assert m["all_agents_joined"] and abs(m["ate_rmse_team"] - m_in["ate_rmse_team"]) <= 0.1 * m_in["ate_rmse_team"]
+    assert abs(m["loops_accepted"] - m_in["loops_accepted"]) <= max(1, 0.1 * m_in["loops_accepted"])
+    for kind in ("KeyframeImage", "SubmapData"):
+        full = sum(p.unique_bytes.get(kind, 0) for p in lossless.server.peers)
+        assert sum(p.unique_bytes.get(kind, 0) for p in compact.server.peers) < 0.5 * full, kind
+    for node, mirror in zip(compact.agents, compact.server.team.agents):
+        assert len(mirror.gmap.submaps) == len(node.agent.gmap.submaps)
+        assert 0 < len(mirror.gmap) <= len(node.agent.gmap)
 
 
 def test_lost_link_queues_and_resends(reference, tmp_path):

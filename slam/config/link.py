@@ -15,13 +15,31 @@ class LinkConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     gaussians: Literal["float32", "float16", "compact"] = Field(
-        "float32", description="encoding of a finished submap's Gaussians on the link: float32 (exact), float16 "
-                               "(means stay float32) or compact (submaps.storage's compact form: means 16-bit in "
-                               "the submap's box, the rest 8-bit, zlib; about 12 of float32's 56 bytes)")
+        "compact", description="encoding of a finished submap's Gaussians on the link: float32 (exact), float16 "
+                               "(means stay float32) or compact (submaps.storage's compact values: means mean_bits "
+                               "within the submap's box, the rest 8-bit; Morton-ordered, lzma; about 9 of "
+                               "float32's 56 bytes; slam.dense.submap_codec)")
+    mean_bits: int = Field(14, ge=10, le=16, description="gaussians: compact: bits of each mean coordinate within "
+                                                        "the submap's box (16: the stored values; fewer quantise "
+                                                        "them again, e.g. 14: 0.3 mm steps in a 5 m box)")
+    cull_gaussians: bool = Field(True, description="leave out of a finished submap the Gaussians the server's "
+                                                   "overlap cull (map_refine.overlap_cull) drops anyway: those "
+                                                   "another of the agent's keyframes observes from closer "
+                                                   "(slam.dense.team.link_cull)")
+    submap_delay: int = Field(1, ge=0, description="an agent sends a finished submap once this many later submaps "
+                                                   "are finished too (all at its last frame), so the cull also "
+                                                   "counts their keyframes; the server installs submaps at the end")
     images: Literal["lossless", "compact"] = Field(
-        "lossless", description="keyframe images on the link: lossless PNG (the server sees the agent's frames bit "
-                                "for bit), or compact: JPEG colour (jpeg_quality) and depth rounded to millimetres")
-    jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of images: compact")
+        "compact", description="keyframe images on the link: lossless PNG of both copies (the server sees the "
+                                "agent's frames bit for bit), or compact: each picture once, the colour of the "
+                                "largest copy as JPEG (jpeg_quality) and the loop-closure copy's depth in "
+                                "inverse-depth steps (depth_step_mm); the server makes the rest "
+                                "(slam.run.team_link.images)")
+    jpeg_quality: int = Field(94, ge=1, le=100, description="JPEG quality of images: compact (full-resolution "
+                                                            "chroma)")
+    depth_step_mm: float = Field(0.5, gt=0, le=100, description="images: compact: the depth step at 1 m (mm); it "
+                                                                "grows with the square of the range, as a "
+                                                                "structured-light sensor's does")
     map_views: bool = Field(True, description="send each keyframe's mapping-resolution copy too when the server "
                                               "refines the merged map on it (map_refine.views mapping); false: it "
                                               "refines on the loop-closure copies")

@@ -19,6 +19,16 @@ zlib / lzma compress better than interleaved bytes. Layout (little-endian):
 
     blob = encode(params, CodecSpec())
     params = decode(blob, source="submaps/0003.bin")
+
+The link form (`for_link`, format version 2) carries the same quantised values in fewer bytes, for a team link
+where bytes cost more than time: the Gaussians reordered along a Morton (Z-order) curve of their quantised means,
+each mean component delta-coded along that order (wrapping 16-bit differences, zigzag), every quantity's planes
+compressed by one lzma stream. Its payload starts with the five quantities' compressed lengths (uint32 each).
+Decoding gives exactly the values the stored form decodes to, in the Morton order (on the demo's submaps: 98.8
+against 75.7 bits per Gaussian, both with the stored form's bits).
+
+    link_blob = for_link(blob, keep)          # keep: [N] bool, the Gaussians to send (None: all)
+    params = decode(link_blob, source="SubmapData")
 """
 
 from __future__ import annotations
@@ -37,9 +47,13 @@ from swarmsplat.kernels.errors import InputError
 from .gaussian_map import GaussianParams
 
 MAGIC = b"SSGC"
-VERSION = 1
+VERSION = 1  # the stored form
+LINK_VERSION = 2  # the link form (`for_link`)
+MIN_MEAN_BITS = 10  # the link form's coarsest means
+_READS = (VERSION, LINK_VERSION)
 _HEADER = struct.Struct("<4sHBxI5B3x8d2I")  # magic, version, codec, n, bits x5, lo/hi means, lo/hi scales, len, crc
 _CODECS = {"none": 0, "zlib": 1, "lzma": 2}
+_LENGTHS = struct.Struct("<5I")  # the link form's compressed length of each quantity
 _QUANTITIES = ("means", "log_scales", "quats", "opacities", "colors")
 _WIDTH = {"means": 3, "log_scales": 3, "quats": 4, "opacities": 1, "colors": 3}
 
@@ -70,6 +84,11 @@ EXACT = CodecSpec(exact=True)
 
 def _steps(bits: int) -> int:
     return (1 << bits) - 1
+
+
+def _container(bits: int) -> int:
+    """Bytes a quantised value of `bits` is held in (a link form's 14-bit means: 2)."""
+    return 1 if bits <= 8 else 2 if bits <= 16 else 4
 
 
 def _ranges(params: GaussianParams) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -144,54 +163,149 @@ def encode(params: GaussianParams, spec: CodecSpec = CodecSpec()) -> bytes:
     return header + body
 
 
-def decode(blob: bytes, *, source: str = "compact submap") -> GaussianParams:
-    """GaussianParams (float32, CPU) from `encode`'s bytes; CodecError naming `source` and what was expected when
-    the bytes are not such a blob."""
+def _parse(blob: bytes, source: str) -> tuple[tuple, bytes]:
+    """(header fields, uncompressed payload) of a stored-form or link-form blob; CodecError when it is not one."""
     blob = bytes(blob)
     if len(blob) < _HEADER.size or blob[:4] != MAGIC:
         raise CodecError(f"{source}: not a compact submap (expected {_HEADER.size}+ bytes starting with "
                          f"{MAGIC!r}, got {len(blob)} bytes starting with {blob[:4]!r})")
-    magic, version, codec, n, *rest = _HEADER.unpack_from(blob)
-    bits, box, (length, crc) = rest[:5], rest[5:13], rest[13:]
-    if version != VERSION:
-        raise CodecError(f"{source}: compact submap format version {version}, this version reads {VERSION}")
+    head = _HEADER.unpack_from(blob)
+    version, codec, bits = head[1], head[2], head[4:9]
+    if version not in _READS:
+        raise CodecError(f"{source}: compact submap format version {version}, this version reads "
+                         f"{' and '.join(map(str, _READS))}")
     exact = all(b == 32 for b in bits)
-    if codec not in _CODECS.values() or not (exact or all(b in (8, 16) for b in bits)):
-        raise CodecError(f"{source}: unknown codec {codec} or bits {list(bits)} (expected codec 0-2, bits 8/16 "
-                         f"or all 32)")
+    link = version == LINK_VERSION
+    if codec not in _CODECS.values() or not (exact or all(b in (8, 16) for b in bits[1:])) or \
+            not (exact or bits[0] in (range(MIN_MEAN_BITS, 17) if link else (16,))) or \
+            (link and (exact or codec != _CODECS["lzma"])):
+        raise CodecError(f"{source}: unknown codec {codec} or bits {list(bits)} for format version {version} "
+                         f"(expected codec 0-2, means 16 bits, the rest 8/16, or all 32; the link form: lzma, "
+                         f"means {MIN_MEAN_BITS}-16 bits)")
+    length, crc = head[17:19]
     body = blob[_HEADER.size:]
     if len(body) != length or zlib.crc32(body) != crc:
         raise CodecError(f"{source}: corrupt compact submap (expected a {length}-byte payload with CRC-32 "
                          f"{crc:08x}, got {len(body)} bytes with CRC-32 {zlib.crc32(body):08x})")
     try:
-        raw = {0: lambda d: d, 1: zlib.decompress, 2: lzma.decompress}[codec](body)
+        if version == LINK_VERSION:
+            if len(body) < _LENGTHS.size or _LENGTHS.size + sum(_LENGTHS.unpack_from(body)) != len(body):
+                raise CodecError(f"{source}: link-form payload lengths do not add up to its {len(body)} bytes")
+            at, parts = _LENGTHS.size, []
+            for k in _LENGTHS.unpack_from(body):
+                parts.append(lzma.decompress(body[at:at + k]))
+                at += k
+            raw = b"".join(parts)
+        else:
+            raw = {0: lambda d: d, 1: zlib.decompress, 2: lzma.decompress}[codec](body)
     except (zlib.error, lzma.LZMAError) as e:
         raise CodecError(f"{source}: corrupt compact submap payload ({e})") from None
-    lo_m, hi_m, lo_s, hi_s = np.array(box[0:3]), np.array(box[3:6]), box[6], box[7]
-    want = sum(n * _WIDTH[name] * b // 8 for name, b in zip(_QUANTITIES, bits))
+    n = head[3]
+    want = sum(n * _WIDTH[name] * _container(b) for name, b in zip(_QUANTITIES, bits))
     if len(raw) != want:
         raise CodecError(f"{source}: payload of {len(raw)} bytes, expected {want} for {n} Gaussians")
+    return head, raw
+
+
+def _quantised(head: tuple, raw: bytes) -> dict[str, np.ndarray]:
+    """The quantised arrays [N, k] (uint16 or uint8) of a stored-form payload, or of a link-form payload with its
+    means' delta coding undone."""
+    n, bits, out, at = head[3], head[4:9], {}, 0
+    for name, b in zip(_QUANTITIES, bits):
+        k = n * _WIDTH[name]
+        if b == 8:
+            q = np.frombuffer(raw, np.uint8, k, at)
+        else:
+            hi = np.frombuffer(raw, np.uint8, k, at).astype(np.uint16)
+            q = (hi << 8) | np.frombuffer(raw, np.uint8, k, at + k)
+        at += k * _container(b)
+        if head[1] == LINK_VERSION:  # planes per component
+            q = q.reshape(_WIDTH[name], n).T
+            if name == "means":
+                q = _undelta(q)
+        out[name] = np.ascontiguousarray(q.reshape(n, _WIDTH[name]))
+    return out
+
+
+def decode(blob: bytes, *, source: str = "compact submap") -> GaussianParams:
+    """GaussianParams (float32, CPU) from the bytes of `encode` (the stored form) or `for_link` (the link form:
+    the same values, in the Morton order); CodecError naming `source` and what was expected when the bytes are not
+    such a blob."""
+    head, raw = _parse(blob, source)
+    n, bits, box = head[3], head[4:9], head[9:17]
     t = lambda a: torch.from_numpy(np.array(a, dtype=np.float32, order="C"))  # noqa: E731
-    if exact:
+    if all(b == 32 for b in bits):
         a = np.frombuffer(raw, np.float32)
         cut = np.cumsum([0] + [n * _WIDTH[name] for name in _QUANTITIES])
         m, s, q, o, c = (a[i:j].reshape(n, _WIDTH[name]) for i, j, name in zip(cut[:-1], cut[1:], _QUANTITIES))
         return GaussianParams(t(m), t(s), t(q), t(o[:, 0]), t(c))
-    out, at = {}, 0
+    lo_m, hi_m, lo_s, hi_s = np.array(box[0:3]), np.array(box[3:6]), box[6], box[7]
+    out, qs = {}, _quantised(head, raw)
     for name, b in zip(_QUANTITIES, bits):
-        k = n * _WIDTH[name]
-        if b == 8:
-            q = np.frombuffer(raw, np.uint8, k, at).astype(np.float64)
-        else:
-            hi = np.frombuffer(raw, np.uint8, k, at).astype(np.uint16)
-            q = ((hi << 8) | np.frombuffer(raw, np.uint8, k, at + k)).astype(np.float64)
-        at += k * b // 8
         lo, span = _affine(name, lo_m, hi_m, lo_s, hi_s)
-        out[name] = lo + q.reshape(n, _WIDTH[name]) / _steps(b) * span
+        out[name] = lo + qs[name].astype(np.float64) / _steps(b) * span
     half = 0.5 / _steps(bits[3])  # opacities 0 and 1 have no finite logit: stay within half a step of them
     o = np.clip(out["opacities"][:, 0], half, 1.0 - half)
     return GaussianParams(t(out["means"]), t(out["log_scales"]), t(out["quats"]), t(np.log(o / (1.0 - o))),
                           t(out["colors"]))
+
+
+def _morton(q: np.ndarray) -> np.ndarray:
+    """[N] uint64 Z-order codes of 16-bit coordinates q [N, 3] (the bits of x, y, z interleaved)."""
+    code = np.zeros(len(q), np.uint64)
+    for bit in range(16):
+        for axis in range(3):
+            code |= ((q[:, axis].astype(np.uint64) >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return code
+
+
+def _delta(q: np.ndarray) -> np.ndarray:
+    """uint16 [N, k] -> each column's differences from the row before (16-bit wrap), zigzag-coded: small steps
+    in either direction become small numbers."""
+    d = np.diff(q.astype(np.int64), axis=0, prepend=0)
+    d = (d + 32768) % 65536 - 32768
+    return np.where(d >= 0, 2 * d, -2 * d - 1).astype(np.uint16)
+
+
+def _undelta(z: np.ndarray) -> np.ndarray:
+    z = z.astype(np.int64)
+    d = np.where(z & 1, -(z >> 1) - 1, z >> 1)
+    return (np.cumsum(d, axis=0) % 65536).astype(np.uint16)
+
+
+def for_link(blob: bytes, keep: np.ndarray | None = None, *, mean_bits: int = 16,
+             source: str = "compact submap") -> bytes:
+    """The link form (module docstring) of a stored-form blob's Gaussians, the ones where `keep` [N] bool is true
+    (None: all), in the Morton order of their means. With mean_bits 16 they decode to exactly the values the
+    stored form decodes to (the box and log-scale range stay the stored form's); with fewer, the means are
+    quantised again to that many bits within the same box (each within half a step of either grid of the stored
+    mean: `error_bounds` with those bits, plus the stored form's own half step). CodecError for bytes that are
+    not a quantised stored form (an exact, float32 one: encode its parameters with `encode` first)."""
+    if not MIN_MEAN_BITS <= mean_bits <= 16:
+        raise InputError(f"for_link: mean_bits must be {MIN_MEAN_BITS}-16, got {mean_bits}")
+    head, raw = _parse(blob, source)
+    if head[1] != VERSION or all(b == 32 for b in head[4:9]):
+        raise CodecError(f"{source}: the link form is made from a quantised stored form (version {VERSION}), got "
+                         f"version {head[1]} with bits {list(head[4:9])}")
+    q = _quantised(head, raw)
+    n = head[3]
+    if keep is not None:
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != (n,):
+            raise InputError(f"for_link: keep must be [{n}] bool, got {list(keep.shape)}")
+        q = {k: v[keep] for k, v in q.items()}
+        n = int(keep.sum())
+    if mean_bits < 16:
+        q["means"] = np.rint(q["means"].astype(np.float64) * (_steps(mean_bits) / _steps(16))).astype(np.uint16)
+    order = np.argsort(_morton(q["means"]), kind="stable")
+    parts = []
+    for name in _QUANTITIES:
+        v = q[name][order]
+        parts.append(_planes((_delta(v) if name == "means" else v).T.copy()))
+    streams = [lzma.compress(p, preset=6) for p in parts]
+    body = _LENGTHS.pack(*map(len, streams)) + b"".join(streams)
+    return _HEADER.pack(MAGIC, LINK_VERSION, _CODECS["lzma"], n, mean_bits, *head[5:9], *head[9:17], len(body),
+                        zlib.crc32(body)) + body
 
 
 class MemoryStore:

@@ -18,14 +18,11 @@ from swarmsplat.kernels.errors import SwarmsplatError
 
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent
-from swarmsplat.slam.dense.packed import pack, pack_lossy
+from swarmsplat.slam.dense.team.link_cull import sent_gaussians
 from swarmsplat.slam.run.guard import read_frame
 
 from . import messages as L
-
-
-def camera_list(c: PinholeCamera) -> list:
-    return [float(c.fx), float(c.fy), float(c.cx), float(c.cy), int(c.width), int(c.height)]
+from .images import camera_list, encode_images
 
 
 def config_digest(cfg: SlamConfig) -> str:
@@ -214,7 +211,7 @@ class AgentNode:
         if self.journal is not None:
             self.journal.follow(ag)
         if len(ag.gmap.submaps) > n_sm and n_sm > 0:
-            self._send_submap(n_sm - 1)
+            self._send_submaps(n_sm - self.cfg.link.submap_delay)
         if len(ag.keyframes) > n_kf:
             self._send_keyframe(ag.keyframes[-1], i)
         self._send_frames(i + 1)
@@ -234,22 +231,19 @@ class AgentNode:
             odom_T=e(4) if odom is None else odom.T_ij[None], odom_info=e(6) if odom is None else odom.info[None],
             submap_start=e(4) if start is None else start[None]))
         link = self.cfg.link
-        enc = pack if link.images == "lossless" else lambda f: pack_lossy(f, link.jpeg_quality)  # noqa: E731
-        small = enc(kf.small)
-        sc, sd, smm = small.png()
-        img = dict(small_camera=camera_list(small.camera), small_color=np.frombuffer(sc, np.uint8),
-                   small_depth=np.frombuffer(sd, np.uint8), depth_mm=[int(smm)])
-        if self.map_views and link.map_views and kf.map_rgbd is not None:
-            big = enc(kf.map_rgbd)
-            mc, md, mmm = big.png()
-            img.update(map_camera=camera_list(big.camera), map_color=np.frombuffer(mc, np.uint8),
-                       map_depth=np.frombuffer(md, np.uint8), depth_mm=[int(smm), int(mmm)])
-        self.outbox.put(L.KeyframeImage(mid=self.outbox.next_mid(), id=kf.id, **img))
+        big = kf.map_rgbd if self.map_views and link.map_views else None
+        self.outbox.put(L.KeyframeImage(mid=self.outbox.next_mid(), id=kf.id, **encode_images(kf.small, big, link)))
 
-    def _send_submap(self, sid: int) -> None:
-        sm = self.agent.gmap.submaps[sid]
-        self.outbox.put(L.SubmapData.pack(self.outbox.next_mid(), sm, self.cfg.link.gaussians))
-        self._sent_submaps = max(self._sent_submaps, sid + 1)
+    def _send_submaps(self, upto: int) -> None:
+        """The finished submaps with ids below `upto` not sent yet, each without the Gaussians the server's
+        overlap cull drops anyway (link.cull_gaussians), judged with every keyframe the agent has made by then:
+        link.submap_delay later submaps' keyframes see much of a submap again."""
+        for sid in range(self._sent_submaps, min(upto, len(self.agent.gmap.submaps))):
+            sm = self.agent.gmap.submaps[sid]
+            keep = sent_gaussians(self.agent, sid) if self.cfg.link.cull_gaussians else None
+            self.outbox.put(L.SubmapData.pack(self.outbox.next_mid(), sm, self.cfg.link.gaussians, keep,
+                                              self.cfg.link.mean_bits))
+            self._sent_submaps = sid + 1
 
     def _send_frames(self, rounds_done: int) -> None:
         ag = self.agent
@@ -266,10 +260,9 @@ class AgentNode:
             T_local_cam=np.stack([r.T_local_cam for r in recs]) if recs else np.zeros((0, 4, 4))))
 
     def send_last(self, rounds: int, status: str = "complete") -> None:
-        """After the last round: the last submap, the last poses and the totals."""
+        """After the last round: the submaps not sent yet (the last one too), the last poses and the totals."""
         ag = self.agent
-        if ag.gmap.submaps and self._sent_submaps < len(ag.gmap.submaps):
-            self._send_submap(len(ag.gmap.submaps) - 1)
+        self._send_submaps(len(ag.gmap.submaps))
         self._send_frames(rounds)
         t = ag.time
         self.outbox.put(L.Done(mid=self.outbox.next_mid(), rounds=int(rounds), keyframes=len(ag.keyframes),

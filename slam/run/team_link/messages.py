@@ -9,11 +9,13 @@ by id, so duplicates and reordering change nothing):
   KeyframeMeta   one keyframe: pose in its submap, the round it was made in, descriptor, the tracking edge from the
                  previous keyframe with its information, and (a submap's first keyframe) the new submap's origin
                  relative to the previous one
-  KeyframeImage  the keyframe's images, losslessly packed (slam.dense.packed): the loop-closure copy, and the
-                 mapping-resolution copy when the server refines the merged map on it; sent once
+  KeyframeImage  the keyframe's images (slam.run.team_link.images): the loop-closure copy, and the
+                 mapping-resolution copy when the server refines the merged map on it, losslessly or each picture
+                 once (JPEG colour, inverse-depth steps); sent once
   Frames         tracked poses of every frame since the last batch, the rounds done and keyframes made so far
   SubmapData     a finished submap's Gaussians (local frame; float32, float16 for all but the means, or the
-                 compact form of slam.dense.submap_codec)
+                 link form of slam.dense.submap_codec, without those the server's overlap cull drops anyway:
+                 slam.dense.team.link_cull)
   Done           the agent's totals after its last frame (times, skipped frames, its own byte counts)
 
 Server -> agent: Welcome, Ack (message ids received), Correction (each submap's new origin in the agent's world
@@ -28,11 +30,11 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from swarmsplat.slam.dense.submap_codec import CodecError, CodecSpec, decode, encode, stored_compact
+from swarmsplat.slam.dense.submap_codec import CodecError, CodecSpec, decode, encode, for_link, stored_compact
 from swarmsplat.slam.flocc.swarm.messages import Codec, Message, MessageError, _check_poses
 
 MAGIC = b"GSLK"
-SCHEMA_VERSION = 2  # 2: SubmapData's compact form (blob)
+SCHEMA_VERSION = 3  # 2: SubmapData's compact form (blob); 3: its link form, KeyframeImage's depth forms
 SERVER = 0  # the server's node id; agent k is node k + 1
 
 
@@ -106,23 +108,36 @@ class KeyframeMeta(Message):
 @dataclass
 class KeyframeImage(Message):
     TYPE: ClassVar[int] = 3
-    SCALARS: ClassVar[dict] = {"mid": int, "id": int, "small_camera": list, "map_camera": list, "depth_mm": list}
+    SCALARS: ClassVar[dict] = {"mid": int, "id": int, "small_camera": list, "map_camera": list,
+                               "depth_form": list, "inverse_depth_k": float}
     ARRAYS: ClassVar[dict] = {"small_color": ("|u1", 1), "small_depth": ("|u1", 1), "map_color": ("|u1", 1),
                               "map_depth": ("|u1", 1)}
     mid: int = 0
     id: int = 0
     small_camera: list = field(default_factory=list)  # [fx, fy, cx, cy, width, height]
     map_camera: list = field(default_factory=list)  # [] when the mapping-resolution copy is not sent
-    depth_mm: list = field(default_factory=list)  # per copy: 1 = depth PNG in millimetres, 0 = float32 bits
-    small_color: np.ndarray = field(default_factory=_u8)  # PNG bytes
+    # per copy (slam.run.team_link.images): 0 = depth PNG of float32 bits, 1 = in millimetres, 2 = in inverse-depth
+    # steps (round(inverse_depth_k / z)), 3 = made from the other copy's
+    depth_form: list = field(default_factory=list)
+    inverse_depth_k: float = 0.0  # metres
+    small_color: np.ndarray = field(default_factory=_u8)  # PNG or JPEG bytes; empty: made from the other copy's
     small_depth: np.ndarray = field(default_factory=_u8)
     map_color: np.ndarray = field(default_factory=_u8)
     map_depth: np.ndarray = field(default_factory=_u8)
 
     def validate(self) -> None:
-        if len(self.small_camera) != 6 or len(self.map_camera) not in (0, 6) \
-                or len(self.depth_mm) != 1 + (len(self.map_camera) == 6) or self.id < 0:
-            raise MessageError("KeyframeImage: cameras and depth flags do not match the copies sent")
+        two = len(self.map_camera) == 6
+        if len(self.small_camera) != 6 or len(self.map_camera) not in (0, 6) or self.id < 0 \
+                or len(self.depth_form) != 1 + two or not all(f in (0, 1, 2, 3) for f in self.depth_form):
+            raise MessageError("KeyframeImage: cameras and depth forms do not match the copies sent")
+        if self.depth_form[0] == 2:  # each picture once: small depth, the colour of the largest copy
+            if not (self.inverse_depth_k > 0 and len(self.small_depth) and len(self.map_color if two else
+                                                                                self.small_color)
+                    and self.depth_form[1:] in ([], [3])):
+                raise MessageError("KeyframeImage: inverse-depth images need k > 0, the small depth and one colour")
+        elif 3 in self.depth_form or not (len(self.small_color) and len(self.small_depth)) \
+                or (two and not (len(self.map_color) and len(self.map_depth))):
+            raise MessageError("KeyframeImage: lossless images need every copy's colour and depth")
 
 
 @dataclass
@@ -185,16 +200,19 @@ class SubmapData(Message):
             raise MessageError("SubmapData: non-finite Gaussian parameters")
 
     @classmethod
-    def pack(cls, mid: int, submap, encoding: str) -> "SubmapData":
+    def pack(cls, mid: int, submap, encoding: str, keep=None, mean_bits: int = 16) -> "SubmapData":
         """A finished submap (slam.dense.gaussian_map.Submap) on the link; encoding 'float32', 'float16' or
-        'compact' (the bytes the agent stores it as, when it stores it compact)."""
+        'compact' (the link form of the values the agent stores it as, when it stores it compact, with means of
+        `mean_bits`). keep: [N] bool, the Gaussians to send (None: all)."""
         head = dict(mid=mid, id=submap.id, keyframe_ids=[int(k) for k in submap.keyframe_ids])
         if encoding == "compact":
             blob = stored_compact(submap)
             if blob is None:
                 blob = encode(submap.params, CodecSpec())
-            return cls(**head, blob=np.frombuffer(blob, np.uint8))
+            return cls(**head, blob=np.frombuffer(for_link(blob, keep, mean_bits=mean_bits), np.uint8))
         p = submap.params.detached()
+        if keep is not None:
+            p = p.select(torch.as_tensor(np.asarray(keep, dtype=bool)))
         rest = torch.cat([p.log_scales, p.quats, p.logit_opacities[:, None], p.colors], 1).cpu().numpy()
         half = encoding == "float16"
         return cls(**head, means=p.means.cpu().numpy().astype(np.float32),

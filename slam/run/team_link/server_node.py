@@ -29,10 +29,11 @@ import numpy as np
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.slam.dense.agent import FramePose
 from swarmsplat.slam.dense.frames import RGBD
-from swarmsplat.slam.dense.packed import PackedRGBD
+from swarmsplat.slam.flocc.swarm.messages import MessageError
 
 from . import messages as L
 from .agent_node import config_digest
+from .images import decode_images
 
 RAW_KEYFRAME_BYTES = 640 * 480 * (3 + 2)  # one 640x480 RGB-D keyframe: 8-bit RGB + 16-bit depth
 
@@ -230,15 +231,15 @@ class ServerNode:
         p, team = self.peers[a], self.team
         ag = team.agents[a]
         img = p.images.pop(m.id, None)
+        small = map_rgbd = None
+        if img is not None:
+            try:
+                small, map_rgbd = decode_images(img)
+            except MessageError as e:
+                self.say(f"[server] {p.name} keyframe {m.id}: {e}; kept without images")
+                img = None
         if img is None:  # dropped by the agent's queue: a keyframe without images, never a loop candidate
             small = _blank(ag.camera, ag.cfg.submaps.keep_keyframe_width)
-            map_rgbd = None
-        else:
-            small = PackedRGBD.from_png(_camera(img.small_camera), img.small_color.tobytes(),
-                                        img.small_depth.tobytes(), bool(img.depth_mm[0]))
-            map_rgbd = (PackedRGBD.from_png(_camera(img.map_camera), img.map_color.tobytes(),
-                                            img.map_depth.tobytes(), bool(img.depth_mm[1]))
-                        if img.map_camera else None)
         n_sm = len(ag.gmap.submaps)
         kf = ag.add_keyframe(m.id, m.frame_index, m.timestamp, m.submap_id, m.T_local_cam[0],
                              m.descriptor if img is not None else None, small, map_rgbd,
