@@ -139,3 +139,69 @@ def test_refinement_drops_a_duplicate_submap_and_hands_back_the_rest():
         assert np.allclose(kfs[0].T_local_refined, kfs[0].T_local_cam, atol=1e-6)
         assert kfs[1].T_local_refined is not None and st["pose_translation_m_max"] < 0.01
         assert 0 <= st["overlap_cull_seconds"] <= st["seconds"]
+
+
+def _owner_keep_twin(means, part, views, tol_abs=0.03, tol_rel=0.02):
+    """owner_keep the plain way: every Gaussian projected into every view, no box test, no chunks."""
+    n = len(means)
+    best = torch.full((n,), float("inf"))
+    owner = torch.full((n,), -1, dtype=torch.long)
+    best_nd = torch.full((n,), float("inf"))
+    owner_nd = torch.full((n,), -1, dtype=torch.long)
+    for v in views:
+        cam = v.camera
+        pc = means @ v.viewmat[:3, :3].T + v.viewmat[:3, 3]
+        z = pc[:, 2]
+        zs = z.clamp_min(0.01)
+        u = torch.round(cam.fx * pc[:, 0] / zs + cam.cx)
+        w = torch.round(cam.fy * pc[:, 1] / zs + cam.cy)
+        idx = torch.nonzero((z > 0.01) & (u >= 0) & (w >= 0) & (u < cam.width) & (w < cam.height)).squeeze(1)
+        d = v.depth[w[idx].long(), u[idx].long()]
+        zi = z[idx]
+        on = (d > 0) & ((zi - d).abs() < torch.clamp(tol_rel * d, min=tol_abs)) & (zi < best[idx])
+        best[idx[on]], owner[idx[on]] = zi[on], v.part
+        if v.no_depth is not None:
+            nd = v.no_depth[w[idx].long(), u[idx].long()] & (zi < best_nd[idx])
+            best_nd[idx[nd]], owner_nd[idx[nd]] = zi[nd], v.part
+    owner = torch.where(owner < 0, owner_nd, owner)
+    return (owner < 0) | (owner == part)
+
+
+def test_parts_out_of_view_and_chunks_change_nothing(monkeypatch):
+    """Many parts spread along a corridor, cameras that see a few of them each, and chunks smaller than a part:
+    the box test and the chunking give what projecting every Gaussian into every view gives."""
+    import swarmsplat.slam.dense.mapping.overlap_cull as oc
+    from swarmsplat.slam.dense.mapping.refine_merged import NEAR
+
+    assert NEAR == 0.01  # the twin's near plane
+    g = torch.Generator().manual_seed(7)
+    n_parts, per = 12, 150
+    means, part = [], []
+    for p in range(n_parts):  # part p: a patch of wall around x = 0.5 p, with points a little off it
+        pts = torch.rand(per, 3, generator=g) * torch.tensor([0.8, 0.6, 0.1]) + torch.tensor([0.5 * p, -0.3, 2.95])
+        means.append(pts)
+        part += [p] * per
+    means, part = torch.cat(means), torch.tensor(part)
+    perm = torch.randperm(len(means), generator=g)
+    means, part = means[perm], part[perm]  # a part's Gaussians need not be contiguous
+    views = []
+    for k in range(9):
+        vm = torch.eye(4)
+        vm[0, 3] = -0.7 * k  # camera at x = 0.7 k looking +z at the wall 3 m away
+        depth = torch.full((CAM.height, CAM.width), 3.0) + 0.02 * torch.rand(CAM.height, CAM.width, generator=g)
+        depth[:, :8] = 0
+        nd = torch.zeros(CAM.height, CAM.width, dtype=torch.bool)
+        nd[:, :8] = True
+        views.append(OwnerView(k, vm, depth, CAM, nd if k % 2 else None))
+    behind = torch.eye(4)
+    behind[2, 2], behind[0, 0] = -1.0, -1.0  # looking away from the wall: sees nothing
+    views.append(OwnerView(0, behind, torch.full((CAM.height, CAM.width), 3.0), CAM))
+    want = _owner_keep_twin(means, part, views)
+    assert 0 < int(want.sum()) < len(want)
+    seen = [oc._box_in_view(lo, hi, v.viewmat[:3, :3], v.viewmat[:3, 3], CAM)
+            for v in views for _, lo, hi in oc._groups(means, part)]
+    assert any(seen) and not all(seen)  # the box test does skip parts
+    monkeypatch.setattr(oc, "CHUNK", 100)
+    assert torch.equal(owner_keep(means, part, views), want)
+    monkeypatch.setattr(oc, "CHUNK", 1 << 18)
+    assert torch.equal(owner_keep(means, part, views), want)

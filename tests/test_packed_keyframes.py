@@ -85,8 +85,56 @@ def sequence(tmp_path_factory):
     return load_dataset(root).agents[0]
 
 
-def test_packed_agent_gives_the_same_poses_and_map(sequence):
+def test_stored_frame_reads_back_from_its_file_and_pickles_as_a_reference(tmp_path):
+    import pickle
+
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.slam.io.submap_files import KeyframeFiles
+
+    rng = np.random.default_rng(4)
+    f = _frame(rng.uniform(0.5, 4.0, (48, 64)).astype(np.float32), seed=5)
+    p = PackedRGBD(f)
+    before = p.png()
+    store = KeyframeFiles(tmp_path / "run" / "keyframes")
+    p.store(store.small, 7)
+    assert p.stored and (tmp_path / "run" / "keyframes" / "small" / "0007.bin").is_file()
+    assert p.png() == before
+    _same(f, p)
+    _same(f, p.unpacked())
+    blob = pickle.dumps(p)
+    assert len(blob) < 1000  # the camera and the file's reference, not the images
+    q = pickle.loads(blob)
+    _same(f, q)
+    # the run folder moved (a resumed run): point the store at the new place
+    (tmp_path / "run").rename(tmp_path / "moved")
+    with pytest.raises(InputError, match="0007.bin.*loop-closure image"):
+        q.png()
+    q._stored[0].folder = (tmp_path / "moved" / "keyframes" / "small").resolve()
+    _same(f, q)
+    (tmp_path / "moved" / "keyframes" / "small" / "0007.bin").write_bytes(b"not a keyframe at all")
+    with pytest.raises(InputError, match="0007.bin: not a stored keyframe"):
+        _ = q.color
+
+
+def test_start_submap_moves_the_retired_keyframes_to_the_store(tmp_path):
+    from swarmsplat.slam.io.submap_files import KeyframeFiles
+
+    gmap = GaussianMap()
+    gmap.new_submap(np.eye(4))
+    f = _frame(np.full((48, 64), 1.5, np.float32))
+    old = Keyframe(0, 0, 0.0, 0, np.eye(4), f, f.resized(32))
+    store = KeyframeFiles(tmp_path / "keyframes")
+    start_submap(gmap, np.eye(4), [old], keep_images=True, compress=True, frame_store=store)
+    assert old.small.stored and old.map_rgbd.stored
+    assert sorted(p.name for p in (tmp_path / "keyframes").rglob("*.bin")) == ["0000.bin", "0000.bin"]
+    _same(f, old.map_rgbd)
+    _same(f.resized(32), old.small)
+
+
+def test_packed_agent_gives_the_same_poses_and_map(sequence, tmp_path):
+    """Packed keyframe images, moved to files in a run folder: the same run as with raw images in memory."""
     from swarmsplat import kernels
+    from swarmsplat.slam.io.submap_files import KeyframeFiles
     from swarmsplat.slam.dense.agent import Agent
     from swarmsplat.slam.dense.mapping.refine import refine_agent
 
@@ -101,6 +149,7 @@ def test_packed_agent_gives_the_same_poses_and_map(sequence):
         torch_seed()
         ag = Agent(sequence.camera, cfg)
         ag.compress_keyframes = compress
+        ag.frame_store = KeyframeFiles(tmp_path / "keyframes") if compress else None
         ag.keep_keyframe_images = True
         for i in range(len(sequence)):
             f = sequence[i]
@@ -109,7 +158,7 @@ def test_packed_agent_gives_the_same_poses_and_map(sequence):
         agents.append(ag)
     raw, packed = agents
     assert len(packed.gmap.submaps) >= 3
-    assert any(isinstance(k.small, PackedRGBD) for k in packed.keyframes)
+    assert any(isinstance(k.small, PackedRGBD) and k.small.stored for k in packed.keyframes)
     assert not any(isinstance(k.small, PackedRGBD) for k in raw.keyframes)
     assert len(raw.loops.log) == len(packed.loops.log)
     stamps_r, T_r = raw.trajectory()

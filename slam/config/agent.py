@@ -177,7 +177,7 @@ class MapRefineConfig(_Section):
                                                     "correction (slam.dense.mapping.selective_adam); 'adam': torch's Adam over "
                                                     "the whole merged map every step")
     seed: int = Field(0, description="seed of the keyframe order")
-    view_cache_mb: float = Field(256.0, ge=0, description="decoded keyframe images the refinement keeps between "
+    view_cache_mb: float = Field(64.0, ge=0, description="decoded keyframe images the refinement keeps between "
                                  "steps (MB, float tensors, least recently used dropped first); the rest stay as "
                                  "stored (PNG) and are decoded at each step (0 = decode every time)")
 
@@ -194,6 +194,11 @@ class SubmapConfig(_Section):
     offload: bool = Field(True, description="a run with an output folder writes each finished submap's Gaussians "
                           "to submaps/NNNN.bin there (in the `storage` form) and drops them from memory; they are "
                           "read back for the final refinement and map.ply")
+    offload_keyframes: bool = Field(True, description="a run with an output folder writes each finished "
+                                    "submap's keyframe images (packed losslessly: the loop-closure copy and, when "
+                                    "the final refinement uses them, the mapping-resolution one) to keyframes/ "
+                                    "there and drops them from memory; loop closure and the refinement read them "
+                                    "back (about 0.4 MB per keyframe at 320x240)")
     prune_min_contribution: float = Field(0.0, ge=0, description="when a submap is finished, drop its Gaussians "
                                           "whose total blending weight in every one of its keyframes' renders is "
                                           "below this (pixels); 0 keeps all")

@@ -63,6 +63,13 @@ class Agent:
         # Pack retired submaps' keyframe images losslessly (slam.dense.packed): identical reads, a fraction of
         # the memory.
         self.compress_keyframes = True
+        # Where retired keyframes' packed images go out of memory (slam.io.submap_files.KeyframeFiles; a driver
+        # with a run folder sets it: config submaps.offload_keyframes); None keeps them in memory.
+        self.frame_store = None
+
+    def __setstate__(self, state: dict) -> None:  # checkpoints of agents from before the keyframe store
+        state.setdefault("frame_store", None)
+        self.__dict__.update(state)
 
     # ---- the algorithm ----------------------------------------------------------------------------------------
 
@@ -142,7 +149,8 @@ class Agent:
         T_world_cam = self.gmap.active.T_world_local @ T_local_cam if self.gmap.submaps else np.eye(4)
         start_submap(self.gmap, T_world_cam, self.keyframes, keep_images=self.keep_keyframe_images,
                      compress=self.compress_keyframes,
-                     prune_min_contribution=self.cfg.submaps.prune_min_contribution)
+                     prune_min_contribution=self.cfg.submaps.prune_min_contribution,
+                     frame_store=self.frame_store)
         self.tracker.reset_frame(se3.inverse(T_local_cam))
         return np.eye(4)
 

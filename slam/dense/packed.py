@@ -2,10 +2,14 @@
 submap's keyframes are only read again by loop-closure registration and the map refinement, so they wait packed
 (2-3x smaller at 320 and 160 pixels wide) and are decoded on each read, bit for bit the frame that was packed
 (about 2 ms for a 160x120 copy). The active submap's keyframes stay raw: mapping reads them on every keyframe.
-The process's peak is not lowered by this alone: the final refinement holds every keyframe's views as float32
-tensors at once (slam.dense.mapping.refine)."""
+
+A packed frame can also leave memory (`PackedRGBD.store`): its bytes go to a store (a run folder's
+keyframes/*/NNNN.bin, slam.io.submap_files) and are read back at each use, so a long mission keeps a few hundred
+bytes per keyframe in memory instead of the ~0.4 MB of its two packed copies."""
 
 from __future__ import annotations
+
+import struct
 
 import cv2
 import numpy as np
@@ -24,10 +28,11 @@ class PackedRGBD:
     (frames straight from a millimetre sensor), else as the float32's bits, high and low 16-bit halves side by
     side, so the round trip is exact either way."""
 
-    __slots__ = ("camera", "_color_png", "_depth_png", "_depth_mm")
+    __slots__ = ("camera", "_color_png", "_depth_png", "_depth_mm", "_stored")
 
     def __init__(self, frame: RGBD):
         self.camera: PinholeCamera = frame.camera
+        self._stored = None  # (store, key) once `store` moved the bytes out of memory
         self._color_png = _encode(cv2.cvtColor(np.ascontiguousarray(frame.color), cv2.COLOR_RGB2BGR))
         depth = np.ascontiguousarray(frame.depth, dtype=np.float32)  # [H, W] metres
         mm = np.rint(depth.astype(np.float64) * 1000.0)
@@ -45,31 +50,49 @@ class PackedRGBD:
         out = cls.__new__(cls)
         out.camera, out._color_png, out._depth_png, out._depth_mm = camera, bytes(color_png), bytes(depth_png), \
             bool(depth_mm)
+        out._stored = None
         return out
 
     def png(self) -> tuple[bytes, bytes, bool]:
         """(colour PNG, depth PNG, depth in millimetres?): what `from_png` takes back."""
-        return self._color_png, self._depth_png, self._depth_mm
+        stored = getattr(self, "_stored", None)  # None in frames pickled before frames could be stored
+        if stored is None:
+            return self._color_png, self._depth_png, self._depth_mm
+        store, key = stored
+        return _unframe(store.read(key), store.describe(key))
+
+    def store(self, store, key: int) -> None:
+        """Write the packed bytes to `store` (anything with write(key, bytes), read(key) and describe(key):
+        slam.io.submap_files.SubmapFiles) under `key` and drop them from memory; reads then load them from there.
+        A frame stored already stays where it is."""
+        if getattr(self, "_stored", None) is not None:
+            return
+        c, d, mm = self.png()
+        store.write(key, _frame_bytes(c, d, mm))
+        self._stored, self._color_png, self._depth_png = (store, int(key)), b"", b""
+
+    @property
+    def stored(self) -> bool:
+        """Whether the bytes live in a store rather than in memory."""
+        return getattr(self, "_stored", None) is not None
 
     @property
     def color(self) -> np.ndarray:  # [H, W, 3] uint8 RGB
-        return cv2.cvtColor(_decode(self._color_png), cv2.COLOR_BGR2RGB)
+        return cv2.cvtColor(_decode(self.png()[0]), cv2.COLOR_BGR2RGB)
 
     @property
     def depth(self) -> np.ndarray:  # [H, W] float32 metres, 0 = invalid
-        planes = _decode(self._depth_png)
-        if self._depth_mm:
-            return _from_mm(planes).view(np.float32)
-        w = planes.shape[1] // 2
-        bits = (planes[:, :w].astype(np.uint32) << 16) | planes[:, w:].astype(np.uint32)
-        return bits.view(np.float32)
+        return _depth_of(_decode(self.png()[1]), self._depth_mm)
 
     @property
     def nbytes(self) -> int:
-        return len(self._color_png) + len(self._depth_png)
+        """Bytes of the packed images (wherever they are kept)."""
+        c, d, _ = self.png()
+        return len(c) + len(d)
 
     def unpacked(self) -> RGBD:
-        return RGBD(self.color, self.depth, self.camera)
+        c, d, mm = self.png()
+        return RGBD(cv2.cvtColor(_decode(c), cv2.COLOR_BGR2RGB), _depth_of(_decode(d), mm), self.camera)
 
     def resized(self, max_width: int) -> RGBD:
         return self.unpacked().resized(max_width)
@@ -104,6 +127,39 @@ def pack_lossy(frame: RGBD | PackedRGBD, quality: int = 90) -> PackedRGBD:
 def pack(frame: RGBD | PackedRGBD | None) -> RGBD | PackedRGBD | None:
     """`frame` packed (None and packed frames pass through)."""
     return frame if frame is None or isinstance(frame, PackedRGBD) else PackedRGBD(frame)
+
+
+def _depth_of(planes: np.ndarray, depth_mm: bool) -> np.ndarray:
+    """[H, W] float32 metres from the decoded depth PNG (see PackedRGBD)."""
+    if depth_mm:
+        return _from_mm(planes).view(np.float32)
+    w = planes.shape[1] // 2
+    bits = (planes[:, :w].astype(np.uint32) << 16) | planes[:, w:].astype(np.uint32)
+    return bits.view(np.float32)
+
+
+_MAGIC = b"SSKF"
+_HEAD = struct.Struct("<4sBBII")  # magic, version, depth in millimetres, colour bytes, depth bytes
+
+
+def _frame_bytes(color_png: bytes, depth_png: bytes, depth_mm: bool) -> bytes:
+    """A stored frame's file: a header, then the colour and the depth PNG."""
+    return _HEAD.pack(_MAGIC, 1, int(depth_mm), len(color_png), len(depth_png)) + color_png + depth_png
+
+
+def _unframe(data: bytes, source: str) -> tuple[bytes, bytes, bool]:
+    """(colour PNG, depth PNG, depth in millimetres?) of `_frame_bytes`'s file; InputError naming `source` when
+    the bytes are not one."""
+    from swarmsplat.kernels.errors import InputError
+
+    if len(data) < _HEAD.size:
+        raise InputError(f"{source}: {len(data)} bytes, too short for a stored keyframe")
+    magic, version, mm, nc, nd = _HEAD.unpack_from(data)
+    if magic != _MAGIC or version != 1 or len(data) != _HEAD.size + nc + nd:
+        raise InputError(f"{source}: not a stored keyframe (expected {_MAGIC!r} version 1 with {nc} + {nd} bytes of "
+                         f"PNG, got {magic!r} version {version}, {len(data)} bytes)")
+    at = _HEAD.size
+    return data[at:at + nc], data[at + nc:], bool(mm)
 
 
 def _from_mm(mm: np.ndarray) -> np.ndarray:  # the float32 bits of mm / 1000, as uint32

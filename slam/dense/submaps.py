@@ -47,11 +47,13 @@ def needs_new_submap(cfg: SubmapConfig, T_local_cam: np.ndarray, n_keyframes: in
 
 
 def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Keyframe], *,
-                 keep_images: bool = False, compress: bool = False, prune_min_contribution: float = 0.0) -> Submap:
+                 keep_images: bool = False, compress: bool = False, prune_min_contribution: float = 0.0,
+                 frame_store=None) -> Submap:
     """Retire the active submap (frozen Gaussians, keyframe images dropped except the small copies, unless
     `keep_images`: a team's server refines the merged map on them) and start a new one whose local frame is the
     camera at T_world_cam. With `compress` the retired keyframes' images that stay are packed losslessly
-    (slam.dense.packed), decoded on each later read. With `prune_min_contribution` > 0 the retired submap first
+    (slam.dense.packed), decoded on each later read, and with a `frame_store` (slam.io.submap_files.KeyframeFiles)
+    moved there out of memory. With `prune_min_contribution` > 0 the retired submap first
     loses the Gaussians that contribute less than that many pixels to each of its keyframes' renders. The
     retired Gaussians then go to the map's store, if it has one (GaussianMap.retire)."""
     if not gmap.submaps:
@@ -60,12 +62,23 @@ def start_submap(gmap: GaussianMap, T_world_cam: np.ndarray, keyframes: list[Key
     own = [kf for kf in keyframes if kf.submap_id == old.id]
     if prune_min_contribution > 0 and len(old):
         prune_unseen(old, own, prune_min_contribution)
-    for kf in own:
-        kf.map_rgbd = (pack(kf.map_rgbd) if compress else kf.map_rgbd) if keep_images else None
-        kf.small = pack(kf.small) if compress else kf.small
+    retire_keyframes(own, keep_images=keep_images, compress=compress, frame_store=frame_store)
     new = gmap.new_submap(T_world_cam)
     gmap.retire(old)
     return new
+
+
+def retire_keyframes(keyframes: list[Keyframe], *, keep_images: bool, compress: bool, frame_store=None) -> None:
+    """What a finished submap's keyframes keep (see start_submap): the mapping-resolution images only with
+    `keep_images`; packed with `compress`; packed ones moved to `frame_store` when given."""
+    for kf in keyframes:
+        kf.map_rgbd = (pack(kf.map_rgbd) if compress else kf.map_rgbd) if keep_images else None
+        kf.small = pack(kf.small) if compress else kf.small
+        if frame_store is not None:
+            if isinstance(kf.small, PackedRGBD):
+                kf.small.store(frame_store.small, kf.id)
+            if isinstance(kf.map_rgbd, PackedRGBD):
+                kf.map_rgbd.store(frame_store.mapping, kf.id)
 
 
 def prune_unseen(submap: Submap, keyframes: list[Keyframe], min_contribution: float) -> int:

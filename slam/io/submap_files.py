@@ -1,8 +1,13 @@
-"""Finished submaps' Gaussians as files in the run folder: `submaps/NNNN.bin`, one per submap, each written once,
-atomically (a reader never sees half a file) and fsync'd before the run goes on, read back on demand.
+"""What a run moves out of memory, as files in its folder, each written once, atomically (a reader never sees half
+a file) and fsync'd before the run goes on, read back on demand:
 
-The bytes are whatever the caller stores (slam.dense.submap_codec's form); this module only keeps them. It
-pickles as its folder, so a checkpointed agent refers to its submaps' files instead of holding them.
+- finished submaps' Gaussians: `submaps/NNNN.bin`, one per submap (slam.dense.submap_codec's form);
+- finished submaps' keyframe images: `keyframes/small/NNNN.bin` (the loop-closure copy) and
+  `keyframes/mapping/NNNN.bin` (the mapping-resolution copy the final refinement fits), one per keyframe id
+  (slam.dense.packed's stored form).
+
+The bytes are whatever the caller stores; this module only keeps them. A store pickles as its folder, so a
+checkpointed agent refers to the files instead of holding them.
 """
 
 from __future__ import annotations
@@ -15,10 +20,11 @@ from swarmsplat.kernels.fileio import atomic_path
 
 
 class SubmapFiles:
-    """A folder of `NNNN.bin` files keyed by submap id."""
+    """A folder of `NNNN.bin` files keyed by an integer id (a submap's, or a keyframe's)."""
 
-    def __init__(self, folder: str | os.PathLike):
+    def __init__(self, folder: str | os.PathLike, what: str = "a finished submap"):
         self.folder = Path(folder).resolve()
+        self.what = what  # named when a file is missing
 
     def path(self, key: int) -> Path:
         return self.folder / f"{int(key):04d}.bin"
@@ -49,11 +55,36 @@ class SubmapFiles:
         try:
             return path.read_bytes()
         except OSError as e:
-            raise InputError(f"cannot read {path}: {e.strerror or e} (a finished submap of this run, expected "
-                             f"in its output folder)") from None
+            raise InputError(f"cannot read {path}: {e.strerror or e} ({getattr(self, 'what', 'a finished submap')} "
+                             f"of this run, expected in its output folder)") from None
 
     def nbytes(self) -> int:
         return sum(p.stat().st_size for p in self.folder.glob("*.bin"))
 
     def __repr__(self) -> str:
         return f"SubmapFiles({str(self.folder)!r})"
+
+
+class KeyframeFiles:
+    """Finished submaps' keyframe images in `folder`: `small` (SubmapFiles of the loop-closure copies) and `mapping`
+    (of the mapping-resolution copies), keyed by keyframe id."""
+
+    def __init__(self, folder: str | os.PathLike):
+        self.small = SubmapFiles(Path(folder) / "small", "a keyframe's loop-closure image")
+        self.mapping = SubmapFiles(Path(folder) / "mapping", "a keyframe's mapping-resolution image")
+
+    @property
+    def folder(self) -> Path:
+        return self.small.folder.parent
+
+    @folder.setter
+    def folder(self, folder: str | os.PathLike) -> None:
+        """Point both stores at `folder` (a resumed run whose folder has moved)."""
+        self.small.folder = (Path(folder) / "small").resolve()
+        self.mapping.folder = (Path(folder) / "mapping").resolve()
+
+    def nbytes(self) -> int:
+        return self.small.nbytes() + self.mapping.nbytes()
+
+    def __repr__(self) -> str:
+        return f"KeyframeFiles({str(self.folder)!r})"

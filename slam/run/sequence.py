@@ -109,15 +109,20 @@ def open_sequence(dataset_path, cfg: SlamConfig, frames: int | None = None):
 
 
 def offload(agent: Agent, out: Path, cfg: SlamConfig) -> None:
-    """With config submap.offload, the agent's finished submaps go to out/submaps/NNNN.bin (a resumed agent's
-    files are looked for there, wherever the folder has moved)."""
+    """With config submaps.offload, the agent's finished submaps go to out/submaps/NNNN.bin; with
+    submaps.offload_keyframes, their keyframes' packed images to out/keyframes/ (a resumed agent's files are looked
+    for there, wherever the folder has moved)."""
     from swarmsplat.slam.dense.submap_codec import use_storage
-    from swarmsplat.slam.io.submap_files import SubmapFiles
+    from swarmsplat.slam.io.submap_files import KeyframeFiles, SubmapFiles
 
     if isinstance(agent.gmap.store, SubmapFiles):
         agent.gmap.store.folder = (out / "submaps").resolve()
     elif cfg.submaps.offload:
         use_storage(agent.gmap, cfg.submaps.storage, SubmapFiles(out / "submaps"))
+    if agent.frame_store is not None:
+        agent.frame_store.folder = out / "keyframes"
+    elif cfg.submaps.offload_keyframes and agent.compress_keyframes:
+        agent.frame_store = KeyframeFiles(out / "keyframes")
 
 
 def refines(cfg: SlamConfig) -> bool:

@@ -65,6 +65,7 @@ def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], 
     best_nd = torch.full((n,), float("inf"), dtype=torch.float32)
     owner_nd = torch.full((n,), -1, dtype=torch.long)
     m = means.detach().to(torch.float32)
+    groups = _groups(m, part)
     for v in views:
         cam = v.camera
         depth = torch.as_tensor(v.depth, dtype=torch.float32)
@@ -72,23 +73,79 @@ def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], 
             raise InputError(f"owner_keep: a view's depth is {list(depth.shape)}, its camera is "
                              f"{cam.width}x{cam.height}")
         R, t = v.viewmat[:3, :3].to(torch.float32), v.viewmat[:3, 3].to(torch.float32)
-        pc = m @ R.T + t
-        z = pc[:, 2]
-        zs = z.clamp_min(NEAR)
-        u = torch.round(cam.fx * pc[:, 0] / zs + cam.cx)  # nearest pixel (OpenCV: centres at integers)
-        w = torch.round(cam.fy * pc[:, 1] / zs + cam.cy)
-        inside = (z > NEAR) & (u >= 0) & (w >= 0) & (u < cam.width) & (w < cam.height)
-        idx = torch.nonzero(inside).squeeze(1)
-        d = depth[w[idx].long(), u[idx].long()]
-        zi = z[idx]
-        on_surface = (d > 0) & ((zi - d).abs() < torch.clamp(tol_rel * d, min=tol_abs)) & (zi < best[idx])
-        hit = idx[on_surface]
-        best[hit] = zi[on_surface]
-        owner[hit] = int(v.part)
-        if v.no_depth is not None:
-            nd = torch.as_tensor(v.no_depth, dtype=torch.bool)[w[idx].long(), u[idx].long()] & (zi < best_nd[idx])
-            hit = idx[nd]
-            best_nd[hit] = zi[nd]
-            owner_nd[hit] = int(v.part)
+        no_depth = None if v.no_depth is None else torch.as_tensor(v.no_depth, dtype=torch.bool)
+        seen = [g for g, lo, hi in groups if _box_in_view(lo, hi, R, t, cam)]
+        for chunk in _chunks(seen):
+            pc = m[chunk] @ R.T + t
+            z = pc[:, 2]
+            zs = z.clamp_min(NEAR)
+            u = torch.round(cam.fx * pc[:, 0] / zs + cam.cx)  # nearest pixel (OpenCV: centres at integers)
+            w = torch.round(cam.fy * pc[:, 1] / zs + cam.cy)
+            inside = (z > NEAR) & (u >= 0) & (w >= 0) & (u < cam.width) & (w < cam.height)
+            sel = torch.nonzero(inside).squeeze(1)
+            idx = chunk[sel]
+            ui, wi = u[sel].long(), w[sel].long()
+            d = depth[wi, ui]
+            zi = z[sel]
+            on_surface = (d > 0) & ((zi - d).abs() < torch.clamp(tol_rel * d, min=tol_abs)) & (zi < best[idx])
+            hit = idx[on_surface]
+            best[hit] = zi[on_surface]
+            owner[hit] = int(v.part)
+            if no_depth is not None:
+                nd = no_depth[wi, ui] & (zi < best_nd[idx])
+                hit = idx[nd]
+                best_nd[hit] = zi[nd]
+                owner_nd[hit] = int(v.part)
     owner = torch.where(owner < 0, owner_nd, owner)
     return (owner < 0) | (owner == part)
+
+
+CHUNK = 1 << 18  # Gaussians projected at once: the per-view temporaries stay a few MB however large the map
+
+
+def _groups(means: torch.Tensor, part: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """[(indices, box min [3], box max [3])] of each part's Gaussians: a view then projects only the parts whose
+    box it can see (a long mission's map is many rooms, a view sees one)."""
+    out = []
+    if len(part) == 0:
+        return out
+    order = torch.argsort(part, stable=True)
+    _, counts = torch.unique_consecutive(part[order], return_counts=True)
+    for idx in torch.split(order, counts.tolist()):
+        pts = means[idx]
+        out.append((idx, pts.min(dim=0).values, pts.max(dim=0).values))
+    return out
+
+
+def _box_in_view(lo: torch.Tensor, hi: torch.Tensor, R: torch.Tensor, t: torch.Tensor, cam: PinholeCamera) -> bool:
+    """False only when no point of the box [lo, hi] (map frame) can project into the image in front of the camera:
+    every corner behind it, or every corner in front and the corners' projections' bounding box (which holds the
+    box's projection) off the image."""
+    corners = torch.stack([torch.where(torch.tensor([(k >> a) & 1 for a in range(3)], dtype=torch.bool), hi, lo)
+                           for k in range(8)])
+    pc = corners @ R.T + t
+    z = pc[:, 2]
+    if bool((z <= NEAR).all()):
+        return False
+    if bool((z <= NEAR).any()):
+        return True  # the box reaches behind the camera: its projection is unbounded
+    u = cam.fx * pc[:, 0] / z + cam.cx
+    v = cam.fy * pc[:, 1] / z + cam.cy
+    m = 1.0  # pixels beyond the rounding's half: float32 round-off never drops a Gaussian the full test keeps
+    return bool(u.max() >= -0.5 - m and u.min() < cam.width - 0.5 + m and v.max() >= -0.5 - m
+                and v.min() < cam.height - 0.5 + m)
+
+
+def _chunks(groups: list[torch.Tensor]):
+    """The indices of `groups`, at most CHUNK at a time (whole groups joined while they fit)."""
+    batch, size = [], 0
+    for g in groups:
+        for a in range(0, len(g), CHUNK):
+            piece = g[a:a + CHUNK]
+            if size + len(piece) > CHUNK and batch:
+                yield torch.cat(batch)
+                batch, size = [], 0
+            batch.append(piece)
+            size += len(piece)
+    if batch:
+        yield torch.cat(batch)

@@ -44,14 +44,15 @@ def _overlap_keep(parts, views, view_submaps, cfg, mapping, means):
     index = {id(sm): i for i, (sm, _, _) in enumerate(parts)}
     part = torch.cat([torch.full((n,), i, dtype=torch.long) for i, (_, _, n) in enumerate(parts)])
 
-    def no_depth(v):
-        if not mapping.seed_without_depth:
-            return None
-        return torch.as_tensor(fallback_depth(v.depth.numpy(), mapping.no_depth_min_region) > 0)
+    def owner(v, sm):
+        depth = v.read(cached=False)[1]
+        no_depth = (torch.as_tensor(fallback_depth(depth.numpy(), mapping.no_depth_min_region) > 0)
+                    if mapping.seed_without_depth else None)
+        return OwnerView(index[id(sm)], v.viewmat, depth, v.camera, no_depth)
 
-    # one view at a time (its depth decoded when the cull reaches it), not every view's images at once
-    owners = (OwnerView(index[id(sm)], v.viewmat, v.depth, v.camera, no_depth(v))
-              for v, sm in zip(views, view_submaps) if id(sm) in index)
+    # one view at a time (its depth decoded when the cull reaches it, once, past the refinement's cache), not
+    # every view's images at once
+    owners = (owner(v, sm) for v, sm in zip(views, view_submaps) if id(sm) in index)
     return owner_keep(means, part, owners, tol_abs=cfg.overlap_depth_tolerance,
                       tol_rel=cfg.overlap_depth_tolerance_rel)
 

@@ -62,8 +62,15 @@ class RefineView:
 
     def _images(self) -> tuple[torch.Tensor, torch.Tensor]:
         if self.cache is None:
-            return self.frame.color_tensor(), self.frame.depth_tensor()
+            return decoded(self.frame)
         return self.cache.get(self.frame)
+
+    def read(self, *, cached: bool = True) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """(colour, depth); `cached=False` decodes a stored view without putting it in the cache (a pass that reads
+        each view once, such as the overlap cull, would only push out the views the refinement reuses)."""
+        if self._color is None and self.frame is not None:
+            return self._images() if cached else decoded(self.frame)
+        return self._color, self._depth
 
     @property
     def color(self) -> torch.Tensor | None:  # [H, W, 3] float in [0, 1]
@@ -91,7 +98,7 @@ class ViewCache:
         if hit is not None and hit[0] is frame:
             self.items.move_to_end(id(frame))
             return hit[1], hit[2]
-        color, depth = frame.color_tensor(), frame.depth_tensor()
+        color, depth = decoded(frame)
         self.decoded += 1
         size = color.numel() * color.element_size() + depth.numel() * depth.element_size()
         if size <= self.max_bytes:
@@ -101,6 +108,13 @@ class ViewCache:
                 _, (_, c, d) = self.items.popitem(last=False)
                 self.bytes -= c.numel() * c.element_size() + d.numel() * d.element_size()
         return color, depth
+
+
+def decoded(frame) -> tuple[torch.Tensor, torch.Tensor]:
+    """(colour [H, W, 3], depth [H, W]) tensors of an RGBD or a packed frame, a packed one decoded (and read from
+    its store) once for both."""
+    f = frame.unpacked() if hasattr(frame, "unpacked") else frame
+    return f.color_tensor(), f.depth_tensor()
 
 
 @dataclass
