@@ -16,7 +16,8 @@ keyframe and made plain refinement worse than coarse-only on generated data. Mea
 coarse tracking time; the demo's three agents 6.3 / 2.8 / 5.5 vs 7.4 / 8.0 / 6.0 mm at 1.24-1.28x. A per-frame
 acceptance test keeps the coarse pose unless the refinement lowers the robust residual against the view. In
 real-time mode a frame may come with a deadline (Tracker.deadline): when the refinement's median time would pass
-it, the coarse pose goes out instead (counted; never two frames in a row).
+it and the coarse stage passed its checks without a recovery, the coarse pose goes out instead (counted; never
+two frames in a row).
 
 `method: adam` is the paper's literal eq. 5: Adam on a twist xi = [omega, v] applied on the left of the
 world(local)-to-camera matrix, viewmat = exp(xi) @ viewmat0, through the rasteriser's pose gradient, separate step
@@ -290,8 +291,11 @@ class Tracker:
                     T_coarse, r, recovered = found
                     coarse_ok = r is not None
         T, it, loss, info = T_coarse, 0, float("nan"), None
-        refine = self.cfg.refine or (self.cfg.refine_on_coarse_failure and not coarse_ok)
-        if refine and self.cfg.iterations > 0 and len(params) > 0 and not self._past_deadline():
+        refine = ((self.cfg.refine or (self.cfg.refine_on_coarse_failure and not coarse_ok))
+                  and self.cfg.iterations > 0 and len(params) > 0)
+        if refine and coarse_ok and not recovered and self._past_deadline():  # a doubtful coarse pose is refined
+            refine = False
+        if refine:
             t0 = time.monotonic()
             if self.cfg.method == "gauss_newton":
                 T_view, view = self._model_view(params, frame)
@@ -308,9 +312,9 @@ class Tracker:
 
     def _past_deadline(self) -> bool:
         """Whether the refinement, taking the median of its last runs, would end after `deadline` (then it is
-        left out and counted: the coarse pose goes out in time). Never twice in a row: the frame after a skipped
-        one refines, so the estimate stays measured (a first run slowed by loading its kernels would otherwise
-        leave every later refinement out)."""
+        left out and counted: the coarse pose, which passed its own checks, goes out in time). Never twice in a
+        row: the frame after a skipped one refines, so the estimate stays measured (a first run slowed by loading
+        its kernels would otherwise leave every later refinement out)."""
         late = (self.deadline is not None and bool(self._refine_s) and not self._skipped_last
                 and time.monotonic() + statistics.median(self._refine_s) > self.deadline)
         self._skipped_last = late
