@@ -24,7 +24,7 @@ pytestmark = pytest.mark.skipif(not zenoh_available(), reason="eclipse-zenoh is 
 
 SPLIT = "0:5,2:8"
 # a lossless link: the in-process team's outputs byte for byte
-LOSSLESS = {"images": "lossless", "gaussians": "float32", "cull_gaussians": False, "submap_delay": 0}
+LOSSLESS = {"images": "lossless", "gaussians": "float32", "cull_gaussians": False}
 FAST = {  # as tests/test_team.py: the team's logic, not the map's quality
     "mapping": {"iterations": 8, "first_iterations": 25},
     "tracking": {"refine": False},
