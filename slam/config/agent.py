@@ -270,3 +270,8 @@ class KernelsConfig(_Section):
     device: Literal["cpu", "cuda", "vulkan"] = Field("cpu", description="kernel device (--device; vulkan: taichi "
                                                                         "only)")
     torch_threads: int = Field(1, ge=0, description="torch intra-op threads (0 = torch's default)")
+    malloc_mmap_threshold_kb: int = Field(0, ge=0, description="Linux (glibc): allocations of at least this "
+                                          "many kB get pages of their own, returned to the system when freed "
+                                          "(lower, flatter memory for a few tens of percent more CPU: "
+                                          "slam.run.runtime.tame_allocator); 0 keeps glibc's adaptive rule. "
+                                          "MALLOC_MMAP_THRESHOLD_ in the environment wins")

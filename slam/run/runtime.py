@@ -23,6 +23,29 @@ def use_kernels(cfg: KernelsConfig) -> None:
     kernels.use(cfg.backend, cfg.device)
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
+    tame_allocator(cfg.malloc_mmap_threshold_kb)
+
+
+def tame_allocator(threshold_kb: int) -> bool:
+    """Fix glibc's mmap threshold at `threshold_kb` (mallopt M_MMAP_THRESHOLD): blocks that large are mapped on
+    their own and unmapped when freed. By default glibc raises the threshold to the largest block freed so far
+    (up to 32 MB), after which tensors of a few MB come from the heap, and a heap pinned by a few live blocks
+    between freed ones never shrinks: a 3,000-frame generated mission grew 740 -> 920 MB over its frames that way
+    and stayed at 620-700 MB with a fixed 128 kB threshold. The price is a system call and fresh zeroed pages for
+    every large tensor: Redwood 211, 128 kB against glibc's rule, peak 737 against 837 MB for 127 against 91 s of
+    CPU (sys 36 against 4 s). Nothing happens for 0, off Linux or glibc, or when the user set
+    MALLOC_MMAP_THRESHOLD_ (glibc read it at start). Returns whether the threshold was set."""
+    import ctypes
+    import os
+    import sys
+
+    if threshold_kb <= 0 or not sys.platform.startswith("linux") or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(-3, int(threshold_kb) * 1024))  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):  # not glibc
+        return False
 
 
 def check_device(cfg: KernelsConfig, cameras: list, max_width: int) -> None:
