@@ -260,6 +260,22 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
     assert yaml_realtime(out)
 
 
+def test_realtime_run_offloads_finished_submaps_as_an_offline_run_does(seq, tmp_path):
+    """At 3 Hz every frame is tracked in time: a keyframe every 2 frames, a submap every 2 keyframes, and the
+    worker writes each finished submap's Gaussians and its keyframes' images to the run folder."""
+    from swarmsplat.slam.run.realtime.run import run_realtime
+
+    out = tmp_path / "rt"
+    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 3},
+                                                            "keyframes": {"every": 2},
+                                                            "submaps": {"max_keyframes": 2}})
+    m = run_realtime(seq, out, cfg, progress=False)
+    assert m["frames_tracked"] == 12 and m["submaps"] >= 2
+    assert len(list((out / "submaps").glob("*.bin"))) == m["submaps"] - 1
+    kept = sorted(p.name for p in (out / "keyframes" / "small").glob("*.bin"))
+    assert len(kept) >= 2 and len(kept) < m["keyframes"]  # the active submap's keyframes stay in memory
+
+
 def test_too_slow_for_the_rate_completes_and_says_what_it_dropped(seq, tmp_path):
     """12 frames in 22 ms (500 Hz): the tracker cannot take them all; the run completes, and metrics.json and
     report.md give the drops by reason."""

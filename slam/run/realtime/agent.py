@@ -32,8 +32,7 @@ from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent, FramePose
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
-from swarmsplat.slam.dense.packed import PackedRGBD, pack
-from swarmsplat.slam.dense.submaps import Keyframe
+from swarmsplat.slam.dense.submaps import Keyframe, retire_keyframes
 
 
 class MappingStopped(Exception):
@@ -138,10 +137,11 @@ class RealtimeAgent(Agent):
         # (_retire; tens of ms each), not here between two frames.
         compress, self.compress_keyframes = self.compress_keyframes, False
         store, self.gmap.store = self.gmap.store, None
+        frame_store, self.frame_store = self.frame_store, None
         try:
             T_local_cam = self._maybe_start_submap(T_local_cam)
         finally:
-            self.compress_keyframes, self.gmap.store = compress, store
+            self.compress_keyframes, self.gmap.store, self.frame_store = compress, store, frame_store
         retired = None
         if self.gmap.active.id != before:
             self._published = self.gmap.active.params  # a new submap: nothing mapped in it yet
@@ -234,12 +234,10 @@ class RealtimeAgent(Agent):
 
     def _retire(self, submap_id: int, keyframes: list[Keyframe]) -> None:
         """What slam.dense.submaps.start_submap does to the submap it retires, with the map's store and `compress`:
-        pack its keyframes' images (lossless, so reads are unchanged) and move its Gaussians to the store."""
-        for k in keyframes:
-            if k.map_rgbd is not None and not isinstance(k.map_rgbd, PackedRGBD):
-                k.map_rgbd = pack(k.map_rgbd)
-            if not isinstance(k.small, PackedRGBD):
-                k.small = pack(k.small)
+        pack its keyframes' images (lossless, so reads are unchanged), move them to the agent's frame store if it
+        has one, and move its Gaussians to the map's store. (start_submap has dropped the mapping-resolution
+        images already where they are not kept.)"""
+        retire_keyframes(keyframes, keep_images=True, compress=True, frame_store=self.frame_store)
         self.gmap.retire(self.gmap.submaps[submap_id])
 
 

@@ -41,7 +41,7 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
 
     from ..checkpoint import PoseJournal
     from ..runtime import check_device, use_kernels
-    from ..sequence import JOURNAL, _trajectory_metrics, finish_agent_run, open_sequence, refines
+    from ..sequence import JOURNAL, _trajectory_metrics, finish_agent_run, offload, open_sequence, refines
 
     cfg = config or SlamConfig()
     rt = cfg.runtime
@@ -55,6 +55,7 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
     agent = RealtimeAgent(seq.camera, cfg, name=seq.name)
+    offload(agent, out, cfg)  # finished submaps and their keyframes' images to the run folder (config submaps)
     agent.keep_keyframe_images = refines(cfg) and cfg.map_refine.views == "mapping"
     feed = FrameFeed(seq, offsets, queue=rt.queue, skipper=agent, strict=strict, prepare=agent.prepare)
     journal = PoseJournal(out / JOURNAL)
