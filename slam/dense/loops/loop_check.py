@@ -31,7 +31,16 @@ def residual(T_i: np.ndarray, T_j: np.ndarray, T_ij: np.ndarray) -> tuple[float,
 
 
 def loop_residuals(poses: dict, loops: list[tuple[int, int, np.ndarray]]) -> list[LoopResidual]:
-    return [LoopResidual(n, *residual(poses[i], poses[j], T)) for n, (i, j, T) in enumerate(loops)]
+    """`residual` of every loop, in one array operation over the loops (a long mission's agent checks thousands
+    after each optimisation)."""
+    if not loops:
+        return []
+    Ti = np.stack([poses[i] for i, _, _ in loops]).astype(np.float64)
+    Tj = np.stack([poses[j] for _, j, _ in loops]).astype(np.float64)
+    E = se3.inverse(np.stack([T for _, _, T in loops])) @ se3.inverse(Ti) @ Tj
+    trans = np.linalg.norm(E[:, :3, 3], axis=1)
+    rot = np.degrees(se3.rotation_angle(E[:, :3, :3]))
+    return [LoopResidual(n, float(t), float(r)) for n, (t, r) in enumerate(zip(trans, rot))]
 
 
 def worst_violation(poses: dict, loops: list[tuple[int, int, np.ndarray]], max_trans: float,
