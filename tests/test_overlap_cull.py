@@ -198,8 +198,8 @@ def test_parts_out_of_view_and_chunks_change_nothing(monkeypatch):
     views.append(OwnerView(0, behind, torch.full((CAM.height, CAM.width), 3.0), CAM))
     want = _owner_keep_twin(means, part, views)
     assert 0 < int(want.sum()) < len(want)
-    seen = [oc._box_in_view(lo, hi, v.viewmat[:3, :3], v.viewmat[:3, 3], CAM)
-            for v in views for _, lo, hi in oc._groups(means, part)]
+    seen = [oc._box_in_view(corners, v.viewmat[:3, :3], v.viewmat[:3, 3], CAM)
+            for v in views for _, corners in oc._groups(means, part)]
     assert any(seen) and not all(seen)  # the box test does skip parts
     monkeypatch.setattr(oc, "CHUNK", 100)
     assert torch.equal(owner_keep(means, part, views), want)

@@ -74,7 +74,7 @@ def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], 
                              f"{cam.width}x{cam.height}")
         R, t = v.viewmat[:3, :3].to(torch.float32), v.viewmat[:3, 3].to(torch.float32)
         no_depth = None if v.no_depth is None else torch.as_tensor(v.no_depth, dtype=torch.bool)
-        seen = [g for g, lo, hi in groups if _box_in_view(lo, hi, R, t, cam)]
+        seen = [g for g, corners in groups if _box_in_view(corners, R, t, cam)]
         for chunk in _chunks(seen):
             pc = m[chunk] @ R.T + t
             z = pc[:, 2]
@@ -103,9 +103,12 @@ def owner_keep(means: torch.Tensor, part: torch.Tensor, views: list[OwnerView], 
 CHUNK = 1 << 18  # Gaussians projected at once: the per-view temporaries stay a few MB however large the map
 
 
-def _groups(means: torch.Tensor, part: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-    """[(indices, box min [3], box max [3])] of each part's Gaussians: a view then projects only the parts whose
-    box it can see (a long mission's map is many rooms, a view sees one)."""
+_CORNER = torch.tensor([[(k >> a) & 1 for a in range(3)] for k in range(8)], dtype=torch.bool)  # [8, 3]: True where a corner takes the max
+
+
+def _groups(means: torch.Tensor, part: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """[(indices, the 8 corners [8, 3] of their bounding box)] of each part's Gaussians: a view then projects only
+    the parts whose box it can see (a long mission's map is many rooms, a view sees one)."""
     out = []
     if len(part) == 0:
         return out
@@ -113,16 +116,14 @@ def _groups(means: torch.Tensor, part: torch.Tensor) -> list[tuple[torch.Tensor,
     _, counts = torch.unique_consecutive(part[order], return_counts=True)
     for idx in torch.split(order, counts.tolist()):
         pts = means[idx]
-        out.append((idx, pts.min(dim=0).values, pts.max(dim=0).values))
+        out.append((idx, torch.where(_CORNER, pts.max(dim=0).values, pts.min(dim=0).values)))
     return out
 
 
-def _box_in_view(lo: torch.Tensor, hi: torch.Tensor, R: torch.Tensor, t: torch.Tensor, cam: PinholeCamera) -> bool:
-    """False only when no point of the box [lo, hi] (map frame) can project into the image in front of the camera:
-    every corner behind it, or every corner in front and the corners' projections' bounding box (which holds the
-    box's projection) off the image."""
-    corners = torch.stack([torch.where(torch.tensor([(k >> a) & 1 for a in range(3)], dtype=torch.bool), hi, lo)
-                           for k in range(8)])
+def _box_in_view(corners: torch.Tensor, R: torch.Tensor, t: torch.Tensor, cam: PinholeCamera) -> bool:
+    """False only when no point of the box with these corners [8, 3] (map frame) can project into the image in
+    front of the camera: every corner behind it, or every corner in front and the corners' projections' bounding
+    box (which holds the box's projection) off the image."""
     pc = corners @ R.T + t
     z = pc[:, 2]
     if bool((z <= NEAR).all()):
