@@ -49,6 +49,13 @@ def _peak_mb() -> float:
     return round(kb / 1024.0, 1)
 
 
+def _refined_count(st: dict | None) -> int | None:
+    """Gaussians the refinement started from: the map less what the overlap cull dropped."""
+    if not st or "gaussians" not in st:
+        return None
+    return int(st["gaussians"]) - int(st.get("overlap_dropped", 0))
+
+
 def _tenths(x: list[float]) -> tuple[list[float], list[float]]:
     k = max(1, len(x) // 10)
     return x[:k], x[-k:]
@@ -126,7 +133,11 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
            "run_folder_mb": _disk_mb(out), "submaps_mb": _disk_mb(out / "submaps") if (out / "submaps").is_dir()
            else 0.0, "keyframes_mb": _disk_mb(out / "keyframes") if (out / "keyframes").is_dir() else 0.0,
            "ate_rmse_cm": round(100 * m["ate_rmse"], 2) if isinstance(m.get("ate_rmse"), (int, float)) else None,
-           "psnr_merged_db": m.get("psnr_merged")}
+           "psnr_merged_db": m.get("psnr_merged"),
+           # the refinement: Gaussians after the overlap cull, and the most one region optimised at once
+           "refine_regions": (m.get("map_refine") or {}).get("regions"),
+           "refine_gaussians": _refined_count(m.get("map_refine")),
+           "refine_region_gaussians_max": (m.get("map_refine") or {}).get("region_gaussians_max")}
     notes = [f"generated {frames} frames 320x240 ({laps:g} laps of a 2x2-room world) in {t_gen:.0f} s; "
              f"kernels {backends[0]} on {device}; defaults otherwise (finished submaps: submaps.storage "
              f"{cfg.submaps.storage}, offload {str(cfg.submaps.offload).lower()}; submaps_mb: their files; their "

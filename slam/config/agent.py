@@ -180,6 +180,11 @@ class MapRefineConfig(_Section):
     view_cache_mb: float = Field(64.0, ge=0, description="decoded keyframe images the refinement keeps between "
                                  "steps (MB, float tensors, least recently used dropped first); the rest stay as "
                                  "stored (PNG) and are decoded at each step (0 = decode every time)")
+    region_gaussians: int = Field(524288, ge=0, description="refine a map of more Gaussians than this (after the "
+                                  "overlap cull) region by region: split in space into regions of at most this "
+                                  "many, each optimised over the keyframes that see it with the rest of the map "
+                                  "drawn frozen, so the optimiser's memory is a region's "
+                                  "(slam.dense.mapping.refine_regions); 0 = the whole map at once")
 
 
 class SubmapConfig(_Section):
@@ -275,3 +280,6 @@ class KernelsConfig(_Section):
                                           "(lower, flatter memory for a few tens of percent more CPU: "
                                           "slam.run.runtime.tame_allocator); 0 keeps glibc's adaptive rule. "
                                           "MALLOC_MMAP_THRESHOLD_ in the environment wins")
+    malloc_trim: bool = Field(True, description="Linux (glibc): hand the heap's free pages back to the system each "
+                              "time a submap is finished (slam.run.runtime.trim_heap), so a long mission's "
+                              "memory does not creep up with its submaps")

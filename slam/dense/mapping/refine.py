@@ -18,7 +18,8 @@ import torch
 from swarmsplat.kernels import se3
 
 from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, transform_params
-from swarmsplat.slam.dense.mapping.refine_merged import RefineView, ViewCache, refine_map
+from swarmsplat.slam.dense.mapping.refine_merged import RefineView, ViewCache
+from .refine_regions import refine_by_region
 from swarmsplat.slam.dense.packed import PackedRGBD
 from .mapper import fallback_depth
 from .overlap_cull import OwnerView, owner_keep
@@ -83,7 +84,7 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) 
     starts = np.cumsum([0] + [n for _, _, n in parts])
     merged = GaussianParams.concat([transform_params(sm.params, T).select(owned[a:a + n])
                                     for (sm, T, n), a in zip(parts, starts)])
-    refined, kept, st = refine_map(merged, views, cfg, mapping, fixed_views=fixed_views)
+    refined, kept, st, regions = refine_by_region(merged, views, cfg, mapping, fixed_views=fixed_views)
     keep = owned.clone()
     keep[owned] = kept
     overlap, hidden = int((~owned).sum()), int((~kept).sum())
@@ -108,7 +109,7 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) 
     return {"iterations": st.iterations, "keyframes": st.views, "gaussians": total, "overlap_dropped": overlap,
             "hidden_dropped": hidden,
             "pruned": pruned, "loss_first": st.loss_first, "loss_last": st.loss_last,
-            "overlap_cull_seconds": cull_s, **poses, "seconds": time.perf_counter() - t0}
+            "overlap_cull_seconds": cull_s, **regions, **poses, "seconds": time.perf_counter() - t0}
 
 
 def _start_pose(server, a, kf, cfg):

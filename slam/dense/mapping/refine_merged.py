@@ -227,8 +227,8 @@ def lr_factor(final: float, step: int, steps: int) -> float:
 
 
 def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
-               iterations: int | None = None, fixed_views: set[int] | None = None
-               ) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
+               iterations: int | None = None, fixed_views: set[int] | None = None,
+               context: GaussianParams | None = None) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
     """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
     mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
     rates x `cfg.lr_scale`, decaying geometrically to `cfg.lr_final_scale` of that at the last step (`lr_factor`).
@@ -241,6 +241,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
 
     With `cfg.refine_poses` the views' poses are refined too, all but `fixed_views` (default: the first view,
     which holds the gauge): `stats.viewmats` has them, `stats.pose_moves` how far each moved.
+
+    `context`: Gaussians rendered with `params` at every step (those in the step's view) but not optimised: the
+    rest of the map when `params` is one region of it (slam.dense.mapping.refine_regions).
 
     Returns (kept Gaussians, refined, in their original order; keep [N] bool over the input; statistics), so the
     caller can hand each submap its own surviving Gaussians back. `iterations` overrides the budget.
@@ -266,6 +269,7 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     # Found again at each step from a copy of them rather than kept per view: in a revisited place every view
     # sees a large share of the map, and views x visible indices grew with the square of the mission.
     means0 = p.means.detach().clone()
+    ctx = None if context is None or len(context) == 0 else context.map(torch.Tensor.detach)
     poses = (_PoseSteps(views, cfg.lr_pose_rotation, cfg.lr_pose_translation,
                         fixed={0} if fixed_views is None else set(fixed_views))
              if cfg.refine_poses and len(views) > 1 else None)
@@ -294,9 +298,15 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
         # the demo's 211k-Gaussian map, 114k rows per view: 8 vs 15 ms per step).
         sub = GaussianParams(*(t.detach().index_select(0, idx).requires_grad_(True) for t in tensors))
         viewmat, leaf = poses.viewmat(j, v) if poses is not None else (v.viewmat, None)
-        act = activate(sub)
-        out = render(sub, viewmat, v.camera, activated=act)
-        loss = mapping_loss(out, v.color, v.depth, sub, mapping, cfg.lambda_color, cfg.isotropic_regulariser, act)
+        drawn = sub
+        if ctx is not None:  # the frozen rest of the map in this view, drawn with the step's Gaussians
+            cidx = visible_indices(ctx.means, v, cfg.view_margin)
+            if len(cidx):
+                drawn = GaussianParams(*(torch.cat([a, b.index_select(0, cidx)])
+                                         for a, b in zip(sub.tensors(), ctx.tensors())))
+        act = activate(drawn)
+        out = render(drawn, viewmat, v.camera, activated=act)
+        loss = mapping_loss(out, v.color, v.depth, drawn, mapping, cfg.lambda_color, cfg.isotropic_regulariser, act)
         loss.backward()
         if poses is not None:
             poses.step(j, leaf)

@@ -33,6 +33,7 @@ from swarmsplat.slam.dense.agent import Agent, FramePose
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from swarmsplat.slam.dense.submaps import Keyframe, retire_keyframes
+from swarmsplat.slam.run.runtime import trim_heap
 
 
 class MappingStopped(Exception):
@@ -239,6 +240,8 @@ class RealtimeAgent(Agent):
         images already where they are not kept.)"""
         retire_keyframes(keyframes, keep_images=True, compress=True, frame_store=self.frame_store)
         self.gmap.retire(self.gmap.submaps[submap_id])
+        if self.cfg.kernels.malloc_trim:
+            trim_heap()
 
 
 def _lower_priority(nice: int) -> None:
