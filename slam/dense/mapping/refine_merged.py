@@ -60,6 +60,10 @@ class RefineView:
         self.camera = camera
         self._color, self._depth, self.frame, self.cache = color, depth, frame, cache
 
+    def at(self, viewmat: torch.Tensor) -> "RefineView":
+        """The same keyframe and images seen from `viewmat` (a refined pose)."""
+        return RefineView(viewmat, self._color, self._depth, self.camera, frame=self.frame, cache=self.cache)
+
     def _images(self) -> tuple[torch.Tensor, torch.Tensor]:
         if self.cache is None:
             return decoded(self.frame)

@@ -106,10 +106,6 @@ def unoccluded(means: torch.Tensor, view: RefineView, cfg: MapRefineConfig) -> t
     return idx[keep]
 
 
-def _with_viewmat(v: RefineView, viewmat: torch.Tensor) -> RefineView:
-    return RefineView(viewmat, v._color, v._depth, v.camera, frame=v.frame, cache=v.cache)
-
-
 def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig,
                      mapping: MappingConfig, *, fixed_views: set[int] | None = None
                      ) -> tuple[GaussianParams, torch.Tensor, RefineStats, dict]:
@@ -168,7 +164,7 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
         if st.viewmats is not None:
             for i, j in enumerate(vs.tolist()):
                 if home[j] == k:
-                    current[j] = _with_viewmat(current[j], st.viewmats[i])
+                    current[j] = current[j].at(st.viewmats[i])
 
     def mean(pairs):
         return float(np.average([x for x, _ in pairs], weights=[w for _, w in pairs])) if pairs else float("nan")
