@@ -158,3 +158,27 @@ def test_single_agent_run_refines_its_merged_map(tmp_path, warp_cpu):
     assert on["ate_rmse"] == off["ate_rmse"]  # refinement moves the map, not the trajectory
     assert on["psnr_merged"] > off["psnr_merged"]
     assert on["psnr"] == off["psnr"] and on["ssim"] == off["ssim"]
+
+
+def test_single_agent_refinement_region_by_region(tmp_path, warp_cpu):
+    """map_refine.region_gaussians below the merged map's size: the run refines it region by region through the
+    same path (slam.dense.mapping.refine -> refine_regions), records the regions in metrics.json, keeps every
+    region within the bound, and the merged map gains as it does refined whole."""
+    from swarmsplat.slam.run.sequence import run_sequence
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    ds = generate(tmp_path / "ds", GeneratorConfig.preset("tiny", agents=1, frames=6, seed=1))
+    seq = next(p for p in ds.iterdir() if p.is_dir())
+    cfg = SlamConfig().override(QUICK).override({"map_refine": {"iterations_per_keyframe": 6}})
+    off = run_sequence(seq, tmp_path / "off", cfg.override({"map_refine": {"single_agent": False}}), progress=False)
+    whole = run_sequence(seq, tmp_path / "whole", cfg, progress=False)
+    st = whole["map_refine"]
+    assert st["regions"] == 1
+    bound = (st["gaussians"] - st["overlap_dropped"]) // 2
+    parts = run_sequence(seq, tmp_path / "parts", cfg.override({"map_refine": {"region_gaussians": bound}}),
+                         progress=False)
+    sp = parts["map_refine"]
+    assert sp["regions"] == 2 and 0 < sp["region_gaussians_max"] <= bound
+    assert sp["iterations"] >= st["iterations"]  # every keyframe visited in each region it sees
+    assert parts["ate_rmse"] == whole["ate_rmse"]
+    assert parts["psnr_merged"] > off["psnr_merged"] + 0.5 * (whole["psnr_merged"] - off["psnr_merged"])
