@@ -122,17 +122,19 @@ def test_rooms_are_refined_over_their_own_keyframes():
     assert _error(refined, views) < 0.6 * _error(start, views)
 
 
-def test_regions_of_one_room_fit_as_the_whole_map_does():
-    """Every keyframe sees both halves of one wall: each half is fitted over all of them, drawn with the other
-    half, and the result is as good as refining the wall at once."""
+@pytest.mark.parametrize("n_regions", [2, 12])
+def test_regions_of_one_room_fit_as_the_whole_map_does(n_regions):
+    """Every keyframe sees all of one wall: each region of it (halves; or twelve strips, each a small share of
+    what a view sees) is fitted over all of them, drawn with the rest, and the result is as good as refining the
+    wall at once."""
     p, views = _scene(hidden=False, rooms=ROOMS[:1])
     cfg = MapRefineConfig(iterations_per_keyframe=8, min_contribution=0.0)
     with use_reference():
         whole, _, _ = refine_map(p, views, cfg, MappingConfig())
-        parts, _, st, info = refine_by_region(p, views, cfg.model_copy(update={"region_gaussians": len(p) // 2}),
-                                              MappingConfig())
-    assert info["regions"] == 2 and info["region_keyframes_max"] == len(views)
-    assert st.iterations == 2 * iteration_budget(cfg, len(views))  # every keyframe visited in both regions
+        parts, _, st, info = refine_by_region(
+            p, views, cfg.model_copy(update={"region_gaussians": -(-len(p) // n_regions)}), MappingConfig())
+    assert info["regions"] == n_regions and info["region_keyframes_max"] == len(views)
+    assert st.iterations == n_regions * iteration_budget(cfg, len(views))  # every keyframe visited in each region
     e0, e_whole, e_parts = _error(p, views), _error(whole, views), _error(parts, views)
     assert e_whole < 0.6 * e0
     assert e_parts < 1.15 * e_whole

@@ -194,3 +194,22 @@ def test_trajectory_follows_each_keyframes_optimum_not_only_the_submap_move():
     assert np.allclose(T[:2], rigid[:2])  # keyframe 0 did not move
     assert np.allclose(T[2], opt1) and np.allclose(T[3], opt1 @ se3.inverse(local[2]) @ local[3])
     assert not np.allclose(T[3], rigid[3])
+
+
+def test_team_refines_its_component_region_by_region(tiny, tmp_path):
+    """The server's refinement of a component through slam.dense.mapping.refine_regions (map_refine.region_gaussians
+    below the component's map), with pose refinement: regions within the bound, poses moved, the map gains over its
+    pre-refinement renders about as much as refined whole, and the team stays in one frame."""
+    seq = load_dataset(tiny[0]).agents[0]
+    ds = split_sequence(seq, [(0, 5), (2, 8)])
+    cfg = SlamConfig().override(FAST).override({"map_refine": {"refine_poses": True}})
+    whole = run_team(ds, tmp_path / "whole", cfg, server=ServerConfig(tau_sim=0.5), progress=False, render_views=2)
+    m = run_team(ds, tmp_path / "regions", cfg.override({"map_refine": {"region_gaussians": 2000}}),
+                 server=ServerConfig(tau_sim=0.5), progress=False, render_views=2)
+    st = m["map_refine"]["components"]["agent_0"]
+    assert whole["map_refine"]["components"]["agent_0"]["regions"] == 1
+    assert st["regions"] >= 5 and st["region_gaussians_max"] <= 2000  # regions each a small share of a view
+    assert st["pose_translation_m_max"] > 0
+    gain, gain_whole = m["psnr"] - m["psnr_before_refine"], whole["psnr"] - whole["psnr_before_refine"]
+    assert gain_whole > 1.0 and gain > 0.8 * gain_whole
+    assert m["ate_rmse_team"] is not None and m["ate_rmse_team"] < 0.05
