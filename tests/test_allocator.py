@@ -32,7 +32,7 @@ def test_threshold_is_set_unless_the_environment_set_one():
 
 TRIM = """
 import ctypes
-from swarmsplat.slam.run.runtime import trim_heap
+from swarmsplat.kernels.memory import trim_heap
 
 def rss_kb():
     with open("/proc/self/status") as f:

@@ -281,5 +281,5 @@ class KernelsConfig(_Section):
                                           "slam.run.runtime.tame_allocator); 0 keeps glibc's adaptive rule. "
                                           "MALLOC_MMAP_THRESHOLD_ in the environment wins")
     malloc_trim: bool = Field(True, description="Linux (glibc): hand the heap's free pages back to the system each "
-                              "time a submap is finished (slam.run.runtime.trim_heap), so a long mission's "
+                              "time a submap is finished (kernels.memory.trim_heap), so a long mission's "
                               "memory does not creep up with its submaps")

@@ -11,6 +11,7 @@ import torch
 
 from swarmsplat.kernels import se3
 from swarmsplat.kernels.camera import PinholeCamera
+from swarmsplat.kernels.memory import trim_heap
 
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.loops.edge_information import OdometryChain, failed_covariance, registration_covariance
@@ -82,6 +83,7 @@ class Agent:
         T_local_cam = self._track(frame)
         t1 = time.perf_counter()
         if self._is_keyframe(T_local_cam):
+            n_submaps = len(self.gmap.submaps)
             T_local_cam = self._maybe_start_submap(T_local_cam)
             kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
             self._map(kf)
@@ -89,6 +91,8 @@ class Agent:
             self._detect_loops(kf)
             self.time.mapping += t2 - t1
             self.time.loop_closure += time.perf_counter() - t2
+            if n_submaps and len(self.gmap.submaps) > n_submaps and self.cfg.kernels.malloc_trim:
+                trim_heap()  # a submap was finished: its memory is free now (kernels.malloc_trim)
         self.time.tracking += t1 - t0
         self.time.frames += 1
         rec = FramePose(index, timestamp, self.gmap.active.id, T_local_cam)

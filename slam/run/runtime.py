@@ -35,34 +35,14 @@ def tame_allocator(threshold_kb: int) -> bool:
     every large tensor: Redwood 211, 128 kB against glibc's rule, peak 737 against 837 MB for 127 against 91 s of
     CPU (sys 36 against 4 s). Nothing happens for 0, off Linux or glibc, or when the user set
     MALLOC_MMAP_THRESHOLD_ (glibc read it at start). Returns whether the threshold was set."""
-    import ctypes
     import os
-    import sys
 
-    if threshold_kb <= 0 or not sys.platform.startswith("linux") or "MALLOC_MMAP_THRESHOLD_" in os.environ:
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(-3, int(threshold_kb) * 1024))  # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):  # not glibc
-        return False
+    from swarmsplat.kernels.memory import glibc
 
-
-def trim_heap() -> bool:
-    """Hand the heap's free pages back to the system (glibc malloc_trim(0): every arena, holes between live
-    blocks included). Called once per finished submap (kernels.malloc_trim): a submap's tensors, its keyframes'
-    images and the loop closer's temporaries are freed by then, and without a trim glibc keeps the pages of a
-    heap that a few live blocks pin, so a long mission's resident memory climbs a little with every submap.
-    A few milliseconds per call. Nothing off Linux or glibc; returns whether memory was released."""
-    import ctypes
-    import sys
-
-    if not sys.platform.startswith("linux"):
+    libc = glibc()
+    if threshold_kb <= 0 or libc is None or "MALLOC_MMAP_THRESHOLD_" in os.environ:
         return False
-    try:
-        return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
-    except (OSError, AttributeError):  # not glibc
-        return False
+    return bool(libc.mallopt(-3, int(threshold_kb) * 1024))  # M_MMAP_THRESHOLD
 
 
 def check_device(cfg: KernelsConfig, cameras: list, max_width: int) -> None:

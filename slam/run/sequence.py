@@ -21,7 +21,7 @@ from swarmsplat.slam.io.jsonio import write_json
 from swarmsplat.slam.dense.loops.loop_log import count_by_source
 from .partial_results import write_partial_agent
 from swarmsplat.slam.run.guard import guarded, keep, read_frame
-from .runtime import check_not_empty, guard_warnings, kernels_record, trim_heap
+from .runtime import check_not_empty, guard_warnings, kernels_record
 
 JOURNAL = Path("progress") / "poses.tum"  # slam.run.checkpoint.PoseJournal
 
@@ -83,8 +83,6 @@ def run_sequence(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
             if observer is not None:
                 observer(agent)
             finished = len(agent.gmap.submaps) - 1  # submaps finished (frozen) so far
-            if cfg.kernels.malloc_trim and len(agent.gmap.submaps) > n_submaps:
-                trim_heap()
             if every and len(agent.gmap.submaps) > n_submaps and finished and finished % every == 0:
                 checkpoint(i + 1)
     if every and start < n:  # every frame done: a kill in the refinement resumes at the refinement

@@ -28,7 +28,6 @@ from swarmsplat.slam.dense.agent import Agent
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.loops.loop_log import LoopRecord
 from .partial_results import write_partial_team
-from .runtime import trim_heap
 from swarmsplat.slam.run.guard import guarded, keep, read_frame
 from swarmsplat.slam.dense.team.server import Server, ServerConfig
 
@@ -75,8 +74,6 @@ class Team:
             self.journals[a].follow(ag)
         if len(ag.gmap.submaps) > n_sm:
             self._record_origin(a)
-            if self.cfg.kernels.malloc_trim:
-                trim_heap()
         if len(ag.keyframes) > n_kf:
             return self.server.on_keyframe(a, ag.keyframes[-1], self.rounds)
         return []

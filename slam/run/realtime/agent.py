@@ -33,7 +33,7 @@ from swarmsplat.slam.dense.agent import Agent, FramePose
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from swarmsplat.slam.dense.submaps import Keyframe, retire_keyframes
-from swarmsplat.slam.run.runtime import trim_heap
+from swarmsplat.kernels.memory import trim_heap
 
 
 class MappingStopped(Exception):
