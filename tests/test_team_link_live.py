@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 zenoh = pytest.importorskip("zenoh")
@@ -33,6 +34,8 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     from swarmsplat.slam.io.datasets import load_dataset
     from swarmsplat.slam.io.datasets.split import parse_ranges, split_sequence
     from swarmsplat.slam.io.live import PosePublisher, ZenohRos2Source, zenoh_config
+    from swarmsplat.slam.io.trajectory import read_tum
+    from swarmsplat.slam.metrics.ate import ate
     from swarmsplat.slam.run.team_link.live_agent import run_live_team_agent
     from swarmsplat.slam.synthetic import GeneratorConfig, generate
 
@@ -107,6 +110,38 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     assert 2 <= len(journal) <= len(live_seq)
     traj = (tmp_path / "robot_b" / "trajectory.txt").read_text().splitlines()
     assert len([ln for ln in traj if not ln.startswith("#")]) == len(live_seq)
+
+    # it joined the team: in the recorded agent's frame (one component), where its poses meet the truth
+    others = [a for a in team["agents"] if a["name"] != "robot_b"]
+    assert team["all_agents_joined"] and team["loops_accepted"] >= 1, team
+    assert by_name["robot_b"]["in_global_frame"] and by_name["robot_b"]["component"] == others[0]["component"]
+    assert by_name["robot_b"]["ate_rmse"] < 0.03, by_name["robot_b"]
+    # the poses it published live: one per frame, at that frame's timestamp, where the frame was (a few cm of the
+    # truth after one rigid alignment; the scene is ~2 m across), and the ones its journal keeps
+    stamps, T_pub = _decode_poses(store, poses)
+    np.testing.assert_allclose(stamps, live_seq.timestamps, atol=1e-6)
+    assert np.all(np.isfinite(T_pub)) and np.allclose(T_pub[:, 3], [0, 0, 0, 1])
+    live_ate = ate(live_seq.timestamps, live_seq.gt_poses, stamps, T_pub).stats.rmse
+    assert live_ate < 0.03, live_ate
+    j_stamps, T_journal = read_tum(tmp_path / "robot_b" / "progress" / "poses.tum")
+    np.testing.assert_allclose(j_stamps, stamps[:len(j_stamps)], atol=1e-6)
+    np.testing.assert_allclose(T_journal[:, :3, 3], T_pub[:len(j_stamps), :3, 3], atol=1e-5)
+
+
+def _decode_poses(store, payloads: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps [N] s, T_world_cam [N, 4, 4]) of CDR geometry_msgs/PoseStamped messages."""
+    from swarmsplat.kernels.se3 import quat_wxyz_to_matrix
+
+    stamps, T = [], []
+    for b in payloads:
+        msg = store.deserialize_cdr(b, "geometry_msgs/msg/PoseStamped")
+        p, q = msg.pose.position, msg.pose.orientation
+        M = np.eye(4)
+        M[:3, :3] = quat_wxyz_to_matrix(np.array([q.w, q.x, q.y, q.z]))
+        M[:3, 3] = [p.x, p.y, p.z]
+        stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+        T.append(M)
+    return np.array(stamps), np.array(T)
 
 
 def test_an_agent_without_an_id_and_no_server_says_so(tmp_path, capsys):
