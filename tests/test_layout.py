@@ -17,6 +17,7 @@ Layers, top to bottom (docs/dev.md draws them):
 from __future__ import annotations
 
 import ast
+import importlib.util
 import subprocess
 import sys
 import zipfile
@@ -128,10 +129,13 @@ def test_graph_imports_without_torch():
 
 @pytest.mark.slow
 def test_the_wheel_installs_one_top_level_name(tmp_path):
+    # The build runs without network (--no-build-isolation: with this environment's packages, none fetched), so the
+    # one thing it may lack is the build backend itself; any other failure is the wheel's and fails the test.
+    if importlib.util.find_spec("setuptools") is None:
+        pytest.skip("setuptools (the build backend) is not installed in this environment, and an offline build "
+                    "with --no-build-isolation cannot fetch it")
     out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
                           "-w", str(tmp_path), str(REPO)], capture_output=True, text=True)
-    if out.returncode and "No module named" in out.stderr:
-        pytest.skip(f"cannot build a wheel here: {out.stderr.strip()[-200:]}")
     assert out.returncode == 0, out.stderr[-2000:]
     (wheel,) = tmp_path.glob("swarmsplat-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
