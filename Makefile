@@ -42,6 +42,7 @@ browser:
 	fi
 
 test: setup browser
+	$(VENV)/bin/ruff check
 	$(VPY) -m pytest -q
 
 bench: setup
