@@ -3,7 +3,8 @@ the agents and the server of slam.run.team_link run in this process, one round a
 Duplicated, delayed and reordered messages, and a link lost for several rounds, leave the outputs byte-identical
 to the in-process team's; a queue too small for a long outage drops the oldest keyframe images and never a pose
 or an edge; an agent that vanishes is reported lost and the other finishes; a server rebuilt from its journal
-continues as if nothing happened; garbage bytes are counted and dropped."""
+continues as if nothing happened; garbage bytes are counted and dropped. Over real Zenoh on localhost, a router
+the link runs through stops and comes back: the same outputs, the lost messages resent."""
 
 from __future__ import annotations
 
@@ -48,11 +49,11 @@ class Linked:
 
         self.ds, self.cfg, self.journal = ds, cfg, journal
         n = len(ds.agents)
-        self.net = InProcessNetwork(range(n + 1), faults=faults)
+        self.net = self._network(n + 1, faults)
         self.t = 0
         self.clock = lambda: float(self.t)
         self.server = self._server()
-        self.agents = [AgentNode(s.camera, cfg, s.name, self.net.endpoint(k + 1, L.LINK), clock=self.clock)
+        self.agents = [AgentNode(s.camera, cfg, s.name, self._endpoint(k + 1, L.LINK), clock=self.clock)
                        for k, s in enumerate(ds.agents)]
         for node, s in zip(self.agents, ds.agents):
             node.start(len(s))
@@ -66,13 +67,22 @@ class Linked:
 
         team = Team([s.camera for s in self.ds.agents], [s.name for s in self.ds.agents], self.cfg,
                     agent_class=AgentMirror)
-        return ServerNode(team, self.net.endpoint(0, L.LINK), journal=self.journal, say=lambda *a: None,
+        return ServerNode(team, self._endpoint(0, L.LINK), journal=self.journal, say=lambda *a: None,
                           clock=self.clock)
+
+    def _network(self, nodes: int, faults):
+        return InProcessNetwork(range(nodes), faults=faults)
+
+    def _endpoint(self, node: int, codec):
+        return self.net.endpoint(node, codec)
+
+    def _deliver(self) -> None:
+        self.net.advance(self.t)
 
     def tick(self, k: int = 1) -> None:
         for _ in range(k):
             self.t += 1
-            self.net.advance(self.t)
+            self._deliver()
             self.server.step()
             for node, alive in zip(self.agents, self.alive):
                 if alive:
@@ -278,3 +288,120 @@ def test_agent_ids_by_name():
     assert Registry(2, taken={"robot_a": 1}).assign("robot_b") == 0  # a restarted server keeps who had what
     with pytest.raises(InputError):
         r.assign("")
+
+
+# ---- over real Zenoh on localhost: the link through a router that stops and comes back ---------------------------
+
+ROUTER = """
+import sys, zenoh
+conf = zenoh.Config()
+conf.insert_json5("mode", '"router"')
+conf.insert_json5("scouting/multicast/enabled", "false")
+conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:%d"]' % int(sys.argv[1]))
+session = zenoh.open(conf)
+print("ready", flush=True)
+sys.stdin.read()  # until the test stops it
+"""
+
+
+class Router:
+    """A Zenoh router in a process of its own on a loopback port (what `zenohd` is on a robot's network)."""
+
+    def __init__(self, port: int):
+        self.port, self.proc = port, None
+
+    def start(self) -> None:
+        import subprocess
+        import sys
+
+        self.proc = subprocess.Popen([sys.executable, "-c", ROUTER, str(self.port)], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout.readline().strip() == "ready", "the Zenoh router did not start"
+
+    def stop(self) -> None:
+        """As a crash or a power cut: SIGKILL, no goodbye to the sessions."""
+        self.proc.kill()
+        self.proc.wait(timeout=10)
+
+
+class ZenohLinked(Linked):
+    """The same nodes, each on a Zenoh session of its own in client mode, connected to one router only: every
+    message crosses the router, so stopping it cuts every link. The nodes' clock is still the test's tick; each
+    tick gives Zenoh a moment to deliver."""
+
+    def __init__(self, ds, cfg, router_at: str):
+        self.router_at, self.sessions = router_at, []
+        super().__init__(ds, cfg)
+
+    def _network(self, nodes: int, faults):
+        self.nodes = list(range(nodes))
+        return None
+
+    def _endpoint(self, node: int, codec):
+        from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
+
+        tx = ZenohTransport(node, self.nodes, run="faults", codec=codec, listen=[], connect=[self.router_at],
+                            block=True, mode="client")
+        self.sessions.append(tx)
+        return tx
+
+    def _deliver(self) -> None:
+        import time
+
+        time.sleep(0.03)
+
+    def connected(self, timeout: float = 20.0) -> bool:
+        import time
+
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            if all(list(tx.session.info.routers_zid()) for tx in self.sessions):
+                time.sleep(0.2)  # the subscriptions' declarations reach the router
+                return True
+            time.sleep(0.05)
+        return False
+
+    def close(self) -> None:
+        for tx in self.sessions:
+            tx.close()
+
+
+def test_a_router_outage_over_zenoh_queues_resends_and_changes_nothing(reference, tmp_path):
+    """The agents and the server talk through a real Zenoh router on localhost, which is killed after the first
+    round and started again four rounds later: the agents keep tracking and mapping, what they sent meanwhile is
+    lost on the way and resent once the sessions have reconnected, and the outputs are byte-identical to the
+    in-process team's."""
+    pytest.importorskip("zenoh")
+    from test_live_zenoh import _free_port
+
+    root, ds, cfg, _ = reference
+    # the outage is in rounds, but reconnecting takes wall time: no agent may be declared lost for it
+    cfg = cfg.override({"link": {"agent_timeout_s": 10_000.0}})
+    router = Router(_free_port())
+    router.start()
+    link = None
+    try:
+        link = ZenohLinked(ds, cfg, f"tcp/127.0.0.1:{router.port}")
+        assert link.connected(), "the nodes did not reach the router"
+        received: dict[int, int] = {}
+
+        def outage(link, i):
+            if i == 1:
+                router.stop()
+            if i in (2, 4):  # messages the server has received, from every agent
+                received[i] = sum(sum(st.recv_count.values()) for st in link.server.tx.peer_stats.values())
+            if i == 5:
+                router.start()
+                assert link.connected(), "the nodes did not reconnect to the restarted router"
+
+        link.run(outage, max_ticks=400)
+        assert all(node.outbox.resent > 0 for node in link.agents)  # both lost messages in the outage
+        assert not any(p.lost for p in link.server.peers)
+        assert received[2] == received[4]  # nothing crossed while the router was down
+        link.write(tmp_path)
+    finally:
+        if link is not None:
+            link.close()
+        if router.proc.poll() is None:
+            router.stop()
+    assert all(_same(root, tmp_path).values()), _same(root, tmp_path)

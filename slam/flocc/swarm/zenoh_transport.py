@@ -1,9 +1,10 @@
-"""`Transport` over Zenoh (`eclipse-zenoh`): peer-to-peer sessions, no router or broker, one per robot process.
+"""`Transport` over Zenoh (`eclipse-zenoh`): peer-to-peer sessions (or clients of a router), one per robot process.
 
 Each robot listens on `tcp/<host>:<port_base + id>` and connects to the other robots' endpoints (multicast
 scouting off, so tests stay on loopback). Messages go to key `swarmsplat/<run>/to/<dest>` or, for a broadcast,
 `swarmsplat/<run>/all`. Given `listen` / `connect` endpoints instead (a team server on one machine, its agents on
-others: slam.run.team_link), a node listens and connects where told. The rendezvous schedule is enforced on both ends with the robot's own tick clock: a robot
+others: slam.run.team_link), a node listens and connects where told; in mode "client" it only connects, to a Zenoh
+router (`zenohd`) that carries every message, and reconnects when the router comes back. The rendezvous schedule is enforced on both ends with the robot's own tick clock: a robot
 does not send to a robot it is not linked with, and drops what arrives from one.
 
 `zenoh` is imported when a transport is created, so the rest of the package works without it.
@@ -36,8 +37,10 @@ class ZenohTransport(Transport):
     def __init__(self, robot: int, robots: list[int], *, run: str = "default", port_base: int = 17447,
                  host: str = "127.0.0.1", schedule: Schedule | None = None, clock: Callable[[], int] | None = None,
                  codec: M.Codec | None = None, listen: list[str] | None = None, connect: list[str] | None = None,
-                 block: bool = False):
+                 block: bool = False, mode: str = "peer"):
         super().__init__(robot, codec)
+        if mode not in ("peer", "client"):
+            raise InputError(f"Zenoh mode {mode!r}: peer or client expected")
         try:
             import zenoh
         except ImportError:
@@ -47,7 +50,7 @@ class ZenohTransport(Transport):
         self.schedule, self.clock = schedule, clock or (lambda: 0)
         self.prefix = f"swarmsplat/{run}"
         conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("mode", json.dumps(mode))
         conf.insert_json5("scouting/multicast/enabled", "false")
         if listen is None and connect is None:  # robot K on port_base + K, connected to every other robot
             listen = [f"tcp/{host}:{port_base + self.robot}"]
