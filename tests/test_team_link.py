@@ -91,7 +91,11 @@ def test_run_processes_writes_the_in_process_outputs(team_run, tmp_path):
         assert {"Welcome", "Ack", "Correction"} <= set(s["bytes_to_agent"])
         assert 0 < s["bytes_per_keyframe"] and 0 < s["bytes_per_submap"]
         assert s["bytes_total"] == sum(s["bytes_from_agent"].values()) + sum(s["bytes_to_agent"].values())
-        assert s["fraction_of_raw"] == pytest.approx(s["bytes_total"] / (1_536_000 * s["keyframes"]))
+        # against the keyframes it sent, raw: 8-bit RGB + 16-bit depth at the size of its input frames
+        w, h = ds.agents[0].camera.width, ds.agents[0].camera.height
+        assert s["input_size"] == [w, h] and s["raw_keyframe_bytes"] == w * h * 5 == link["raw_keyframe_bytes"]
+        assert s["fraction_of_raw"] == pytest.approx(s["bytes_total"] / (w * h * 5 * s["keyframes"]))
+        assert s["raw_rgbd_640x480_bytes"] == 640 * 480 * 5 * s["keyframes"]
         assert s["agent_side"]["resent"] == 0 and s["dropped_images"] == 0
     assert "## Link" in (out / "report.md").read_text()
 

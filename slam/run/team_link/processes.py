@@ -177,8 +177,10 @@ def _add_link(out: Path, metrics: dict) -> None:
     write_json(out / "metrics.json", metrics)
     link = metrics["link"]
     rows = ["", "## Link (agents and server in separate processes)", "",
-            f"Gaussians sent as {link['gaussians']}; raw comparison: a 640x480 RGB-D keyframe is "
-            f"{link['raw_keyframe_bytes'] / 1e6:.2f} MB.", "",
+            f"Gaussians sent as {link['gaussians']}; \"of raw\": all bytes both ways against the agent's keyframes "
+            "sent raw (8-bit RGB + 16-bit depth at its input frames' size"
+            + (f": {link['raw_keyframe_bytes'] / 1e6:.3f} MB a keyframe)." if link["raw_keyframe_bytes"] else ")."),
+            "",
             "| agent | keyframes | bytes from agent | bytes to agent | per keyframe | per submap | of raw |",
             "|---|---|---|---|---|---|---|"]
     for name, s in link["agents"].items():

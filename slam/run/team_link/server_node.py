@@ -35,7 +35,14 @@ from . import messages as L
 from .agent_node import config_digest
 from .images import decode_images
 
-RAW_KEYFRAME_BYTES = 640 * 480 * (3 + 2)  # one 640x480 RGB-D keyframe: 8-bit RGB + 16-bit depth
+RGBD_BYTES_PER_PIXEL = 3 + 2  # a raw RGB-D frame: 8-bit RGB + 16-bit depth
+REFERENCE_KEYFRAME_BYTES = 640 * 480 * RGBD_BYTES_PER_PIXEL  # a 640x480 one, the size most RGB-D cameras give
+
+
+def raw_keyframe_bytes(camera: list) -> int:
+    """Bytes of one raw RGB-D frame at the size of an agent's input frames (its Join camera [fx, fy, cx, cy, width,
+    height]): what sending its keyframes uncompressed would take."""
+    return int(camera[4]) * int(camera[5]) * RGBD_BYTES_PER_PIXEL
 
 
 def _camera(c: list) -> PinholeCamera:
@@ -56,6 +63,7 @@ class Peer:
     claims: list = field(default_factory=list)  # (rounds done, keyframes made by then), from Frames
     rounds_done: int = 0  # rounds whose keyframes have all arrived
     open_ended: bool = False  # joined without a frame count (a live agent): the others never wait for it
+    camera: list = field(default_factory=list)  # its Join's [fx, fy, cx, cy, width, height] of the input frames
     done: L.Done | None = None
     processed: int = 0  # keyframes handed to the server
     last_heard: float = 0.0
@@ -168,6 +176,7 @@ class ServerNode:
             ag = self.team.agents[a]
             ag.name, ag.camera = msg.name, _camera(msg.camera)
             p.name, p.joined, p.open_ended = msg.name, True, int(msg.rounds) == 0
+            p.camera = list(msg.camera)
             self.say(f"[server] {msg.name} joined as agent {a}")
         self.tx.send(a + 1, L.Welcome(agent=a, ok=1))
 
@@ -318,9 +327,9 @@ class ServerNode:
             self._journal = None
 
     def link_metrics(self) -> dict:
-        """metrics.json "link": bytes per agent and message kind, per keyframe and per submap, against raw
-        640x480 RGB-D keyframes."""
-        agents, total = {}, 0
+        """metrics.json "link": bytes per agent and message kind, per keyframe and per submap, against the agent's
+        keyframes sent raw (8-bit RGB + 16-bit depth at its input frames' size)."""
+        agents, total, raw_sizes = {}, 0, set()
         for a, p in enumerate(self.peers):
             st = self.tx.peer_stats[a + 1]
             recv, sent = dict(st.recv_bytes), dict(st.sent_bytes)
@@ -329,7 +338,9 @@ class ServerNode:
             kf_bytes = once.get("KeyframeMeta", 0) + once.get("KeyframeImage", 0)
             both = int(sum(recv.values()) + sum(sent.values()))
             total += both
-            raw = n_kf * RAW_KEYFRAME_BYTES
+            raw_kf = raw_keyframe_bytes(p.camera) if p.camera else None
+            raw_sizes.add(raw_kf)
+            raw = n_kf * raw_kf if raw_kf else 0
             agents[p.name] = {
                 "bytes_from_agent": recv, "messages_from_agent": dict(st.recv_count),
                 "bytes_to_agent": sent, "messages_to_agent": dict(st.sent_count),
@@ -338,11 +349,15 @@ class ServerNode:
                 "image_bytes_per_keyframe": once.get("KeyframeImage", 0) / n_kf if n_kf else None,
                 "bytes_per_submap": once.get("SubmapData", 0) / n_sm if n_sm else None,
                 "bytes_from_agent_first_copies": dict(once), "duplicates_received": p.duplicates,
-                "raw_rgbd_640x480_bytes": raw, "fraction_of_raw": both / raw if raw else None,
+                "input_size": list(p.camera[4:6]) if p.camera else None, "raw_keyframe_bytes": raw_kf,
+                "raw_rgbd_bytes": raw, "fraction_of_raw": both / raw if raw else None,
+                "raw_rgbd_640x480_bytes": n_kf * REFERENCE_KEYFRAME_BYTES,
                 "dropped_images": len(p.dropped), "lost": p.lost,
                 "agent_side": dict(p.done.link) if p.done is not None else None,
             }
-        return {"gaussians": self.cfg.link.gaussians, "raw_keyframe_bytes": RAW_KEYFRAME_BYTES,
+        shared = raw_sizes - {None}
+        return {"gaussians": self.cfg.link.gaussians,
+                "raw_keyframe_bytes": shared.pop() if len(shared) == 1 else None,  # the agents' frames' size
                 "bytes_total": total, "rejected_messages": self.tx.stats.rejected, "replayed_messages": self.replayed,
                 "lost_agents": [p.name for p in self.peers if p.lost], "agents": agents}
 
