@@ -70,7 +70,10 @@ def measure(data: Path, rate: float | None, preset: str | None) -> dict:
                     "cpu_tracker_s": r["cpu_s"]["tracker_thread"], "cpu_mapping_s": r["cpu_s"]["mapping_thread"],
                     "cpu_process_s": r["cpu_s"]["process"]})
     else:
-        row.update({"tracked_pct": 100.0, "dropped": 0})
+        # offline: every frame read is tracked unless skipped as unusable; none is dropped for time, but the run's
+        # own counts say so rather than a constant
+        row.update({"tracked_pct": 100 * m["frames_tracked"] / m["frames"], "frames_tracked": m["frames_tracked"],
+                    "dropped": m["frames"] - m["frames_tracked"] - len(m.get("skipped_frames", []))})
     return row
 
 
@@ -123,7 +126,8 @@ def markdown(res: dict) -> str:
     rt = [r for r in rows if r["mode"] != "offline"]
     lines = [f"# Real-time mode on {Path(res['data']).name}", "",
              "`swarmsplat run DATA --realtime --rate HZ` (one agent, Warp on the CPU) against the offline run in the "
-             "same process (`python -m perf realtime`). Latency: a frame's arrival to its pose; ATE live: the poses "
+             "same process (`python -m perf realtime`). Latency: from the moment a frame is due (its arrival; the "
+             "reader decoded and converted it before then, as a camera driver would) to its pose; ATE live: the poses "
              "as emitted; ATE: after the run (loop closures, map refinement); PSNR: the merged map after the run. "
              "Load: the machine's 1-minute load average before / after the run (other processes on the same cores "
              "lengthen every latency).", "",

@@ -369,3 +369,17 @@ def test_sigint_stops_both_threads_and_keeps_the_poses(tmp_path):
     stamps, T = read_tum(out / "trajectory.txt")
     assert len(stamps) == m["frames_tracked"] and np.all(np.isfinite(T))
     assert set(np.round(stamps, 6)) <= set(np.round(_stamps(seq), 6))
+
+
+def test_perf_realtime_reads_the_offline_rows_counts_from_the_run(monkeypatch, tmp_path):
+    """`python -m perf realtime`'s offline row: frames tracked and dropped as the run counted them (here 8 of 10
+    tracked, one skipped as unusable, one lost), never a constant 100 % and 0."""
+    from swarmsplat.perf import realtime as perf_realtime
+    from swarmsplat.slam.run import sequence
+
+    run = {"frames": 10, "frames_tracked": 8, "skipped_frames": [{"frame": 3, "reason": "unreadable"}],
+           "ate_rmse": 0.01, "psnr_merged": 30.0, "keyframes": 3}
+    monkeypatch.setattr(sequence, "run_sequence", lambda *a, **k: run)
+    row = perf_realtime.measure(tmp_path, None, None)
+    assert row["mode"] == "offline" and row["tracked_pct"] == 80.0 and row["frames_tracked"] == 8
+    assert row["dropped"] == 1
