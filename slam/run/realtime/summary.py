@@ -101,7 +101,7 @@ def report_markdown(m: dict) -> str:
          f"{r['frames']} frames replayed at {r['rate_hz']:.2f} Hz ({r['rate_from']}) over {r['stream_s']:.1f} s: "
          f"**{r['frames_tracked']} tracked ({100 * (r['tracked_fraction'] or 0):.1f} %)**, {r['frames_dropped']} "
          f"dropped, {r['frames_skipped']} skipped (unusable input).", "",
-         "## Pose latency (frame arrival to pose)", "",
+         "## Pose latency (frame due, already decoded and converted, to pose)", "",
          "| | p50 | p95 | max |", "|---|---:|---:|---:|",
          f"| latency [ms] | {_ms(lat['p50'])} | {_ms(lat['p95'])} | {_ms(lat['max'])} |",
          f"| tracker step [ms] | {_ms(step['p50'])} | {_ms(step['p95'])} | {_ms(step['max'])} |", "",
