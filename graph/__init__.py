@@ -3,7 +3,7 @@
     pose_graph     PoseGraph / Edge: robots' keyframe poses (GTSAM Symbol keys), odometry, intra/inter-robot
                    loops with information, confidence and up-to-scale flags; components and their anchors
     g2o            read (SE3:QUAT, SE2) / write (SE3:QUAT) with file:line errors; per-robot files and merge
-    dpgo_csv       DPGO's robotN/measurements.csv;  team_files: a team from one g2o per robot, a DGS folder or that
+    dpgo_csv       DPGO's robotN/measurements.csv;  team_files: a team from one g2o per robot, a DGS folder or DPGO's
     confidence     FLOCC eqs. 1-2: correspondence ratio, R_thr gate, logistic p, information * p
     scale_factors  IS loop factor (eqs. 7-8) as gtsam.CustomFactor and batched NumPy; SS smoothing factor
     information    SE-Sync's isotropic weights; policies for non-positive-definite matrices (repair/isotropic/strict)

@@ -186,12 +186,13 @@ def scale_clusters(graph: PoseGraph, edges: list[int], gap: int = 10) -> list[li
 def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str = "odometry", *,
                   initial_poses: dict[int, np.ndarray] | None = None, gt_scales: dict[int, float] | None = None,
                   cluster_gap: int = 10, scale_sigma: float = 0.05, scale_prior_sigma: float = 10.0,
-                  scale_residual: str = "metric", objective: str = "g2o") -> Problem:
+                  scale_residual: str = "metric", objective: str = "g2o",
+                  anchors: list[int] | None = None) -> Problem:
     """Factor graph + initial values for `formulation` (module docstring). `initial_poses` defaults to the
     graph's own poses; `scale_sigma` is SS's 1/sqrt(Omega_s). `scale_residual`: "metric" is eq. 8 as the paper
     writes it; "network" compares in the network's unit (unbiased scales, see graph.scale_factors), with the
     translation information scaled by the initial scale squared. `objective`: "g2o" or "se-sync" (module
-    docstring)."""
+    docstring). `anchors`: the keys held fixed (default: the smallest key of each connected component)."""
     if objective not in OBJECTIVES:
         raise InputError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     if scale_residual not in ("metric", "network"):
@@ -209,7 +210,7 @@ def build_problem(graph: PoseGraph, formulation: str = "base", scale_init: str =
     values = gtsam.Values()
     for k in graph.keys():
         values.insert(k, _pose2(poses[k]) if is_2d else gtsam.Pose3(poses[k]))
-    for a in graph.anchors():
+    for a in (graph.anchors() if anchors is None else anchors):
         if is_2d:
             fixed.add(gtsam.PriorFactorPose2(a, _pose2(poses[a]), gtsam.noiseModel.Isotropic.Sigma(3, ANCHOR_SIGMA)))
         else:

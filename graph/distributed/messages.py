@@ -1,0 +1,92 @@
+"""What robots of the distributed solver send each other: one `Estimate` per neighbour per step, as bytes.
+
+An estimate carries only what its recipient needs: the sender's separator poses (those the recipient's loops
+touch), the scales and GNC weights of the loops the two share that the sender owns, and a few team-wide scalars
+(the shared scale's consensus terms, GNC's mu). Nothing is named on the wire: both robots of a pair derive the
+same lists from the loops they share (`partition.RobotPart.separators` and `pair_loops`), so poses come in the
+order of the sender's separator list for the recipient, scales and weights in the order of the pair's loops
+the sender owns (scales of its up-to-scale loops only, weights only when GNC runs).
+
+Wire format (little-endian, no pickle): a 23-byte header (magic, sender, recipient, stamp, counts, flags), then
+the poses as 6 float64 (rotation vector, translation) = 48 bytes each, scales and weights as float64, and with
+FLAG_SCALARS four float64 and a uint32 stamp. Bytes that do not decode raise InputError; the transport drops
+them, and a robot drops an estimate whose counts are not those it expects.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from swarmsplat.kernels.errors import InputError
+
+from .. import lie
+
+MAGIC = b"DPG1"
+_HEAD = struct.Struct("<4sBBIIIIB")
+_SCALARS = struct.Struct("<ddddI")
+FLAG_SCALARS = 1  # the consensus scalars follow
+FLAG_STILL = 2  # the sender's last step moved its poses by less than the tolerance
+FLAG_BINARY = 4  # every GNC weight the sender owns is 0 or 1
+POSE_BYTES = 48
+
+
+@dataclass
+class Estimate:
+    sender: int  # robot number (Symbol character's code)
+    recipient: int
+    stamp: int  # the sender's step counter: newer estimates compare greater
+    poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # [P, 4, 4] T_world_kf
+    scales: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [S]
+    weights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [W]
+    flags: int = 0
+    # consensus scalars (FLAG_SCALARS): this robot's shared-scale gradient and Gauss-Newton curvature, the shared
+    # scale it holds with its stamp, and its proposal for GNC's initial mu
+    shared_g: float = 0.0
+    shared_h: float = 0.0
+    shared_s: float = 0.0
+    mu0: float = 0.0
+    shared_stamp: int = 0
+
+    def to_bytes(self) -> bytes:
+        P, S, W = len(self.poses), len(self.scales), len(self.weights)
+        xi = np.concatenate([lie.so3_log(self.poses[:, :3, :3]), self.poses[:, :3, 3]], 1) if P else np.zeros((0, 6))
+        out = [_HEAD.pack(MAGIC, self.sender, self.recipient, self.stamp, P, S, W, self.flags),
+               np.asarray(xi, "<f8").tobytes(), np.asarray(self.scales, "<f8").tobytes(),
+               np.asarray(self.weights, "<f8").tobytes()]
+        if self.flags & FLAG_SCALARS:
+            out.append(_SCALARS.pack(self.shared_g, self.shared_h, self.shared_s, self.mu0, self.shared_stamp))
+        return b"".join(out)
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "Estimate":
+        if len(data) < _HEAD.size:
+            raise InputError(f"distributed estimate: {len(data)} bytes, shorter than its header")
+        magic, sender, recipient, stamp, P, S, W, flags = _HEAD.unpack_from(data)
+        if magic != MAGIC:
+            raise InputError("distributed estimate: wrong magic")
+        size = _HEAD.size + P * POSE_BYTES + 8 * (S + W) + (_SCALARS.size if flags & FLAG_SCALARS else 0)
+        if len(data) != size:
+            raise InputError(f"distributed estimate: {len(data)} bytes, expected {size}")
+        o = _HEAD.size
+        buf = memoryview(data)
+
+        def take(dtype, n):
+            nonlocal o
+            a = np.frombuffer(buf[o:o + np.dtype(dtype).itemsize * n], dtype).copy()
+            o += a.nbytes
+            return a
+
+        xi = take("<f8", 6 * P).reshape(P, 6)
+        s, w = take("<f8", S), take("<f8", W)
+        if not (np.all(np.isfinite(xi)) and np.all(np.isfinite(s)) and np.all(np.isfinite(w))):
+            raise InputError("distributed estimate: non-finite value")
+        T = np.tile(np.eye(4), (P, 1, 1))
+        T[:, :3, :3] = lie.so3_exp(xi[:, :3])
+        T[:, :3, 3] = xi[:, 3:]
+        msg = cls(sender, recipient, stamp, T, s, w, flags)
+        if flags & FLAG_SCALARS:
+            msg.shared_g, msg.shared_h, msg.shared_s, msg.mu0, msg.shared_stamp = _SCALARS.unpack_from(data, o)
+        return msg

@@ -1,0 +1,289 @@
+"""One robot of the distributed solver: its own poses and loop scales, its neighbours' latest separators, a step.
+
+The robot's part of the objective is every factor that touches one of its poses: its odometry, its intra-robot
+loops and each inter-robot loop it shares (graph.distributed.partition). A step minimises that part over the
+robot's own poses and the scales of the loops it owns, with its neighbours' poses and scales held at the latest
+values they sent (a few Levenberg-Marquardt iterations of graph.solvers on a graph.formulations problem, warm
+started): block-coordinate descent, in which every step lowers the team's objective, so every iterate is a
+usable estimate. The team's shared scale (formulation `shared`) is held fixed in the step; its consensus terms
+(gradient and Gauss-Newton curvature of the robot's owned loops) go to the keeper, the lowest-numbered robot,
+which takes the Newton step and sends the new value. GNC weights of the owned loops are set by `gnc_update` from
+the loops' costs at the current estimate and travel with the estimates.
+
+Messages are idempotent and ordered by stamp: a neighbour's estimate replaces what the robot holds only if it is
+newer, so lost, duplicated and reordered messages never corrupt the state; a silent neighbour's last estimate is
+held fixed (the rest of the team keeps converging), and a robot that returns picks up the latest estimates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from .. import lie
+from ..formulations import build_problem, initial_scales
+from ..pose_graph import Edge, PoseGraph
+from ..scale_factors import is_residuals, is_residuals_network
+from ..solvers import SCALE_MIN, levenberg_marquardt, loop_costs
+from .messages import FLAG_BINARY, FLAG_SCALARS, FLAG_STILL, Estimate
+from .partition import RobotPart
+
+HOLD_SIGMA = 1e-6  # neighbours' poses and scales are held by priors this stiff (the anchors' sigma)
+
+
+@dataclass
+class Settings:
+    """The formulation (graph.formulations.build_problem's arguments) and the step's own knobs."""
+
+    formulation: str = "base"
+    scale_init: str = "odometry"
+    cluster_gap: int = 10
+    scale_sigma: float = 0.05
+    scale_prior_sigma: float = 10.0
+    scale_residual: str = "metric"
+    objective: str = "g2o"
+    local_iterations: int = 3  # LM iterations per step
+    still_tol: float = 1e-6  # a step that lowers the robot's part by less than this (relative) is still
+    shared_s0: float = 1.0  # the shared scale's initial value (median of the loops' initial scales)
+    relax: float = 1.0  # over-relaxation: the step moves own poses and scales this many times the local update
+
+
+class RobotSolver:
+    """Pure per-robot state; `step()` returns the estimates to send, `receive()` takes one."""
+
+    def __init__(self, part: RobotPart, edges: dict[int, Edge], poses: dict[int, np.ndarray],
+                 settings: Settings, gt_scales: dict[int, float] | None = None):
+        """`edges`: the team-graph edges of `part.edges` (index -> Edge); `poses`: initial T_world_kf of the
+        robot's own keys; `gt_scales` (scale_init 'gt'): team edge index -> scale."""
+        self.part, self.settings = part, settings
+        self.robot = part.robot
+        self.edge_ids = list(part.edges)
+        self.edges = [edges[n] for n in self.edge_ids]
+        self.gt = None if gt_scales is None else {i: gt_scales[n] for i, n in enumerate(self.edge_ids) if n in gt_scales}
+        self.poses = {k: np.asarray(poses[k], float) for k in part.keys}
+        self.nb_poses: dict[int, np.ndarray] = {}
+        self.nb_stamp: dict[int, int] = {}
+        s0 = initial_scales(PoseGraph({}, self.edges), settings.scale_init, self.gt)
+        self.scales = {self.edge_ids[i]: s for i, s in s0.items()}  # own and (until heard) neighbours' loops
+        self.weights = {n: 1.0 for n, e in zip(self.edge_ids, self.edges) if e.kind != "odometry"}
+        self.shared = settings.shared_s0
+        self.shared_stamp = 0
+        self.terms: dict[int, tuple[float, float]] = {}  # robot -> its shared-scale (g, H)
+        self.mu0: dict[int, float] = {}  # robot -> its GNC mu0 proposal
+        self.still = False
+        self.stamp = 0
+        self.heard: dict[int, int] = {}  # robot -> step count of ours when we last heard it
+        self.nb_still: dict[int, bool] = {}
+        self.gnc = False  # weights travel with the estimates once GNC runs
+        self.refused = 0  # estimates dropped for counts other than expected
+        self._owner = {n: min(e.key_i >> 56, e.key_j >> 56) for n, e in zip(self.edge_ids, self.edges)}
+        self._scaled = {n: e.up_to_scale for n, e in zip(self.edge_ids, self.edges)}
+        self._sent: dict[tuple[int, int], tuple[list[int], list[int]]] = {}
+        own = set(part.keys)
+        self._expect: dict[int, list[int]] = {}  # neighbour -> its poses our edges touch (its separators for us)
+        for e in self.edges:
+            for k in (e.key_i, e.key_j):
+                if k not in own:
+                    self._expect.setdefault(k >> 56, set()).add(k)
+        self._expect = {q: sorted(s) for q, s in self._expect.items()}
+
+    # --------------------------------------------------------------------------------------- the step
+    def local_problem(self):
+        """The robot's part as a graph.formulations Problem (neighbours' poses and scales held), its weights
+        (local edge index -> w) and the local -> team edge index map."""
+        s = self.settings
+        poses = dict(self.poses)
+        poses.update(self.nb_poses)
+        use = [i for i, e in enumerate(self.edges) if e.key_i in poses and e.key_j in poses]
+        G = PoseGraph({k: poses[k] for k in poses}, [self.edges[i] for i in use])
+        ids = [self.edge_ids[i] for i in use]
+        gt = None if self.gt is None else {m: self.gt[i] for m, i in enumerate(use) if i in self.gt}
+        held = sorted(self.nb_poses)
+        problem = build_problem(G, s.formulation, s.scale_init, gt_scales=gt, cluster_gap=s.cluster_gap,
+                                scale_sigma=s.scale_sigma, scale_prior_sigma=s.scale_prior_sigma,
+                                scale_residual=s.scale_residual, objective=s.objective,
+                                anchors=self.part.anchors + held)
+        if problem.scale_loops is not None:
+            hold = gtsam.noiseModel.Isotropic.Sigma(1, HOLD_SIGMA)
+            done = set()
+            for m, k in zip(problem.scale_loops.edge, problem.scale_loops.key_s):
+                n, k = ids[int(m)], int(k)
+                if k in done:
+                    continue
+                done.add(k)
+                if s.formulation == "shared":
+                    value, held_scale = self.shared, True
+                else:
+                    value, held_scale = self.scales[n], n not in self.part.owned
+                problem.initial.update(k, float(value))
+                if held_scale:
+                    problem.fixed.add(gtsam.PriorFactorDouble(k, float(value), hold))
+        weights = {m: self.weights.get(n, 1.0) for m, n in enumerate(ids)}
+        return problem, weights, ids
+
+    def step(self) -> list[Estimate]:
+        """Minimise the robot's part (a few LM iterations) and return one estimate per neighbour."""
+        self.stamp += 1
+        problem, weights, ids = self.local_problem()
+        res = levenberg_marquardt(problem, weights=weights, max_iterations=self.settings.local_iterations)
+        w = self.settings.relax
+        if w == 1.0:
+            for k in self.part.keys:
+                self.poses[k] = res.poses[k]
+        else:
+            keys = self.part.keys
+            old = np.stack([self.poses[k] for k in keys])
+            xi = lie.log(lie.between(old, np.stack([res.poses[k] for k in keys])))
+            new = old @ lie.exp(w * xi)
+            for k, T in zip(keys, new):
+                self.poses[k] = T
+        for m, v in res.scales.items():
+            if ids[m] in self.part.owned and self.settings.formulation != "shared":
+                n = ids[m]
+                self.scales[n] = max(self.scales[n] + w * (float(v) - self.scales[n]), SCALE_MIN)
+        drop = res.initial_error - res.final_error
+        self.still = drop <= self.settings.still_tol * max(res.initial_error, 1e-300)
+        if self.settings.formulation == "shared" and problem.scale_loops is not None:
+            self.terms[self.robot] = self._shared_terms(problem, res.values, weights, ids)
+            if self.is_keeper():
+                self._shared_newton()
+        return self.messages()
+
+    def messages(self, scalars: bool | None = None) -> list[Estimate]:
+        """This robot's current estimate for each neighbour (with the consensus scalars, when `scalars`, also for
+        every robot it has heard of)."""
+        out = []
+        scalars = self.settings.formulation == "shared" if scalars is None else scalars
+        flags = (FLAG_STILL if self.still else 0) | (FLAG_BINARY if self.binary() else 0)
+        for q in self.part.neighbours:
+            keys = self.part.separators[q]
+            msg = Estimate(self.robot, q, self.stamp, np.stack([self.poses[k] for k in keys]) if keys
+                           else np.zeros((0, 4, 4)), flags=flags)
+            sc, wt = self._sent_loops(q, self.robot)
+            msg.scales = np.array([self.scales[n] for n in sc])
+            if self.gnc:
+                msg.weights = np.array([self.weights.get(n, 1.0) for n in wt])
+            out.append(msg)
+        if scalars:
+            for q in sorted(set(self.part.neighbours) | set(self.heard) | set(self.terms)):
+                if q == self.robot:
+                    continue
+                m = next((m for m in out if m.recipient == q), None)
+                if m is None:
+                    m = Estimate(self.robot, q, self.stamp, flags=flags)
+                    out.append(m)
+                m.flags |= FLAG_SCALARS
+                g, h = self.terms.get(self.robot, (0.0, 0.0))
+                m.shared_g, m.shared_h, m.shared_s, m.shared_stamp = g, h, self.shared, self.shared_stamp
+                m.mu0 = self.mu0.get(self.robot, 0.0)
+        return out
+
+    def _sent_loops(self, q: int, sender: int) -> tuple[list[int], list[int]]:
+        """The loops of pair (self, q) whose scale and weight `sender` sends: those it owns, in pair order."""
+        key = (q, sender)
+        if key not in self._sent:
+            mine = [n for n in self.part.pair_loops.get(q, []) if self._owner[n] == sender]
+            scaled = [n for n in mine if self.settings.formulation in ("is", "ss") and self._scaled[n]]
+            self._sent[key] = (scaled, mine)
+        return self._sent[key]
+
+    def receive(self, msg: Estimate) -> bool:
+        """Take a neighbour's estimate if it is newer than what we hold and has the counts we expect; returns
+        whether it was taken."""
+        q = msg.sender
+        if q == self.robot or msg.recipient != self.robot:
+            return False
+        self.heard[q] = self.stamp
+        if msg.flags & FLAG_SCALARS:
+            self.terms[q] = (msg.shared_g, msg.shared_h)
+            if msg.mu0:
+                self.mu0[q] = msg.mu0
+            if msg.shared_stamp > self.shared_stamp:
+                self.shared, self.shared_stamp = msg.shared_s, msg.shared_stamp
+        if msg.stamp <= self.nb_stamp.get(q, -1):
+            return False
+        keys = self._expect.get(q, [])
+        sc, wt = self._sent_loops(q, q)
+        if (len(msg.poses) and len(msg.poses) != len(keys)) or len(msg.scales) not in (0, len(sc)) \
+                or len(msg.weights) not in (0, len(wt)):
+            self.refused += 1
+            return False
+        if not len(msg.poses) and keys:  # a scalars-only message: not an estimate of the poses
+            return False
+        self.nb_stamp[q] = msg.stamp
+        for k, T in zip(keys, msg.poses):
+            self.nb_poses[k] = T
+        for n, v in zip(sc, msg.scales.tolist()):
+            self.scales[n] = v
+        for n, v in zip(wt, msg.weights.tolist()):
+            self.weights[n] = v
+        self.nb_still[q] = bool(msg.flags & FLAG_STILL)
+        return True
+
+    # --------------------------------------------------------------------------------------- shared scale
+    def is_keeper(self, alive: set[int] | None = None) -> bool:
+        """The lowest-numbered robot among those heard recently keeps the shared scale."""
+        recent = {q for q, t in self.heard.items() if self.stamp - t <= 3} if alive is None else alive
+        return all(self.robot < q for q in recent if q != self.robot)
+
+    def _shared_terms(self, problem, values, weights, ids) -> tuple[float, float]:
+        sl = problem.scale_loops
+        own = np.array([ids[int(m)] in self.part.owned for m in sl.edge])
+        if not own.any():
+            return 0.0, 0.0
+        Ti = np.stack([values.atPose3(int(k)).matrix() for k in sl.key_i[own]])
+        Tj = np.stack([values.atPose3(int(k)).matrix() for k in sl.key_j[own]])
+        s = np.full(int(own.sum()), self.shared)
+        fn = is_residuals_network if sl.residual == "network" else is_residuals
+        e, _, _, Hs = fn(Ti, Tj, s, sl.R_meas[own], sl.t_meas[own])
+        w = np.array([weights.get(int(m), 1.0) for m in sl.edge[own]])
+        W = sl.sqrt_info[own] * np.sqrt(w)[:, None, None]
+        r = np.einsum("lab,lb->la", W, e)
+        J = np.einsum("lab,lb->la", W, Hs)
+        return float(np.sum(J * r)), float(np.sum(J * J))
+
+    def _shared_newton(self) -> None:
+        sp = self.settings.scale_prior_sigma
+        g = sum(t[0] for t in self.terms.values()) + (self.shared - self.settings.shared_s0) / sp**2
+        h = sum(t[1] for t in self.terms.values()) + 1.0 / sp**2
+        self.shared = max(self.shared - g / h, SCALE_MIN)
+        self.shared_stamp += 1
+
+    # --------------------------------------------------------------------------------------- GNC
+    def owned_loop_costs(self) -> dict[int, float]:
+        """Unweighted cost of every loop this robot owns at the current estimate (team edge index -> cost)."""
+        problem, _, ids = self.local_problem()
+        costs = loop_costs(problem, problem.initial)
+        return {ids[m]: c for m, c in costs.items() if ids[m] in self.part.owned}
+
+    def propose_mu0(self, barc: float) -> float:
+        """GNC's initial mu from the owned loops' residuals (graph.solvers.gnc's rule); the team takes the
+        smallest proposal."""
+        c = np.array(list(self.owned_loop_costs().values()))
+        pos = c[2 * c - barc > 0] if len(c) else c
+        mu = float(np.min(barc / (2 * pos - barc))) if len(pos) else 0.0
+        self.mu0[self.robot] = mu
+        return mu
+
+    def team_mu0(self) -> float:
+        vals = [v for v in self.mu0.values() if v > 0]
+        return max(min(vals), 1e-6) if vals else 0.0
+
+    def gnc_update(self, mu: float, barc: float) -> None:
+        """TLS weights of the owned loops at the current estimate (graph.solvers.gnc's update)."""
+        self.gnc = True
+        costs = self.owned_loop_costs()
+        upper, lower = (mu + 1) / mu * barc, mu / (mu + 1) * barc
+        for n, c in costs.items():
+            if c >= upper:
+                w = 0.0
+            elif c <= lower:
+                w = 1.0
+            else:
+                w = float(np.clip(np.sqrt(barc * mu * (mu + 1) / max(c, 1e-300)) - mu, 0.0, 1.0))
+            self.weights[n] = w
+
+    def binary(self, tol: float = 1e-4) -> bool:
+        return all(abs(self.weights.get(n, 1.0) - round(self.weights.get(n, 1.0))) <= tol for n in self.part.owned)

@@ -1,0 +1,119 @@
+"""The distributed solver (graph.distributed): every robot solves its part; the team reaches the centralised optimum
+of the same formulation, with lost / duplicated / reordered messages and robots leaving and returning."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from conftest import shared_data
+
+from swarmsplat.graph.distributed.messages import Estimate, FLAG_SCALARS
+from swarmsplat.graph.distributed.partition import partition
+from swarmsplat.graph.distributed.robot import Settings
+from swarmsplat.graph.distributed.team import Faults, problem_error, solve_distributed
+from swarmsplat.graph.formulations import FORMULATIONS, build_problem, initial_scales
+from swarmsplat.graph.init import chordal_initialization
+from swarmsplat.graph.solvers import solve
+from swarmsplat.graph.synthetic import TeamConfig, make_team
+from swarmsplat.kernels.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """3 robots x 120 m, 80 up-to-scale loops (3 outliers); one robot meets no other (2 connected groups)."""
+    team = make_team(TeamConfig(robots=3, length_m=120, grid_step=30.0, grid_nodes=2, target_loops=80,
+                                loop_radius=8.0, outlier_fraction=0.05, odo_scale_error=0.002, odo_yaw_bias=0.0003,
+                                seed=1))
+    g = team.graph
+    scaled = g.with_poses(g.poses)
+    scaled.edges = [copy.copy(e) for e in g.edges]
+    for n, s in initial_scales(g, "odometry").items():
+        scaled.edges[n].T_ij = scaled.edges[n].T_ij.copy()
+        scaled.edges[n].T_ij[:3, 3] *= s
+    return g, chordal_initialization(scaled), team.outliers
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_distributed_lm_reaches_the_centralised_optimum(tiny, formulation):
+    g, P0, _ = tiny
+    ref = solve(build_problem(g, formulation, initial_poses=P0), "lm")
+    res = solve_distributed(g, Settings(formulation=formulation), initial_poses=P0, max_rounds=60)
+    assert res.final_error <= ref.final_error * 1.001
+    assert all(b <= a * (1 + 1e-9) for a, b in zip(res.history, res.history[1:])) or formulation == "shared"
+    assert len(res.groups) == 2  # solved per connected group
+    assert res.bytes_per_separator_iteration <= 64
+
+
+def test_distributed_gnc_rejects_what_the_centralised_gnc_rejects(tiny):
+    g, P0, outliers = tiny
+    ref = solve(build_problem(g, "is", initial_poses=P0), "gnc")
+    res = solve_distributed(g, Settings(formulation="is"), "gnc", initial_poses=P0, max_rounds=60)
+    assert sorted(res.rejected) == sorted(ref.rejected)
+    assert outliers <= set(res.rejected)
+    assert res.final_error <= ref.final_error * 1.01
+
+
+def test_lost_duplicated_and_reordered_messages_are_harmless(tiny):
+    g, P0, _ = tiny
+    ref = solve(build_problem(g, "ss", initial_poses=P0), "lm")
+    res = solve_distributed(g, Settings(formulation="ss"), initial_poses=P0, max_rounds=80,
+                            faults=Faults(drop=0.3, duplicate=0.3, reorder=True, seed=3))
+    assert res.final_error <= ref.final_error * 1.01
+
+
+def test_a_robot_leaving_leaves_the_others_converging_and_a_returning_one_catches_up(tiny):
+    g, P0, _ = tiny
+    at_leave = {}
+
+    def grab(team):
+        if team.round == 2:
+            at_leave.update(team.estimate()[0])
+
+    gone = ord("b")
+    res = solve_distributed(g, Settings(formulation="base"), initial_poses=P0, max_rounds=60,
+                            faults=Faults(leave={gone: 3}), on_round=grab)
+    # the others' optimum with robot b held where it was when it left
+    held = [k for k in g.keys() if k >> 56 == gone]
+    others = build_problem(g, "base", initial_poses=at_leave, anchors=g.anchors() + held)
+    ref = solve(others, "lm")
+    assert all(np.allclose(res.poses[k], at_leave[k]) for k in held)
+    assert problem_error(others, res.poses, res.scales, {}) <= ref.final_error * 1.01
+    full = solve(build_problem(g, "base", initial_poses=P0), "lm")
+    back = solve_distributed(g, Settings(formulation="base"), initial_poses=P0, max_rounds=60,
+                             faults=Faults(leave={gone: 3}, back={gone: 8}))
+    assert back.final_error <= full.final_error * 1.01
+
+
+def test_estimates_round_trip_and_garbage_is_refused():
+    T = np.tile(np.eye(4), (2, 1, 1))
+    T[1, :3, 3] = [1.0, 2.0, 3.0]
+    c, s = np.cos(2.0), np.sin(2.0)
+    T[1, :3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    m = Estimate(97, 98, 7, T, np.array([1.5]), np.array([0.25, 1.0]), FLAG_SCALARS, shared_g=0.5, shared_s=2.0)
+    data = m.to_bytes()
+    assert len(data) == 23 + 2 * 48 + 3 * 8 + 36
+    back = Estimate.from_bytes(data)
+    assert np.allclose(back.poses, T, atol=1e-12) and back.scales.tolist() == [1.5] and back.shared_s == 2.0
+    for bad in (data[:-1], b"XXXX" + data[4:], b"\x00" * 5):
+        with pytest.raises(InputError):
+            Estimate.from_bytes(bad)
+
+
+def test_partition_owns_each_loop_once_and_colours_neighbours_apart(tiny):
+    g, _, _ = tiny
+    parts = partition(g)
+    owned = [n for p in parts.values() for n in p.owned]
+    assert sorted(owned) == sorted(n for n, e in enumerate(g.edges) if e.kind != "odometry")
+    for r, p in parts.items():
+        assert all(parts[q].colour != p.colour for q in p.neighbours)
+
+
+def test_blocks_world_two_robots_within_one_percent():
+    from swarmsplat.graph.team_files import read_team
+
+    g = read_team([shared_data("dgs_multirobot", "blocks_world", "2robots")])
+    ref = solve(build_problem(g, "base"), "lm")
+    res = solve_distributed(g, Settings(relax=1.6), max_rounds=40)
+    assert res.rounds_to(ref.final_error, 0.01) is not None and res.final_error <= ref.final_error * 1.01
