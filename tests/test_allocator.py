@@ -1,14 +1,19 @@
-"""slam.run.runtime.tame_allocator: the glibc mmap threshold a run may fix (kernels.malloc_mmap_threshold_kb). Run
-in child processes: the setting is the whole process's."""
+"""The allocator: slam.run.runtime.tame_allocator, the glibc mmap threshold a run may fix
+(kernels.malloc_mmap_threshold_kb; run in child processes: the setting is the whole process's); kernels.memory.trim_heap,
+and the trim each driver's agent asks for once per finished submap (kernels.malloc_trim)."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
 import sys
+import time
 
 import pytest
+
+from test_run_checkpoint import QUICK as CHECKPOINT_QUICK
 
 CODE = "from swarmsplat.slam.run.runtime import tame_allocator; print(tame_allocator({kb}))"
 
@@ -63,3 +68,97 @@ def test_trim_hands_freed_heap_pages_back():
     released, dropped_kb = out.stdout.split()
     assert released == "True"
     assert int(dropped_kb) > 100_000
+
+
+# ---- the trim in the drivers: once per finished submap, whichever driver steps the agent ------------------------
+
+# tiny images, few iterations; a keyframe every 3 frames, a submap every 2 keyframes (as the checkpoint tests)
+DRIVER_QUICK = {**CHECKPOINT_QUICK, "loop_closure": {"enabled": False}}
+
+
+@pytest.fixture(scope="module")
+def driver_sequence(tmp_path_factory):
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    root = tmp_path_factory.mktemp("trim")
+    return generate(root, GeneratorConfig.preset("tiny", agents=1, frames=18, seed=1)) / "agent_0"
+
+
+@pytest.fixture
+def trims(monkeypatch) -> list[str]:
+    """Every heap trim the agents ask for, by the thread that asked (the real trim still runs)."""
+    import threading
+
+    from swarmsplat.kernels import memory
+    from swarmsplat.slam.dense import agent as dense_agent
+    from swarmsplat.slam.run.realtime import agent as realtime_agent
+
+    calls: list[str] = []
+
+    def counted() -> bool:
+        calls.append(threading.current_thread().name)
+        return memory.trim_heap()
+
+    monkeypatch.setattr(dense_agent, "trim_heap", counted)
+    monkeypatch.setattr(realtime_agent, "trim_heap", counted)
+    return calls
+
+
+def _cfg(**changes):
+    from swarmsplat.slam.config import SlamConfig
+
+    return SlamConfig().override(DRIVER_QUICK).override(changes)
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_a_sequence_run_trims_once_per_finished_submap(driver_sequence, tmp_path, trims, on):
+    from swarmsplat.slam.run.sequence import run_sequence
+
+    m = run_sequence(driver_sequence, tmp_path / "run", _cfg(kernels={"malloc_trim": on}), progress=False)
+    assert m["submaps"] >= 3  # at least two finished
+    assert len(trims) == (m["submaps"] - 1 if on else 0)
+
+
+def test_a_team_run_trims_once_per_finished_submap_of_each_agent(driver_sequence, tmp_path, trims):
+    from swarmsplat.slam.cli import main
+
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(_cfg().to_yaml())
+    assert main(["run", str(driver_sequence), "--split", "0:9,9:18", "--out", str(tmp_path / "team"), "--config",
+                 str(cfg), "--quiet"]) == 0
+    m = json.loads((tmp_path / "team" / "metrics.json").read_text())
+    finished = sum(a["submaps"] - 1 for a in m["agents"])
+    assert finished >= 2 and len(trims) == finished
+
+
+def test_a_live_run_trims_once_per_finished_submap(driver_sequence, tmp_path, trims):
+    """slam.run.live.run_live (`swarmsplat agent --source zenoh/...`) with the frames handed over in process."""
+    from swarmsplat.slam.io.datasets import load_sequence
+    from swarmsplat.slam.io.live import SourceStats
+    from swarmsplat.slam.run.live import run_live
+
+    seq = load_sequence(driver_sequence)
+
+    class Source:
+        name, stats = "live", SourceStats()
+
+        def wait_camera(self, timeout):
+            return seq.camera
+
+        def frames(self, **_):
+            for i in range(len(seq)):
+                now = time.monotonic()
+                yield seq[i], now, now
+
+    m = run_live(Source(), tmp_path / "live", _cfg(), progress=False)
+    assert m["frames_tracked"] == len(seq) and m["submaps"] >= 3
+    assert len(trims) == m["submaps"] - 1
+
+
+def test_a_realtime_run_trims_once_per_finished_submap_on_its_worker(driver_sequence, tmp_path, trims):
+    from swarmsplat.slam.run.realtime.run import run_realtime
+
+    cfg = _cfg(runtime={"realtime": True, "rate": 3})  # slow enough that every frame is tracked and mapped
+    m = run_realtime(driver_sequence, tmp_path / "rt", cfg, progress=False)
+    assert m["realtime"]["frames_tracked"] == 18 and m["submaps"] >= 3
+    assert len(trims) == m["submaps"] - 1 and all(t.endswith("-mapping") for t in trims), trims
