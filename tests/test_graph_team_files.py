@@ -127,3 +127,20 @@ def test_shared_multirobot_graphs_read():
     assert sum(e.inter_robot for e in g.edges) == 109 and len(g.loops()) == 122
     g = read_team([shared_data("dgs_multirobot", "blocks_world", "16robots")])
     assert len(g.robots()) == 16 and len(g.components()) == 1 and not g.pending
+
+
+def test_graph_solve_distributed_on_a_measurements_folder(tmp_path):
+    import json
+
+    from swarmsplat.slam.cli import main
+
+    folder = _team(tmp_path)
+    assert main(["graph", "solve", str(folder), "--out", str(tmp_path / "c.g2o"), "--solver", "gnc"]) == 0
+    assert main(["graph", "solve", str(folder), "--out", str(tmp_path / "d.g2o"), "--solver", "gnc",
+                 "--distributed"]) == 0
+    central = json.loads((tmp_path / "c.json").read_text())
+    d = json.loads((tmp_path / "d.json").read_text())
+    assert set(d["distributed"]) >= {"robots", "iterations", "bytes_total", "bytes_per_separator_iteration",
+                                     "gather_bytes"}
+    assert d["distributed"]["robots"] == 2 and d["rejected_loops"] == central["rejected_loops"] == []
+    assert d["final_error"] <= central["final_error"] * 1.01 + 1e-9

@@ -8,8 +8,9 @@ order of the sender's separator list for the recipient, scales and weights in th
 the sender owns (scales of its up-to-scale loops only, weights only when GNC runs).
 
 Wire format (little-endian, no pickle): a 23-byte header (magic, sender, recipient, stamp, counts, flags), then
-the poses as 6 float64 (rotation vector, translation) = 48 bytes each, scales and weights as float64, and with
-FLAG_SCALARS four float64 and a uint32 stamp. Bytes that do not decode raise InputError; the transport drops
+the poses as 6 float32 (rotation vector, translation) = 24 bytes each, scales and weights as float32, and with
+FLAG_SCALARS four float64 and a uint32 stamp. float32 rounds a position 1 km from the origin by ~30 µm, far
+below any loop's noise; the sender keeps its own estimate in float64. Bytes that do not decode raise InputError; the transport drops
 them, and a robot drops an estimate whose counts are not those it expects.
 """
 
@@ -30,7 +31,7 @@ _SCALARS = struct.Struct("<ddddI")
 FLAG_SCALARS = 1  # the consensus scalars follow
 FLAG_STILL = 2  # the sender's last step moved its poses by less than the tolerance
 FLAG_BINARY = 4  # every GNC weight the sender owns is 0 or 1
-POSE_BYTES = 48
+POSE_BYTES = 24
 
 
 @dataclass
@@ -54,8 +55,8 @@ class Estimate:
         P, S, W = len(self.poses), len(self.scales), len(self.weights)
         xi = np.concatenate([lie.so3_log(self.poses[:, :3, :3]), self.poses[:, :3, 3]], 1) if P else np.zeros((0, 6))
         out = [_HEAD.pack(MAGIC, self.sender, self.recipient, self.stamp, P, S, W, self.flags),
-               np.asarray(xi, "<f8").tobytes(), np.asarray(self.scales, "<f8").tobytes(),
-               np.asarray(self.weights, "<f8").tobytes()]
+               np.asarray(xi, "<f4").tobytes(), np.asarray(self.scales, "<f4").tobytes(),
+               np.asarray(self.weights, "<f4").tobytes()]
         if self.flags & FLAG_SCALARS:
             out.append(_SCALARS.pack(self.shared_g, self.shared_h, self.shared_s, self.mu0, self.shared_stamp))
         return b"".join(out)
@@ -67,7 +68,7 @@ class Estimate:
         magic, sender, recipient, stamp, P, S, W, flags = _HEAD.unpack_from(data)
         if magic != MAGIC:
             raise InputError("distributed estimate: wrong magic")
-        size = _HEAD.size + P * POSE_BYTES + 8 * (S + W) + (_SCALARS.size if flags & FLAG_SCALARS else 0)
+        size = _HEAD.size + P * POSE_BYTES + 4 * (S + W) + (_SCALARS.size if flags & FLAG_SCALARS else 0)
         if len(data) != size:
             raise InputError(f"distributed estimate: {len(data)} bytes, expected {size}")
         o = _HEAD.size
@@ -79,8 +80,8 @@ class Estimate:
             o += a.nbytes
             return a
 
-        xi = take("<f8", 6 * P).reshape(P, 6)
-        s, w = take("<f8", S), take("<f8", W)
+        xi = take("<f4", 6 * P).reshape(P, 6).astype(np.float64)
+        s, w = take("<f4", S).astype(np.float64), take("<f4", W).astype(np.float64)
         if not (np.all(np.isfinite(xi)) and np.all(np.isfinite(s)) and np.all(np.isfinite(w))):
             raise InputError("distributed estimate: non-finite value")
         T = np.tile(np.eye(4), (P, 1, 1))

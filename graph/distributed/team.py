@@ -32,7 +32,7 @@ from .messages import POSE_BYTES, Estimate
 from .partition import partition, robot_of
 from .robot import RobotSolver, Settings
 
-EDGE_BYTES = 10 + 48 + 168  # two (robot, index) ids, the relative pose, the 21-entry information matrix
+EDGE_BYTES = 10 + 24 + 84  # two (robot, index) ids, the relative pose, the 21-entry information matrix (float32)
 GATHER_POSE_BYTES = 4 + POSE_BYTES  # a keyframe index and the pose
 
 

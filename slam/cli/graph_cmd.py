@@ -1,7 +1,8 @@
-"""`swarmsplat graph solve IN.g2o [IN2.g2o ...] --out OUT.g2o [--solver lm|gnc] [--init best|chordal|gtsam|file]
-[--objective g2o|se-sync] [--information repair|isotropic|strict] [--json OUT.json]`.
+"""`swarmsplat graph solve IN... --out OUT.g2o [--solver lm|gnc] [--init best|chordal|gtsam|file]
+[--objective g2o|se-sync] [--information repair|isotropic|strict] [--json OUT.json] [--distributed]`.
 
-Reads one or more g2o files (several robots' files are merged, edges present in two files kept once), replaces
+Reads one or more g2o files, a folder of one g2o per robot (DGS) or a folder of DPGO's robotN/measurements.csv
+(graph.team_files: several robots' files are merged, the two copies of an inter-robot edge must agree), replaces
 information matrices that are not positive definite by the `--information` policy (graph.information; one
 warning line counts them; `strict` refuses the file), initialises every connected component (default `best`:
 GTSAM's InitializePose3 and our chordal initialisation, the one with the lower objective kept; ours where
@@ -9,7 +10,10 @@ GTSAM's fails), solves with Levenberg–Marquardt (GTSAM's, its default toleranc
 or GNC, and writes the optimised graph as g2o (atomically) plus a JSON summary (default: OUT with suffix .json).
 Printed and in the JSON: initial and final error (GTSAM's 0.5 * sum of squared whitened residuals of the chosen
 objective), LM iterations and whether the tolerances were met, SE-Sync's cost F of the result, times. A 2D (SE2)
-input is written back as 3D g2o (z, roll and pitch 0).
+input is written back as 3D g2o (z, roll and pitch 0). With `--distributed` every robot solves its own part
+(graph.distributed, robots simulated in one process) from the same initial estimate; the JSON adds `distributed`
+(robots, rounds, bytes sent, bytes per separator pose per round, what gathering the graph on one robot would
+send, the connected groups). With GNC, `rejected_loops` lists [robot_src, pose_src, robot_dst, pose_dst].
 """
 
 from __future__ import annotations
@@ -21,7 +25,9 @@ def register(sub) -> None:
     p = sub.add_parser("graph", help="pose-graph tools (solve a g2o file)")
     gsub = p.add_subparsers(dest="graph_command", metavar="ACTION", required=True)
     s = gsub.add_parser("solve", help="optimise a g2o pose graph and write the result")
-    s.add_argument("inputs", nargs="+", metavar="IN.g2o", help="g2o file(s); several are merged (one per robot)")
+    s.add_argument("inputs", nargs="+", metavar="IN",
+                   help="g2o file(s), several merged (one per robot); or one folder of <k>.g2o (DGS) or of "
+                        "robotN/measurements.csv (DPGO)")
     s.add_argument("--out", required=True, help="output g2o file")
     s.add_argument("--json", default=None, metavar="OUT.json", help="summary JSON (default: --out with .json)")
     s.add_argument("--solver", choices=["lm", "gnc"], default="lm", help="Levenberg-Marquardt or GNC (TLS)")
@@ -40,6 +46,13 @@ def register(sub) -> None:
     s.add_argument("--max-iterations", type=int, default=500, help="LM iterations at most (default 500)")
     s.add_argument("--relative-tol", type=float, default=1e-5, help="LM relative decrease tolerance (GTSAM: 1e-5)")
     s.add_argument("--absolute-tol", type=float, default=1e-5, help="LM absolute decrease tolerance (GTSAM: 1e-5)")
+    s.add_argument("--distributed", action="store_true",
+                   help="every robot solves its own part, exchanging separator estimates (robots simulated in one "
+                        "process)")
+    s.add_argument("--max-rounds", type=int, default=300, help="--distributed: rounds at most (default 300)")
+    s.add_argument("--relax", type=float, default=1.0,
+                   help="--distributed: over-relaxation of each robot's step, 1 to 1.9 (default 1: every round "
+                        "lowers the cost)")
     s.set_defaults(func=run)
 
 
@@ -49,11 +62,12 @@ def run(args) -> int:
     from pathlib import Path
 
     from swarmsplat.graph.formulations import build_problem
-    from swarmsplat.graph.g2o import read_g2o, repaired_edges, write_g2o
+    from swarmsplat.graph.g2o import repaired_edges, write_g2o
     from swarmsplat.graph.init import initialize
     from swarmsplat.graph.metrics import se_sync_cost
-    from swarmsplat.graph.pose_graph import key_str
+    from swarmsplat.graph.pose_graph import key_index, key_robot, key_str
     from swarmsplat.graph.solvers import gnc, levenberg_marquardt
+    from swarmsplat.graph.team_files import read_team
     from swarmsplat.kernels.errors import InputError
     from swarmsplat.kernels.fileio import atomic_write_text
 
@@ -62,10 +76,10 @@ def run(args) -> int:
     if args.relative_tol > 1e-5 or args.absolute_tol > 1e-5:
         print("warning: tolerances looser than GTSAM's defaults (1e-5): LM may stop short of the minimum",
               file=sys.stderr)
+    if args.distributed and not (args.max_rounds >= 1 and 1.0 <= args.relax < 2.0):
+        raise InputError("--max-rounds must be >= 1 and --relax in [1, 2)")
     t_start = time.perf_counter()
-    graph = read_g2o(args.inputs[0], information=args.information)
-    for path in args.inputs[1:]:
-        graph = graph.merged(read_g2o(path, information=args.information))
+    graph = read_team(args.inputs, information=args.information)
     fixed = repaired_edges(graph)
     n_fixed = sum(fixed.values())
     if n_fixed:
@@ -76,7 +90,15 @@ def run(args) -> int:
     poses, init = initialize(graph, args.init, args.objective)
     problem = build_problem(graph, "base", initial_poses=poses, objective=args.objective)
     lm = dict(max_iterations=args.max_iterations, relative_tol=args.relative_tol, absolute_tol=args.absolute_tol)
-    if args.solver == "gnc":
+    dist = None
+    if args.distributed:
+        from swarmsplat.graph.distributed.robot import Settings
+        from swarmsplat.graph.distributed.team import solve_distributed
+
+        res = dist = solve_distributed(graph, Settings(objective=args.objective, relax=args.relax), args.solver,
+                                       initial_poses=poses, max_rounds=args.max_rounds,
+                                       probability=args.gnc_probability)
+    elif args.solver == "gnc":
         res = gnc(problem, probability=args.gnc_probability, lm_max_iterations=args.max_iterations)
     else:
         res = levenberg_marquardt(problem, **lm)
@@ -93,34 +115,59 @@ def run(args) -> int:
         fail = f"  (gtsam failed: {c['gtsam_failure']})" if c["gtsam_failure"] else ""
         print(f"  component at {key_str(c['anchor'])}: {c['poses']} poses, initial {args.objective} error {errs}"
               f" -> {c['chosen']}{fail}")
-    print(f"solver {res.solver}  objective {args.objective}  iterations {res.iterations}  "
-          f"converged {'yes' if res.converged else 'no'}  time {res.time_s:.3f} s")
+    if dist is not None:
+        print(f"solver distributed {args.solver}  objective {args.objective}  robots {dist.robots}  rounds "
+              f"{dist.rounds}  converged {'yes' if dist.converged else 'no'}  time {dist.time_s:.3f} s")
+        print(f"bytes {dist.bytes_total}  per separator pose and round {dist.bytes_per_separator_iteration:.1f}  "
+              f"elected-robot gather {dist.gather_bytes}  groups {len(dist.groups)}")
+    else:
+        print(f"solver {res.solver}  objective {args.objective}  iterations {res.iterations}  "
+              f"converged {'yes' if res.converged else 'no'}  time {res.time_s:.3f} s")
     print(f"initial error {res.initial_error:.9g}")
     print(f"final error {res.final_error:.9g}")
     print(f"se-sync cost {F:.9g}")
-    if not res.converged:
+    if not res.converged and dist is None:
         print(f"warning: LM stopped at --max-iterations {args.max_iterations} before meeting its tolerances",
               file=sys.stderr)
+    rejected = [_loop_ids(graph.edges[n], key_robot, key_index) for n in res.rejected]
     if args.solver == "gnc":
-        names = ", ".join(f"{key_str(graph.edges[n].key_i)}-{key_str(graph.edges[n].key_j)}" for n in res.rejected)
-        print(f"rejected loops {len(res.rejected)}" + (f": {names}" if names else ""))
+        names = ", ".join(f"{a}.{i}-{b}.{j}" for a, i, b, j in rejected)
+        print(f"rejected loops {len(rejected)}" + (f": {names}" if names else ""))
     summary = {
         "inputs": [str(p) for p in args.inputs], "out": str(out), "poses": len(graph.poses),
         "edges": len(graph.edges), "loops": len(graph.loops()), "components": len(graph.components()),
         "information": {"policy": args.information, "replaced": n_fixed, "by_rule": fixed},
         "init": {"method": args.init, "chosen": init.chosen(), "time_s": init.time_s,
                  "components": init.components},
-        "solver": res.solver, "objective": args.objective, "iterations": res.iterations, "converged": res.converged,
+        "solver": args.solver, "objective": args.objective,
+        "iterations": dist.rounds if dist else res.iterations, "converged": res.converged,
         "relative_tol": args.relative_tol, "absolute_tol": args.absolute_tol, "max_iterations": args.max_iterations,
         "initial_error": res.initial_error, "final_error": res.final_error, "se_sync_cost": F,
         "solve_time_s": res.time_s, "total_time_s": total,
     }
+    if dist is not None:
+        summary["distributed"] = {
+            "robots": dist.robots, "iterations": dist.rounds, "bytes_total": dist.bytes_total,
+            "bytes_per_separator_iteration": dist.bytes_per_separator_iteration,
+            "gather_bytes": dist.gather_bytes, "relax": args.relax,
+            "groups": [[_robot_number(chr(r)) for r in grp] for grp in dist.groups],
+            "error_per_round": dist.history}
     if args.solver == "gnc":
-        summary["rejected_loops"] = [[key_str(graph.edges[n].key_i), key_str(graph.edges[n].key_j)]
-                                     for n in res.rejected]
+        summary["rejected_loops"] = rejected
     js = Path(args.json) if args.json else Path(out).with_suffix(".json")
     if js.resolve() == Path(out).resolve():
         js = Path(str(out) + ".json")
     atomic_write_text(js, json.dumps(summary, indent=1, default=float) + "\n")
     print(f"wrote {args.out}, {js}")
     return 0
+
+
+def _robot_number(c: str | None) -> int:
+    """DPGO's robot number of a Symbol character ('a' -> 0); a plain-integer graph is robot 0."""
+    return 0 if c is None else ord(c) - ord("a")
+
+
+def _loop_ids(edge, key_robot, key_index) -> list[int]:
+    """[robot_src, pose_src, robot_dst, pose_dst] of a loop, as DPGO's measurement files name it."""
+    return [_robot_number(key_robot(edge.key_i)), key_index(edge.key_i),
+            _robot_number(key_robot(edge.key_j)), key_index(edge.key_j)]
