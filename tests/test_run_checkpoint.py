@@ -66,6 +66,16 @@ def _assert_same_files(run: Path, reference: Path, names: tuple[str, ...]) -> No
     assert not differ, f"the resumed run's {differ} differ from the uninterrupted run's"
 
 
+def _run(args: list[str]) -> None:
+    """`swarmsplat ARGS` in a fresh process, as the killed run is: the uninterrupted run, the killed one and its
+    resumption then start from the same process state (a long test process's earlier tests can leave state that
+    moves a run's last bits)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = subprocess.run([sys.executable, "-m", "swarmsplat.slam", *args], capture_output=True, text=True, cwd=REPO,
+                         env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+
+
 def _journal_frames(path: Path) -> int:
     return sum(1 for ln in path.read_text().splitlines() if ln and not ln.startswith("#")) if path.is_file() else 0
 
@@ -76,7 +86,7 @@ def test_kill_9_keeps_the_journal_and_resume_finishes_as_the_uninterrupted_run(s
 
     cfg = _config(tmp_path)
     whole = tmp_path / "whole"
-    assert main(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet"]) == 0
+    _run(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet"])
     m_whole = json.loads((whole / "metrics.json").read_text())
     assert not (whole / "progress" / "checkpoint.pkl").exists()  # a complete run keeps no checkpoint
     kf_stamps = read_tum(whole / "keyframes.txt")[0]
@@ -108,13 +118,13 @@ def test_kill_9_keeps_the_journal_and_resume_finishes_as_the_uninterrupted_run(s
 
     with open(ckpt, "rb") as f:  # the resumed run starts mid-sequence
         assert 0 < pickle.load(f)["next_frame"] <= len(stamps)
-    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--resume"]) == 0
+    _run(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", "--resume"])
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "complete" and m["frames_tracked"] == FRAMES and m["keyframes"] == m_whole["keyframes"]
     # The checkpoint holds the agent's whole state (Gaussians, keyframes, pose graph, tracker, the mapper's random
-    # generator), so the resumed run continues the uninterrupted one. Both halves run here, on one CPU with one
-    # backend and the same thread count, so the arithmetic is the same operation for operation and the outputs
-    # are the same bit for bit (another CPU changes both runs alike); a resume that loses any state differs.
+    # generator), so the resumed run continues the uninterrupted one. All three processes run here, on one CPU with
+    # one backend and the same thread count, so the arithmetic is the same operation for operation and the outputs
+    # are the same bit for bit (another CPU changes every run alike); a resume that loses any state differs.
     assert m["submaps"] == m_whole["submaps"] and m["gaussians"] == m_whole["gaussians"]
     assert m["ate_rmse"] == m_whole["ate_rmse"] and m["loops_accepted"] == m_whole["loops_accepted"]
     _assert_same_files(out, whole, SINGLE_OUTPUTS)
@@ -187,7 +197,7 @@ def test_a_killed_team_run_resumes_to_the_uninterrupted_result(sequence, tmp_pat
     cfg = _config(tmp_path)
     split = ["--split", "0:22,22:45"]
     whole = tmp_path / "whole"
-    assert main(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet", *split]) == 0
+    _run(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet", *split])
     m_whole = json.loads((whole / "metrics.json").read_text())
     assert not (whole / "progress" / "checkpoint.pkl").exists()
 
@@ -214,7 +224,7 @@ def test_a_killed_team_run_resumes_to_the_uninterrupted_result(sequence, tmp_pat
                  "--processes"]) == 2
     assert "replays its journal" in capsys.readouterr().err
 
-    assert main(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", *split, "--resume"]) == 0
+    _run(["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", *split, "--resume"])
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "complete" and not ckpt.exists()
     # one CPU, backend and thread count for both runs: the same outputs bit for bit (see the single-agent test)
