@@ -34,6 +34,7 @@ SUBJECTS = {
     "live": ".live",
     "long-run": ".long_run",
     "loop-graph": ".loop_graph",
+    "distributed": ".distributed",
 }
 
 
