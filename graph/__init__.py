@@ -12,4 +12,5 @@
     newton         Newton steps for the se-sync objective (the curvature term GN lacks, per-pose HessianFactors)
     init           chordal initialisation; per component the better of it and GTSAM's InitializePose3
     metrics        SE-Sync cost, ATE;  synthetic: FLOCC-like multi-robot teams;  lie: batched SE(3)
+    distributed/   every robot solves its own part (per-robot state + plain-data messages; simulated team)
 """
