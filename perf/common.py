@@ -107,10 +107,34 @@ def machine_info() -> dict:
 
 def provenance_line(info: dict) -> str:
     """One Markdown line for a result file's head: commit, date, CPU, load and library versions."""
+    # a dirty tree says so here, in the first line, so the file cannot pass for a measurement of the commit
     dirty = " (uncommitted changes)" if info.get("dirty") else ""
     libs = ", ".join(f"{k} {info[k]}" for k in ("torch", "warp", "taichi", "gtsam") if info.get(k))
     return (f"_Measured at commit {info.get('commit')}{dirty} on {info.get('date')}: {info.get('cpu_model')}, "
             f"{info.get('cpu_count')} cores, load {info.get('load_average_1min')}; {libs}._")
+
+
+def read_provenance(path: str | os.PathLike) -> dict:
+    """What a result file says of where it came from: {"commit": short hex or None, "clean": bool, "line": the
+    Markdown file's first line or the JSON's machine record as text}. Clean means a commit is named and the tree
+    measured had no uncommitted changes: a Markdown file's first line is `_Measured at commit HEX on ...` without
+    "(uncommitted changes)"; a JSON file's `machine` has a hex `commit` and `dirty` false. A file from before
+    provenance was recorded (`provenance` instead) names no measured commit and is not clean."""
+    import json
+    import re
+
+    path = os.fspath(path)
+    if path.endswith(".json"):
+        with open(path) as f:
+            m = json.load(f).get("machine") or {}
+        commit = m.get("commit")
+        ok = isinstance(commit, str) and re.fullmatch(r"[0-9a-f]{7,40}", commit) is not None
+        return {"commit": commit if ok else None, "clean": ok and m.get("dirty") is False, "line": str(m)}
+    with open(path) as f:
+        line = f.readline().strip()
+    hit = re.match(r"_Measured at commit ([0-9a-f]{7,40})\b", line)
+    return {"commit": hit.group(1) if hit else None,
+            "clean": hit is not None and "(uncommitted changes)" not in line, "line": line}
 
 
 def write_results(json_out: str | None, md_out: str | None, report: dict, md: str | None = None) -> None:
