@@ -248,6 +248,28 @@ class LoopClosureConfig(_Section):
     descriptor_min_overlap: float = Field(0.1, ge=0, le=1, description="without global_fallback, a descriptor "
                                           "candidate is registered only when the tracked poses make this fraction "
                                           "of the query's depth pixels land in the match view (0 = always)")
+    cloud_route: bool = Field(True, description="when keyframe ICP from the tracked pose fails the gates, register "
+                              "the two keyframes' local maps (a window of keyframes each, fused with depth; "
+                              "slam.dense.loops.local_clouds) by ICP from the same start, and accept the loop only "
+                              "if a render of the matched submaps from the result agrees with the query's view")
+    cloud_window: int = Field(6, ge=0, description="cloud route: keyframes within this many keyframe ids of the "
+                              "candidate's, on each side, make its local map")
+    cloud_voxel: float = Field(0.08, gt=0, description="cloud route: voxel grid (m); normals within 2.5 voxels, FPFH "
+                               "within 5, ICP correspondences within 1")
+    cloud_min_fitness: float = Field(0.2, ge=0, le=1, description="cloud route: at least this fraction of the query "
+                                     "window's points within one voxel of the match window's after ICP ...")
+    cloud_max_rmse: float = Field(0.06, gt=0, description="... with an RMSE of at most this (m)")
+    cloud_per_keyframe: int = Field(2, ge=0, description="cloud route: at most this many candidates of one query "
+                                    "keyframe take it (best first), which bounds its cost per keyframe")
+    render_min_covisible: float = Field(0.15, ge=0, le=1, description="verification by rendering "
+                                        "(slam.dense.loops.render_check): the render covers at least this fraction "
+                                        "of the query's valid depth pixels ...")
+    render_min_agree: float = Field(0.5, ge=0, le=1, description="... agrees in depth (5 cm + 3 %) on at least this "
+                                    "fraction of them ...")
+    render_max_violate: float = Field(0.15, ge=0, le=1, description="... lies in front of the observed surface (by "
+                                      "10 cm + 5 %) on at most this fraction ...")
+    render_max_photometric: float = Field(0.12, gt=0, description="... and differs in colour, after a gain and offset "
+                                          "per channel, by at most this mean absolute error (0-1 scale)")
     solver: Literal["incremental", "batch"] = Field(
         "incremental", description="pose-graph optimisation after a loop: 'incremental' (iSAM2 keeps the graph and "
                                    "re-solves only the part the new edges touch; the same optimum to within 0.03 "

@@ -32,6 +32,18 @@ class ServerConfig(BaseModel):
                                "keyframe encoded once), 'fpfh' = FPFH + RANSAC (global_fallback)")
     learned_fallback: bool = Field(False, description="coarse learned: try FPFH + RANSAC when the learned guess "
                                                       "is not found")
+    cloud_route: bool = Field(True, description="agents not yet in one frame: when the image route (learned guess, "
+                              "then keyframe ICP) gives no verified pose, register the two keyframes' local maps as "
+                              "point clouds (a window of keyframes each, fused with depth; "
+                              "slam.dense.loops.local_clouds) by global registration and ICP; its window, voxel, "
+                              "gates and budget are loop_closure's cloud_* and render_* keys")
+    cloud_method: Literal["auto", "kiss-matcher", "fpfh-ransac"] = Field(
+        "auto", description="the cloud route's global registration: KISS-Matcher, or Open3D's FPFH + RANSAC; 'auto' "
+                            "= kiss-matcher where its wheel is installed (x86-64), else fpfh-ransac")
+    render_check: Literal["cloud", "all", "off"] = Field(
+        "cloud", description="verification by rendering (slam.dense.loops.render_check) of loops between agents "
+                             "not yet in one frame: 'cloud' checks those from the cloud route, 'all' every one, 'off' "
+                             "none (loop_closure's render_* gates)")
     same_frame_fallback: bool = Field(False, description="FPFH + RANSAC restart also for agents already in one "
                                       "frame when the start from their relative pose fails")
     tau_sim: float | None = Field(None, ge=-1, le=1, description="inter-agent cosine similarity gate; null = "

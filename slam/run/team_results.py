@@ -129,7 +129,8 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
                                 "intra": team.agents[0].loops.budget()},
         "inter_verify": {"by_source_and_coarse": srv.inter_stats, "coarse": srv.cfg.coarse,
                          "descriptor": srv.cfg.descriptor,
-                         "encoder": srv.encoder.stats() if srv.encoder is not None else None},
+                         "encoder": srv.encoder.stats() if srv.encoder is not None else None,
+                         "cloud_route": cloud_route_stats(srv)},
         "time_s": {"wall": wall_s, "cpu": cpu_s, "server": dict(srv.time),
                    "evaluation": time.perf_counter() - t_eval},
         "kernels": kernels_record(team.cfg.kernels), "run": run_info or {},
@@ -139,6 +140,21 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
     write_json(out / "metrics.json", metrics)
     write_report(out, metrics)
     return metrics
+
+
+def cloud_route_stats(srv) -> dict:
+    """The cloud route's cost and outcome: windows built, registrations, seconds, and per query keyframe."""
+    from swarmsplat.slam.dense.loops.local_clouds import WindowRegistrar
+
+    st = (srv.clouds or WindowRegistrar()).stats()
+    tried = len(srv.cloud_tries)
+    verified = [r for r in srv.records if r.route == "cloud"]
+    return {"enabled": srv.cfg.cloud_route, "method": srv.cfg.cloud_method, **st,
+            "candidates": len(verified), "passed_render": sum(r.reason_code in ("accepted", "unconfirmed")
+                                                                for r in verified),
+            "rejected_render": sum(r.reason_code == "render" for r in verified),
+            "query_keyframes": tried, "seconds_per_query_keyframe": (st["prepare_s"] + st["register_s"]) / tried
+            if tried else 0.0, "render_check": srv.cfg.render_check}
 
 
 def _gt(seq):

@@ -60,6 +60,11 @@ class LoopCandidate:
     correction_m: float = 0.0
     source: str = "descriptor"  # "descriptor" (place recognition) or "pose" (tracked poses' view overlap)
     overlap: float = float("nan")  # view overlap of the tracked poses (pose candidates)
+    route: str = "image"  # "image": keyframe registration; "cloud": the two keyframes' local maps (cloud_route)
+    render_covisible: float = float("nan")  # verification by rendering (cloud route; NaN: not run)
+    render_agree: float = float("nan")
+    render_violate: float = float("nan")
+    render_photometric: float = float("nan")
 
 
 @dataclass
@@ -89,6 +94,8 @@ class LoopCloser:
         # 'auto' is decided on the first keyframe, whose size it needs; a named descriptor is checked now.
         self._recognizer = None if cfg.descriptor == "auto" else _make_recognizer(cfg)
         self._pending: dict[int, np.ndarray] = {}  # xfeat-vlad: local descriptors of keyframes awaiting the vocabulary
+        self.clouds = None  # the cloud route's WindowRegistrar, made on first use
+        self.cloud_tries: dict[int, int] = {}  # query keyframe id -> candidates that took the cloud route
 
     def budget(self) -> dict:
         """The candidates verified per keyframe at most (top_k descriptor ones, pose_top_k pose ones) and the
@@ -196,6 +203,9 @@ class LoopCloser:
                           max_rmse=cfg.rmse_max, max_depth=self.max_depth, global_fallback=cfg.global_fallback)
         c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
         c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
+        gates = r.fitness <= cfg.fitness_min or r.inlier_rmse >= cfg.rmse_max or not r.success
+        if gates and cfg.cloud_route and self.cloud_tries.get(q.id, 0) < cfg.cloud_per_keyframe:
+            return self._verify_cloud(c, q, j, keyframes, gmap, T_init)
         if r.fitness <= cfg.fitness_min:
             c.reason = f"fitness {r.fitness:.3f} <= tau_f {cfg.fitness_min}"
         elif r.inlier_rmse >= cfg.rmse_max:
@@ -208,6 +218,51 @@ class LoopCloser:
             c.accepted = True
             c.reason = "accepted"
             self.loops.append(Edge(j.id, q.id, se3.project_rigid(r.T_target_source), self.loop_information(r), c))
+        self.log.append(c)
+        return c
+
+    def _verify_cloud(self, c: LoopCandidate, q: Keyframe, j: Keyframe, keyframes: list[Keyframe],
+                      gmap: GaussianMap, T_init: np.ndarray) -> LoopCandidate:
+        """The cloud route (slam.dense.loops.local_clouds): ICP between the two keyframes' windows from the tracked
+        guess (the match window takes only keyframes older than the query window's, so the two share none), the
+        cloud gates, the correction gate, then the render check of the match window's submaps from the result."""
+        from .local_clouds import WindowRegistrar, window_keyframes
+        from .render_check import RenderGate, record_scores, score_loop
+
+        cfg = self.cfg
+        self.cloud_tries[q.id] = self.cloud_tries.get(q.id, 0) + 1
+        if self.clouds is None:
+            self.clouds = WindowRegistrar(radius=cfg.cloud_window, voxel=cfg.cloud_voxel,
+                                          min_fitness=cfg.cloud_min_fitness, max_rmse=cfg.cloud_max_rmse)
+        first = f"keyframe ICP fitness {c.fitness:.3f}, RMSE {c.inlier_rmse:.4f} m"
+        c.route = "cloud"
+        lo = min(k.id for k in window_keyframes(keyframes, q.id, cfg.cloud_window))
+        wq = self.clouds.window(q.id, keyframes, gmap, q, max_depth=self.max_depth)
+        wj = self.clouds.window(j.id, keyframes, gmap, j, max_depth=self.max_depth, below=lo)
+        out = self.clouds.register(wq, wj, init=T_init)
+        c.fitness, c.inlier_rmse = float(out.fitness), float(out.inlier_rmse)
+        if out.T_match_query is None:
+            c.reason = f"registration failed: {first}; cloud route: {out.reason}"
+        elif out.reason:
+            c.reason = f"{'inlier RMSE' if 'RMSE' in out.reason else 'fitness'}: cloud route: {out.reason} ({first})"
+        else:
+            T = se3.project_rigid(out.T_match_query)
+            c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ T)[:3, 3]))
+            s = score_loop(gmap, keyframes, j, T, q.small, cfg.cloud_window)
+            record_scores(c, s)
+            why = RenderGate(cfg.render_min_covisible, cfg.render_min_agree, cfg.render_max_violate,
+                             cfg.render_max_photometric).verdict(s)
+            if c.correction_m > cfg.max_correction:
+                c.reason = f"correction {c.correction_m:.3f} m > max_correction {cfg.max_correction} (cloud route)"
+            elif why:
+                c.reason = f"render check: {why} (cloud route)"
+            else:
+                c.accepted, c.reason = True, "accepted [cloud route]"
+                info = fixed_information(cfg.odometry_sigma_rot, cfg.odometry_sigma_trans)
+                if cfg.information != "fixed":
+                    info = information(registration_covariance(out.information, out.n_correspondences,
+                                                               out.inlier_rmse, T, self.model), self.model)
+                self.loops.append(Edge(j.id, q.id, T, info, c))
         self.log.append(c)
         return c
 

@@ -5,8 +5,9 @@ rejected, written as `loops.csv` and summarised in the report.
 reached the similarity test is therefore kept, with a short machine-readable `reason_code`
 (`accepted`, `similarity`, `overlap`, `registration`, `fitness`, `rmse`, `correction`, `gnc`, `inconsistent`,
 `move`, `unconfirmed`: verified between agents not yet in one frame, but no second consistent loop confirmed the
-join) beside the human sentence; `source` says where the candidate came from (`descriptor`: place recognition,
-`pose`: the tracked poses' view overlap, GRAND-SLAM eq. 6).
+join, `render`: the matched agent's map rendered from the hypothesised pose contradicts the query's view) beside the human sentence; `source` says where the candidate came from (`descriptor`: place recognition,
+`pose`: the tracked poses' view overlap, GRAND-SLAM eq. 6) and `route` how its start was found (`image`: the
+tracked poses or image matches, `cloud`: 3-D registration of the two local maps, slam.dense.loops.local_clouds).
 
 Intra-agent candidates come from the agent's own `LoopCloser.log` (slam.dense.loops.loop_closure.LoopCandidate); that record
 has no reason code, so it is derived from the start of its reason sentence (`reason_code_of`).
@@ -24,7 +25,7 @@ from swarmsplat.kernels.fileio import atomic_write_text
 
 INTRA, INTER = "intra", "inter"
 REASON_CODES = ("accepted", "similarity", "overlap", "registration", "fitness", "rmse", "correction", "gnc",
-                "inconsistent", "move", "unconfirmed")
+                "inconsistent", "move", "unconfirmed", "render")
 SOURCES = ("descriptor", "pose")
 
 
@@ -50,6 +51,11 @@ class LoopRecord:
     joined: bool = False  # this loop brought two agents' frames together (first inter-agent loop of a pair)
     step: int = 0  # team step (round) at which the candidate was checked
     source: str = "descriptor"  # one of SOURCES
+    route: str = "image"  # "image" (tracked pose / image matches) or "cloud" (3-D registration of local maps)
+    render_covisible: float = float("nan")  # verification by rendering (slam.dense.loops.render_check); NaN: not run
+    render_agree: float = float("nan")
+    render_violate: float = float("nan")
+    render_photometric: float = float("nan")
 
     def reject(self, code: str, reason: str) -> "LoopRecord":
         self.accepted, self.reason_code, self.reason = False, code, reason
@@ -62,6 +68,7 @@ def reason_code_of(reason: str, accepted: bool) -> str:
         return "accepted"
     r = reason.lower()
     for prefix, code in (("similarity", "similarity"), ("overlap", "overlap"), ("registration", "registration"),
+                         ("render", "render"),
                          ("fitness", "fitness"), ("inlier rmse", "rmse"), ("correction", "correction"), ("gnc", "gnc"),
                          ("inconsistent", "inconsistent"), ("optimisation would move", "move")):
         if r.startswith(prefix):
@@ -75,9 +82,12 @@ def from_intra(agent: str, candidate, step: int = 0) -> LoopRecord:
     code = reason_code_of(c.reason, c.accepted)
     reg = "" if code in ("similarity", "overlap") else (
         "ok" if code != "registration" else c.reason.split(":", 1)[-1].strip())
+    nan = float("nan")
     return LoopRecord(INTRA, agent, c.query_kf, c.query_frame, agent, c.match_kf, c.match_frame, float(c.similarity),
                       bool(c.accepted), code, c.reason, reg, float(c.fitness), float(c.inlier_rmse),
-                      float(c.correction_m), False, step, getattr(c, "source", "descriptor"))
+                      float(c.correction_m), False, step, getattr(c, "source", "descriptor"),
+                      getattr(c, "route", "image"), *(float(getattr(c, f"render_{k}", nan))
+                                                      for k in ("covisible", "agree", "violate", "photometric")))
 
 
 def write_loops_csv(path: str | Path, records: list[LoopRecord]) -> Path:
@@ -88,7 +98,8 @@ def write_loops_csv(path: str | Path, records: list[LoopRecord]) -> Path:
     w.writeheader()
     for r in records:
         row = asdict(r)
-        for k in ("similarity", "fitness", "inlier_rmse", "correction_m"):
+        for k in ("similarity", "fitness", "inlier_rmse", "correction_m", "render_covisible", "render_agree",
+                  "render_violate", "render_photometric"):
             row[k] = f"{row[k]:.6g}"
         w.writerow(row)
     atomic_write_text(path, buf.getvalue())

@@ -24,6 +24,7 @@ from swarmsplat.slam.dense.loops.edge_information import fixed_information
 from swarmsplat.slam.dense.loops.loop_log import INTER, LoopRecord, from_intra
 from swarmsplat.slam.config import ServerConfig  # noqa: F401  (re-exported: slam.dense.team.server.ServerConfig)
 from swarmsplat.slam.dense.team.descriptors import coarse_view, describe_keyframe, make_recognizer_and_encoder
+from swarmsplat.slam.dense.team.cloud_route import CloudRoute
 from swarmsplat.slam.dense.team.joins import JoinRules
 from swarmsplat.slam.dense.submaps import Keyframe, last_keyframes, world_pose
 
@@ -56,7 +57,7 @@ class AgentSlot:
     intra_accepted: list = field(default_factory=list)  # records of agent.loops.loops, edge n <-> record n
 
 
-class Server(JoinRules):
+class Server(JoinRules, CloudRoute):
     def __init__(self, agents: list[Agent], config: ServerConfig | None = None):
         self.cfg = config or ServerConfig()
         self.slots = [AgentSlot(a, chr(ord("a") + i), component=i) for i, a in enumerate(agents)]
@@ -75,6 +76,9 @@ class Server(JoinRules):
         self._untrained: list[tuple[int, int]] = []  # xfeat-vlad keyframes waiting for the vocabulary
         # The server's place recognizer (None: the agents' own descriptors) and its XFeat keyframe encoder.
         self.recognizer, self.encoder = make_recognizer_and_encoder(self.cfg)
+        # The cloud route's cached keyframe windows and how often it ran per query keyframe (slam.dense.team.cloud_route).
+        self.clouds = None  # made on first use, from the agents' loop_closure section
+        self.cloud_tries: dict[tuple[int, int], int] = {}
 
     # ---- the server loop: one call per keyframe an agent sends --------------------------------------------------
 
@@ -193,7 +197,8 @@ class Server(JoinRules):
         try:
             return self._verify(rec, a, q, b, m, same, lc, register_rgbd)
         finally:
-            st = self.inter_stats.setdefault(f"{source}/{method}", {"candidates": 0, "accepted": 0, "seconds": 0.0})
+            key = f"{source}/{'cloud' if rec.route == 'cloud' else method}"
+            st = self.inter_stats.setdefault(key, {"candidates": 0, "accepted": 0, "seconds": 0.0})
             st["candidates"] += 1
             st["accepted"] += int(rec.accepted)
             st["seconds"] += time.perf_counter() - t0
@@ -201,6 +206,8 @@ class Server(JoinRules):
     def _verify(self, rec, a, q, b, m, same, lc, register_rgbd) -> LoopRecord:
         T_init = _rigid(se3.inverse(self.global_pose(b, m)) @ self.global_pose(a, q)) if same else np.eye(4)
         if q.small.camera.K.tolist() != m.small.camera.K.tolist() or q.small.color.shape != m.small.color.shape:
+            if not same and self.cloud_allowed(a, q):  # clouds are metric: the cameras need not be alike
+                return self.verify_cloud(rec, a, q, b, m, "the two keyframes have different cameras")
             rec.registration = "camera models differ"
             return rec.reject("registration", "registration failed: the two keyframes have different cameras")
         depth_max = self.slots[a].agent.cfg.image.max_depth
@@ -211,6 +218,8 @@ class Server(JoinRules):
             if T_guess is not None:
                 T_init = T_guess
             elif not fallback:
+                if self.cloud_allowed(a, q):
+                    return self.verify_cloud(rec, a, q, b, m, f"learned coarse guess not found ({info['reason']})")
                 rec.registration = f"learned guess: {info['reason']}"
                 return rec.reject("registration", f"registration failed: learned coarse guess not found "
                                                   f"({info['reason']})")
@@ -218,6 +227,9 @@ class Server(JoinRules):
                           max_distance=lc.icp_max_distance, min_fitness=lc.fitness_min, max_rmse=lc.rmse_max,
                           global_fallback=fallback, depth_max=depth_max)
         rec.registration, rec.fitness, rec.inlier_rmse = r.reason, float(r.fitness), float(r.inlier_rmse)
+        if self._fails_gates(r, lc) and self.cloud_allowed(a, q):  # one frame: the windows' ICP from the same start
+            return self.verify_cloud(rec, a, q, b, m, f"keyframe ICP: {self._fails_gates(r, lc)}",
+                                     init=T_init if same else None)
         if not r.success and r.reason != "poor alignment":
             return rec.reject("registration", f"registration failed: {r.reason}")
         if r.fitness <= lc.fitness_min:
@@ -230,6 +242,10 @@ class Server(JoinRules):
         info = ag.loops.loop_information(r) if ag.cfg.loop_closure.information == "registration" else None
         loop = InterLoop(b, m.id, a, q.id, _rigid(r.T_target_source), rec, info)
         if not same:
+            if self.cfg.render_check == "all":
+                why = self.render_score(b, m, loop.T_ij, q, rec)
+                if why:
+                    return rec.reject("render", why)
             return self._join_or_wait(loop, r.method)
         rec.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
         if rec.correction_m > lc.max_correction:
@@ -237,6 +253,19 @@ class Server(JoinRules):
         rec.accepted, rec.reason_code, rec.reason = True, "accepted", f"accepted [{r.method}]"
         self.inter.append(loop)
         return rec
+
+    @staticmethod
+    def _fails_gates(r, lc) -> str:
+        """Why a keyframe registration fails the loop gates ('' when it passes them)."""
+        if not r.success and r.reason != "poor alignment":
+            return f"registration failed: {r.reason}"
+        if r.fitness <= lc.fitness_min:
+            return f"fitness {r.fitness:.3f} <= tau_f {lc.fitness_min}"
+        if r.inlier_rmse >= lc.rmse_max:
+            return f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {lc.rmse_max}"
+        if not r.success:
+            return f"registration failed: {r.reason}"
+        return ""
 
     # ---- poses, the pose graph and the submap moves -------------------------------------------------------------
 

@@ -84,6 +84,18 @@ def detect_sequence_format(path: str | Path) -> str | None:
     return None
 
 
+def _load_agent_folder(folder: Path) -> ImageSequence:
+    """An agent folder named by dataset.yaml, in any single-sequence layout (our format first)."""
+    if is_folder_sequence(folder):
+        return load_folder_sequence(folder)
+    fmt = detect_sequence_format(folder)
+    if fmt is None:
+        raise InputError(f"{folder}: not a sequence in any layout read here; expected {_LAYOUTS_HELP}")
+    seq = _LOAD[fmt](folder)
+    seq.name = folder.name
+    return seq
+
+
 def _bag_kind(path: str | Path, fmt: str) -> bool:
     """Is `path` a bag (or, for a team, a folder of bags)? fmt "bag" insists; another layout name refuses."""
     from swarmsplat.slam.io.bags import is_bag
@@ -123,7 +135,7 @@ def load_dataset(path: str | Path, fmt: str = "auto", **kwargs) -> MultiAgentDat
     kwargs.pop("topics", None)
     p, fmt = _check(path, fmt)
     if (p / "dataset.yaml").is_file() and fmt in ("auto", "folder"):
-        return load_folder_dataset(p)
+        return load_folder_dataset(p, load_agent=_load_agent_folder)
     own = detect_sequence_format(p) if fmt == "auto" else (fmt if _DETECT[fmt](p) else None)
     if own is not None:
         seq = _LOAD[own](p, **kwargs)

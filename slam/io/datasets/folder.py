@@ -142,8 +142,9 @@ def _poses_file(path: Path, stamps: np.ndarray) -> np.ndarray | None:
     return poses_at(stamps, t, T, POSE_MAX_DIFF)
 
 
-def load_folder_dataset(root: str | Path) -> MultiAgentDataset:
-    """Load a multi-agent root folder described by `dataset.yaml`."""
+def load_folder_dataset(root: str | Path, load_agent=None) -> MultiAgentDataset:
+    """Load a multi-agent root folder described by `dataset.yaml`. `load_agent(folder)`: loads one agent folder
+    (slam.io.datasets.load_dataset passes one that reads any single-sequence layout); default: our format."""
     root = Path(root)
     meta_path = root / "dataset.yaml"
     meta = _read_yaml_mapping(meta_path, "dataset description", "name, kind, agents")
@@ -160,7 +161,7 @@ def load_folder_dataset(root: str | Path) -> MultiAgentDataset:
         folder = root / a
         if not folder.is_dir():
             raise InputError(f"{meta_path}: agent folder not found: {folder}")
-        seq = load_folder_sequence(folder)
+        seq = (load_agent or load_folder_sequence)(folder)
         if (kind == "rgbd") != seq.is_rgbd:
             raise InputError(f"{folder}: dataset.yaml says kind '{kind}' but this folder is "
                              f"{'RGB-D' if seq.is_rgbd else 'monocular'}")
