@@ -44,22 +44,35 @@ def resolve_method(method: str) -> str:
 
 @dataclass
 class PreparedCloud:
-    """A cloud ready for global registration: downsampled points with normals and FPFH features, computed once."""
+    """A cloud ready for registration: downsampled points with normals, and FPFH features computed on first use
+    (ICP from a guess needs none), each once."""
 
     points: np.ndarray  # [N, 3] float64 metres
     normals: np.ndarray  # [N, 3] unit
     voxel: float  # metres
     pcd: object = field(repr=False)  # open3d.geometry.PointCloud (points + normals)
-    fpfh: object = field(repr=False)  # open3d.pipelines.registration.Feature [33, N]
     prepare_s: float = 0.0
+    _fpfh: object = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
 
+    @property
+    def fpfh(self):
+        """open3d.pipelines.registration.Feature [33, N] (radius 5 voxels), computed once."""
+        if self._fpfh is None:
+            import open3d as o3d
+
+            t0 = time.perf_counter()
+            self._fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+                self.pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * self.voxel, max_nn=100))
+            self.prepare_s += time.perf_counter() - t0
+        return self._fpfh
+
 
 def prepare_cloud(points: np.ndarray, voxel: float, *, min_points: int = 200) -> PreparedCloud | None:
-    """Voxel-downsample `points` [N, 3] (metres) at `voxel`, estimate normals (radius 2.5 voxels) and FPFH features
-    (radius 5 voxels). None when fewer than `min_points` remain: too little structure to register."""
+    """Voxel-downsample `points` [N, 3] (metres) at `voxel` and estimate normals (radius 2.5 voxels); FPFH features
+    follow on first use. None when fewer than `min_points` remain: too little structure to register."""
     import open3d as o3d
 
     t0 = time.perf_counter()
@@ -74,10 +87,8 @@ def prepare_cloud(points: np.ndarray, voxel: float, *, min_points: int = 200) ->
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel)
     if len(pc.points) < min_points:
         return None
-    reg = o3d.pipelines.registration
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
-    f = reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
-    return PreparedCloud(np.asarray(pc.points).copy(), np.asarray(pc.normals).copy(), float(voxel), pc, f,
+    return PreparedCloud(np.asarray(pc.points).copy(), np.asarray(pc.normals).copy(), float(voxel), pc,
                          time.perf_counter() - t0)
 
 

@@ -148,13 +148,16 @@ def cloud_route_stats(srv) -> dict:
 
     st = (srv.clouds or WindowRegistrar()).stats()
     tried = len(srv.cloud_tries)
-    verified = [r for r in srv.records if r.route == "cloud"]
-    return {"enabled": srv.cfg.cloud_route, "method": srv.cfg.cloud_method, **st,
-            "candidates": len(verified), "passed_render": sum(r.reason_code in ("accepted", "unconfirmed")
-                                                                for r in verified),
-            "rejected_render": sum(r.reason_code == "render" for r in verified),
-            "query_keyframes": tried, "seconds_per_query_keyframe": (st["prepare_s"] + st["register_s"]) / tried
-            if tried else 0.0, "render_check": srv.cfg.render_check}
+    out = {"enabled": srv.cfg.cloud_route, "method": srv.cfg.cloud_method, "render_check": srv.cfg.render_check,
+           **st, "query_keyframes": tried,
+           "seconds_per_query_keyframe": (st["prepare_s"] + st["register_s"]) / tried if tried else 0.0}
+    for kind in ("inter", "intra"):  # every candidate that took the route, and how it ended
+        rs = [r for r in srv.records if r.route == "cloud" and r.kind == kind]
+        out[kind] = {"candidates": len(rs), "accepted": sum(r.accepted for r in rs),
+                     "passed_render": sum(r.render_agree == r.render_agree and r.reason_code != "render" for r in rs),
+                     "rejected_render": sum(r.reason_code == "render" for r in rs)}
+    out["intra_agents"] = {ag.name: ag.loops.cloud_stats() for ag in (s.agent for s in srv.slots)}
+    return out
 
 
 def _gt(seq):

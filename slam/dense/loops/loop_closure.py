@@ -349,6 +349,17 @@ class LoopCloser:
                 self._graph = None
         return optimise_pose_graph(initial, self.odometry, loops, fixed=fixed)
 
+    def cloud_stats(self) -> dict:
+        """The cloud route's work and outcome: windows built, registrations and their seconds, candidates that
+        took it, accepted, and rejected by the render check."""
+        from .local_clouds import WindowRegistrar
+
+        st = (self.clouds or WindowRegistrar()).stats()
+        rs = [c for c in self.log if c.route == "cloud"]
+        return {"enabled": self.cfg.cloud_route, **st, "query_keyframes": len(self.cloud_tries),
+                "candidates": len(rs), "accepted": sum(c.accepted for c in rs),
+                "rejected_render": sum(c.reason.startswith("render") for c in rs)}
+
     def log_rows(self) -> list[dict]:
         return [asdict(c) for c in self.log]
 
