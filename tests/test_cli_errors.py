@@ -92,6 +92,8 @@ CASES = [  # (argv with placeholders, a fragment the error line must contain)
     ("graph solve G2O --out NEW --distributed --relax 2.5", "--relax in"),
     ("graph solve DIR --out NEW --distributed", "no <k>.g2o files"),
     ("graph solve G2O --out NEW --distributed", "needs robot keys"),
+    ("graph solve G2O --out NEW --processes", "add --distributed"),
+    ("graph solve G2O --out NEW --distributed --processes --solver gnc", "least squares"),
     ("pairs MONO --out DIR", "is a folder"),
     ("pairs MONO --out FILE/p.csv", "is a file"),
     ("pairs FILE --out NEW", "not a folder"),

@@ -215,8 +215,9 @@ def problem_error(problem: Problem, poses, scales, weights) -> float:
 def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver: str = "lm", *,
                       initial_poses=None, gt_scales=None, max_rounds: int = 300, faults: Faults | None = None,
                       probability: float = 0.99, mu_step: float = 1.4, gnc_rounds: int = 10,
-                      max_gnc: int = 100, on_round=None) -> DistributedResult:
-    """Solve `graph` with simulated robots (module docstring); `solver` 'lm' (least squares) or 'gnc'."""
+                      max_gnc: int = 100, on_round=None, stop_when_still: bool = True) -> DistributedResult:
+    """Solve `graph` with simulated robots (module docstring); `solver` 'lm' (least squares) or 'gnc'.
+    `stop_when_still=False` runs `max_rounds` rounds whatever (the fixed schedule of the robot processes)."""
     if solver not in ("lm", "gnc"):
         raise InputError(f"solver must be 'lm' or 'gnc', got {solver!r}")
     t0 = time.perf_counter()
@@ -227,7 +228,7 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
         converged = team.run_round()
         if on_round:
             on_round(team)
-        if converged:
+        if converged and stop_when_still:
             break
     k = 0
     if solver == "gnc":

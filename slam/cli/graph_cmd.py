@@ -50,6 +50,11 @@ def register(sub) -> None:
                    help="every robot solves its own part, exchanging separator estimates (robots simulated in one "
                         "process)")
     s.add_argument("--max-rounds", type=int, default=300, help="--distributed: rounds at most (default 300)")
+    s.add_argument("--processes", action="store_true",
+                   help="--distributed: one process per robot over Zenoh on this machine (least squares; a fixed "
+                        "number of rounds, --max-rounds)")
+    s.add_argument("--port-base", type=int, default=17600,
+                   help="--processes: robot K listens on TCP port PORT_BASE + K (default 17600)")
     s.add_argument("--relax", type=float, default=1.0,
                    help="--distributed: over-relaxation of each robot's step, 1 to 1.9 (default 1: every round "
                         "lowers the cost)")
@@ -78,6 +83,10 @@ def run(args) -> int:
               file=sys.stderr)
     if args.distributed and not (args.max_rounds >= 1 and 1.0 <= args.relax < 2.0):
         raise InputError("--max-rounds must be >= 1 and --relax in [1, 2)")
+    if args.processes and not args.distributed:
+        raise InputError("--processes runs the distributed solver: add --distributed")
+    if args.processes and args.solver != "lm":
+        raise InputError("--processes runs least squares (--solver lm); GNC runs with simulated robots")
     t_start = time.perf_counter()
     graph = read_team(args.inputs, information=args.information)
     fixed = repaired_edges(graph)
@@ -95,9 +104,12 @@ def run(args) -> int:
         from swarmsplat.graph.distributed.robot import Settings
         from swarmsplat.graph.distributed.team import solve_distributed
 
-        res = dist = solve_distributed(graph, Settings(objective=args.objective, relax=args.relax), args.solver,
-                                       initial_poses=poses, max_rounds=args.max_rounds,
-                                       probability=args.gnc_probability)
+        settings = Settings(objective=args.objective, relax=args.relax)
+        if args.processes:
+            res = dist = _solve_processes(args, graph, poses, settings, problem)
+        else:
+            res = dist = solve_distributed(graph, settings, args.solver, initial_poses=poses,
+                                           max_rounds=args.max_rounds, probability=args.gnc_probability)
     elif args.solver == "gnc":
         res = gnc(problem, probability=args.gnc_probability, lm_max_iterations=args.max_iterations)
     else:
@@ -149,7 +161,7 @@ def run(args) -> int:
         summary["distributed"] = {
             "robots": dist.robots, "iterations": dist.rounds, "bytes_total": dist.bytes_total,
             "bytes_per_separator_iteration": dist.bytes_per_separator_iteration,
-            "gather_bytes": dist.gather_bytes, "relax": args.relax,
+            "gather_bytes": dist.gather_bytes, "relax": args.relax, "processes": args.processes,
             "groups": [[_robot_number(chr(r)) for r in grp] for grp in dist.groups],
             "error_per_round": dist.history}
     if args.solver == "gnc":
@@ -171,3 +183,34 @@ def _loop_ids(edge, key_robot, key_index) -> list[int]:
     """[robot_src, pose_src, robot_dst, pose_dst] of a loop, as DPGO's measurement files name it."""
     return [_robot_number(key_robot(edge.key_i)), key_index(edge.key_i),
             _robot_number(key_robot(edge.key_j)), key_index(edge.key_j)]
+
+
+def _solve_processes(args, graph, poses, settings, problem):
+    """--processes: the robots as processes (slam.run.swarm_processes.solve_graph_processes), their estimates
+    gathered for the output, summarised like the simulated team's result."""
+    import tempfile
+
+    from swarmsplat.graph.distributed.partition import partition
+    from swarmsplat.graph.distributed.team import DistributedResult, gather_bytes, problem_error
+    from swarmsplat.graph.pose_graph import key_robot
+    from swarmsplat.kernels.errors import GraphError
+    from swarmsplat.slam.run.swarm_processes import solve_graph_processes
+
+    with tempfile.TemporaryDirectory(prefix="swarmsplat-graph-") as work:
+        out = solve_graph_processes(args.inputs, work, initial_poses=poses, settings=settings, rounds=args.max_rounds,
+                                    information=args.information, port_base=args.port_base)
+    if not out["finished"]:
+        raise GraphError("no robot process finished")
+    missing = [chr(r) for r in out["robots"] if r not in out["finished"]]
+    if missing:
+        print(f"warning: robot(s) {', '.join(missing)} did not finish: their initial poses are written",
+              file=sys.stderr)
+    est = {k: out["poses"].get(k, poses[k]) for k in graph.poses}
+    err = problem_error(problem, est, out["scales"], {})
+    sent = out["bytes_total"]
+    groups = [sorted({ord(key_robot(k)) for k in c}) for c in graph.components()]
+    separators = sum(len(s) for p in partition(graph).values() for s in p.separators.values())
+    return DistributedResult(est, out["scales"], {}, [], args.max_rounds, [err], [sent],
+                             problem_error(problem, poses, {}, {}), err, sent, separators * (args.max_rounds + 1),
+                             gather_bytes(graph),
+                             len(out["robots"]), groups, not missing, out["time_s"])

@@ -221,3 +221,95 @@ def gather(out: Path, setup, *, status: str = "complete", reason: str | None = N
         if graphs and not final:  # the lowest robot that optimised: its last solve is the team's
             final = {int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs}
     return write_outputs(out, setup, robots, final, mode="zenoh", status=status, reason=reason, skipped=skipped)
+
+
+# ------------------------------------------------------------------------- the distributed pose-graph solver
+def solve_graph_processes(inputs: list[str], workdir: str | Path, *, initial_poses: dict, settings, rounds: int,
+                          information: str = "repair", port_base: int = 17600, run: str = "graph",
+                          crash: dict[int, int] | None = None, timeout: float = 600.0) -> dict:
+    """`swarmsplat graph solve --distributed --processes`: one process per robot of the team in `inputs`, each
+    reading the files, holding its part (graph.distributed) and running slam.flocc.swarm.solver_node over Zenoh on
+    localhost (robot K on port_base + K). `initial_poses`: the team's initial estimate (written to `workdir` for
+    the robots). `crash`: robot number -> the round after which that robot's process dies without a word (fault
+    tests). Returns the robots' poses and scales merged, their bytes and which robots finished."""
+    import pickle
+
+    from swarmsplat.graph.distributed.partition import partition
+    from swarmsplat.graph.team_files import read_team
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    graph = read_team(inputs, information=information)
+    robots = sorted(partition(graph))
+    check_port_base(port_base, max(robots) - ord("a") + 1)
+    keys = np.array(sorted(initial_poses), dtype=np.uint64)
+    np.savez(workdir / "initial.npz", keys=keys, poses=np.stack([initial_poses[int(k)] for k in keys]))
+    (workdir / "settings.pkl").write_bytes(pickle.dumps(settings))
+    code = ("import json, sys; from swarmsplat.slam.run.swarm_processes import _solver_process; "
+            "_solver_process(*json.loads(sys.argv[1]))")
+    t0 = time.time()
+    crash = crash or {}
+    procs = {r: subprocess.Popen([sys.executable, "-c", code, json.dumps(
+        [list(map(str, inputs)), information, r, robots, rounds, port_base, run, str(workdir),
+         crash.get(r - ord("a"))])]) for r in robots}
+    while any(p.poll() is None for p in procs.values()) and time.time() - t0 < timeout:
+        time.sleep(0.05)
+    for p in procs.values():
+        if p.poll() is None:
+            p.kill()
+        p.wait()
+    poses, scales, bytes_total, finished = {}, {}, 0, []
+    for r in robots:
+        f = workdir / f"robot_{r - ord('a')}.npz"
+        if not f.is_file():
+            continue
+        z = np.load(f)
+        poses.update({int(k): T for k, T in zip(z["keys"], z["poses"])})
+        scales.update({int(n): float(s) for n, s in zip(z["scale_edges"], z["scales"])})
+        bytes_total += int(z["bytes_sent"])
+        finished.append(r)
+    return {"graph": graph, "poses": poses, "scales": scales, "bytes_total": bytes_total, "robots": robots,
+            "finished": finished, "time_s": time.time() - t0}
+
+
+def _solver_process(inputs, information, robot, robots, rounds, port_base, run, workdir, crash_after=None) -> None:
+    """A robot process of `solve_graph_processes`: its part, the Zenoh transport, the rounds, its estimate."""
+    import pickle
+
+    from swarmsplat.graph.distributed.partition import partition
+    from swarmsplat.graph.distributed.robot import RobotSolver
+    from swarmsplat.graph.team_files import read_team
+    from swarmsplat.slam.flocc.swarm.solver_node import CODEC, run_solver_robot, transport_id
+    from swarmsplat.slam.flocc.swarm.zenoh_transport import ZenohTransport
+
+    workdir = Path(workdir)
+    graph = read_team(inputs, information=information)
+    parts = partition(graph)
+    settings = pickle.loads((workdir / "settings.pkl").read_bytes())
+    z = np.load(workdir / "initial.npz")
+    initial = {int(k): T for k, T in zip(z["keys"], z["poses"])}
+    from swarmsplat.graph.distributed.team import shared_s0
+
+    settings.shared_s0 = shared_s0(graph, settings)
+    solver = RobotSolver(parts[robot], dict(enumerate(graph.edges)), initial, settings)
+    transport = ZenohTransport(transport_id(robot), [transport_id(r) for r in robots], run=run, port_base=port_base,
+                               codec=CODEC)
+    try:
+        transport.wait_for_peers(30.0)
+
+        def crash(k):
+            if k == crash_after:
+                time.sleep(0.5)  # its last estimate leaves first
+                os._exit(1)  # a robot that vanishes: no goodbye, no output
+
+        info = run_solver_robot(solver, transport, {r: p.colour for r, p in parts.items()}, rounds, on_round=crash)
+    finally:
+        transport.close()
+    keys = np.array(solver.part.keys, dtype=np.uint64)
+    own = sorted(n for n in solver.part.owned if n in solver.scales)
+    with atomic_path(workdir / f"robot_{transport_id(robot)}.npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, keys=keys, poses=np.stack([solver.poses[int(k)] for k in keys]),
+                     scale_edges=np.array(own, dtype=np.int64), scales=np.array([solver.scales[n] for n in own]),
+                     bytes_sent=transport.stats.to_dict()["sent_total"], timeouts=info["timeouts"],
+                     gone=np.array(info["gone"], dtype=np.int64))
