@@ -35,6 +35,8 @@ SUBJECTS = {
     "long-run": ".long_run",
     "loop-graph": ".loop_graph",
     "distributed": ".distributed",
+    "team-scale": ".team_scale",
+    "wide-joins": ".wide_joins",
 }
 
 
