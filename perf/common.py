@@ -49,7 +49,8 @@ def time_fn(fn: Callable[[], object], *, repeat: int = 5, warmup: int = 1, devic
 
 
 def _git(*args: str) -> str | None:
-    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    # realpath: a checkout imported through a namespace folder of links (tree_env) still names its own commit
+    here = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
     try:
         r = subprocess.run(["git", "-C", here, *args], capture_output=True, text=True, check=False, timeout=10)
     except (OSError, subprocess.SubprocessError):
