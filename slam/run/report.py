@@ -17,6 +17,7 @@ _REASONS = {
     "rmse": "ICP inlier RMSE ≥ τ_ρ",
     "correction": "correction larger than max_correction",
     "gnc": "rejected by GNC (inconsistent)",
+    "render": "the map rendered from the pose contradicts the view",
 }
 
 
@@ -126,6 +127,14 @@ def _loop_section(m: dict) -> list[str]:
     if joins:
         L.append(f"Joins need {joins['min_loops']} mutually consistent loop(s): {joins['made']} made, "
                  f"{joins['undone']} undone, {joins['unconfirmed_loops']} verified loop(s) left unconfirmed.")
+    cloud = (m.get("inter_verify") or {}).get("cloud_route")
+    if cloud and (cloud["inter"]["candidates"] or cloud["intra"]["candidates"]):
+        L.append(f"Cloud route (local maps registered as point clouds, checked by rendering): "
+                 f"{cloud['inter']['candidates']} inter-agent candidates ({cloud['inter']['accepted']} accepted, "
+                 f"{cloud['inter']['rejected_render']} refused by the render check), "
+                 f"{cloud['intra']['candidates']} intra-agent ({cloud['intra']['accepted']} accepted, "
+                 f"{cloud['intra']['rejected_render']} refused by the render check); the server's registrations "
+                 f"{cloud['seconds_per_query_keyframe']:.2f} s per query keyframe that took the route.")
     inter = m["loops"].get("inter", {})
     registered = sum(v for k, v in inter.get("by_reason", {}).items() if k != "similarity")
     if registered == 0:

@@ -33,7 +33,7 @@ class CloudRoute:
     """Mixed into the Server (reads its slots, cfg, clouds, cloud_tries, join rules)."""
 
     def cloud_allowed(self, a: int, q: Keyframe) -> bool:
-        """Whether the cloud route may still run for agent a's keyframe q (server.cloud_per_keyframe)."""
+        """Whether the cloud route may still run for agent a's keyframe q (loop_closure.cloud_per_keyframe)."""
         lc = self.slots[a].agent.cfg.loop_closure
         return self.cfg.cloud_route and self.cloud_tries.get((a, q.id), 0) < lc.cloud_per_keyframe
 
