@@ -126,3 +126,33 @@ def test_two_real_recordings_of_different_places_never_join(tmp_path):
     report = (tmp_path / "out" / "report.md").read_text()
     assert "Agents in separate frames" in report and "living" in report and "office" in report
     json.loads((tmp_path / "out" / "metrics.json").read_text())
+
+
+@pytest.mark.slow
+def test_cloud_route_never_accepts_a_pose_between_different_worlds(tmp_path):
+    """A sweep for false joins: eight generated worlds (one agent each, 6 frames), every pair of agents from
+    different worlds offered to the cloud route on two keyframe pairs; none may pass the clouds' gates and the
+    render check (56 hypotheses between procedural rooms of one style: boxes, walls, similar textures)."""
+    from swarmsplat import kernels
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    seqs = [sub_sequence(load_dataset(generate(tmp_path / f"w{s}", GeneratorConfig.preset(
+        "tiny", seed=20 + s, agents=1, frames=6))).agents[0], 0, 6, f"agent_{s}") for s in range(8)]
+    cfg = SlamConfig().override(FAST)
+    kernels.use(cfg.kernels.backend, cfg.kernels.device)
+    team = Team([s.camera for s in seqs], [s.name for s in seqs], cfg, ServerConfig(inter_loops=False))
+    team.run(seqs)
+    srv = team.server
+    tried, passed = 0, []
+    for a in range(8):
+        for b in range(8):
+            if a == b:
+                continue
+            q, m = team.agents[a].keyframes[-1], team.agents[b].keyframes[(a + b) % len(team.agents[b].keyframes)]
+            srv.cloud_tries.clear()
+            rec = _record(team, a, q, b, m)
+            srv.verify_cloud(rec, a, q, b, m, "sweep")
+            tried += 1
+            if rec.reason_code in ("unconfirmed", "accepted"):
+                passed.append((a, b, rec.render_agree, rec.render_violate))
+    assert tried == 56 and passed == [], passed
