@@ -52,8 +52,10 @@ def read_g2o(path: str | Path, information: str = "strict") -> PoseGraph:
     edge_lines: list[tuple[str, int, list[str]]] = []
     vertex: dict[int, tuple[list[float], str]] = {}
     kinds = set()
-    with open(path) as f:
+    with open(path, encoding="utf-8", errors="replace") as f:
         for lineno, line in enumerate(f, 1):
+            if "\ufffd" in line:  # bytes that are not text: an image, a binary graph, a truncated download
+                raise InputError(f"{path}:{lineno}: not a text g2o file (bytes that are not UTF-8 text)")
             s = line.split("#", 1)[0].split()
             if not s:
                 continue

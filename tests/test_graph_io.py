@@ -20,7 +20,7 @@ E01 = f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO}\n"
 
 def _write(tmp_path, text, name="g.g2o"):
     p = tmp_path / name
-    p.write_text(text)
+    p.write_text(text, encoding="utf-8", errors="surrogateescape")  # \udcXX: the raw byte XX
     return p
 
 
@@ -54,6 +54,7 @@ def test_roundtrip_preserves_poses_edges_and_information(tmp_path):
     (V0 + "VERTEX_SE3:QUAT 1 nan 0 0 0 0 0 1\n" + E01, 2, "NaN"),
     (V0 + V1 + E01.replace("0 0 0 1 1.0", "0 0 0 1 nan", 1), 3, "NaN"),
     (V0 + V1 + "# comment\n" + E01.replace("0 0 0 1 1.0", "0 0 0 0 1.0", 1), 4, "quaternion"),
+    (V0 + "\udc89PNG\n", 2, "not a text g2o file"),  # a byte that is not UTF-8 (written back as 0x89)
 ])
 def test_bad_input_names_file_and_line(tmp_path, text, line, what):
     p = _write(tmp_path, text)
