@@ -22,7 +22,7 @@ import numpy as np
 
 from swarmsplat.kernels import se3
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.fileio import atomic_path
+from swarmsplat.kernels.fileio import atomic_path, text_lines
 
 from .information import POLICIES, apply_policy, is_positive_definite
 from .pose_graph import LOOP, ODOMETRY, Edge, PoseGraph, check_information, is_odometry_pair, key_robot
@@ -52,32 +52,29 @@ def read_g2o(path: str | Path, information: str = "strict") -> PoseGraph:
     edge_lines: list[tuple[str, int, list[str]]] = []
     vertex: dict[int, tuple[list[float], str]] = {}
     kinds = set()
-    with open(path, encoding="utf-8", errors="replace") as f:
-        for lineno, line in enumerate(f, 1):
-            if "\ufffd" in line:  # bytes that are not text: an image, a binary graph, a truncated download
-                raise InputError(f"{path}:{lineno}: not a text g2o file (bytes that are not UTF-8 text)")
-            s = line.split("#", 1)[0].split()
-            if not s:
-                continue
-            where = f"{path}:{lineno}"
-            tag = s[0]
-            if tag in _IGNORED:
-                continue
-            if tag not in _FIELDS:
-                raise InputError(f"{where}: unknown g2o element {tag!r} (expected one of {', '.join(_FIELDS)})")
-            if len(s) != _FIELDS[tag]:
-                raise InputError(f"{where}: {tag} needs {_FIELDS[tag] - 1} values after the tag, got {len(s) - 1}")
-            kinds.add("2d" if tag.endswith("SE2") else "3d")
-            if len(kinds) > 1:
-                raise InputError(f"{where}: file mixes SE2 and SE3 elements")
-            if tag.startswith("VERTEX"):
-                key = _parse_key(s[1], where)
-                vals = _parse_floats(s[2:], where)
-                if key in vertex:
-                    raise InputError(f"{where}: vertex {s[1]} defined twice")
-                vertex[key] = (vals, where)
-            else:
-                edge_lines.append((tag, lineno, s))
+    for lineno, line in text_lines(path, "g2o"):
+        s = line.split("#", 1)[0].split()
+        if not s:
+            continue
+        where = f"{path}:{lineno}"
+        tag = s[0]
+        if tag in _IGNORED:
+            continue
+        if tag not in _FIELDS:
+            raise InputError(f"{where}: unknown g2o element {tag!r} (expected one of {', '.join(_FIELDS)})")
+        if len(s) != _FIELDS[tag]:
+            raise InputError(f"{where}: {tag} needs {_FIELDS[tag] - 1} values after the tag, got {len(s) - 1}")
+        kinds.add("2d" if tag.endswith("SE2") else "3d")
+        if len(kinds) > 1:
+            raise InputError(f"{where}: file mixes SE2 and SE3 elements")
+        if tag.startswith("VERTEX"):
+            key = _parse_key(s[1], where)
+            vals = _parse_floats(s[2:], where)
+            if key in vertex:
+                raise InputError(f"{where}: vertex {s[1]} defined twice")
+            vertex[key] = (vals, where)
+        else:
+            edge_lines.append((tag, lineno, s))
     graph.is_2d = kinds == {"2d"}
     if vertex:
         keys = list(vertex)

@@ -1,5 +1,5 @@
-"""Atomic file writes shared by every layer: a reader never sees a half-written file, and a failed write leaves
-the previous file untouched."""
+"""Files shared by every layer: atomic writes (a reader never sees a half-written file, and a failed write leaves
+the previous file untouched) and text reading that refuses binary input in one line."""
 
 from __future__ import annotations
 
@@ -97,3 +97,15 @@ def output_file(path: str | os.PathLike, what: str = "output file", *, create: b
         raise InputError(f"{what} {path} is a folder, expected a file name")
     output_dir(path.parent, what=what, create=create)
     return path
+
+
+def text_lines(path: str | os.PathLike, what: str):
+    """(line number, line) of a UTF-8 text file, one at a time; InputError naming the file and line at the first
+    bytes that are not text (an image or a binary file given where a `what` file belongs)."""
+    from .errors import InputError
+
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for lineno, line in enumerate(f, 1):
+            if "\ufffd" in line:
+                raise InputError(f"{path}:{lineno}: not a text {what} file (bytes that are not UTF-8 text)")
+            yield lineno, line

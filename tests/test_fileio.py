@@ -26,3 +26,24 @@ def test_failed_write_leaves_previous_file_and_no_temp(tmp_path):
             raise RuntimeError("boom")
     assert p.read_text() == "good"
     assert [f.name for f in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_text_lines_refuses_binary_input_in_one_line(tmp_path):
+    """An image given where a text file belongs (a g2o graph, a TUM trajectory) is an InputError naming file and
+    line, never a UnicodeDecodeError."""
+    from swarmsplat.graph.g2o import read_g2o
+    from swarmsplat.kernels.errors import InputError
+    from swarmsplat.kernels.fileio import text_lines
+    from swarmsplat.slam.io.trajectory import read_tum
+
+    t = tmp_path / "t.txt"
+    t.write_bytes(b"ok line\n\x89PNG\n")
+    assert next(text_lines(t, "test")) == (1, "ok line\n")
+    with pytest.raises(InputError, match=r"t\.txt:2: not a text test file"):
+        list(text_lines(t, "test"))
+    p = tmp_path / "x.png"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff")
+    for read, what in ((lambda: list(text_lines(p, "test")), "test"), (lambda: read_g2o(p), "g2o"),
+                       (lambda: read_tum(p), "trajectory")):
+        with pytest.raises(InputError, match=rf"x\.png:1: not a text {what} file"):
+            read()

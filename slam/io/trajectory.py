@@ -13,7 +13,7 @@ import numpy as np
 
 from swarmsplat.kernels import se3
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.fileio import atomic_path
+from swarmsplat.kernels.fileio import atomic_path, text_lines
 
 
 def write_tum(path: str | Path, timestamps: np.ndarray, T_world_cam: np.ndarray) -> Path:
@@ -44,24 +44,20 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise InputError(f"trajectory file not found: {path}")
     ts, rows = [], []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            if len(parts) != 8:
-                raise InputError(f"{path}:{lineno}: expected 8 numbers 't x y z qx qy qz qw', got {len(parts)} fields")
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                raise InputError(f"{path}:{lineno}: not a number in {s!r}") from None
-            if not all(math.isfinite(v) for v in vals):
-                raise InputError(f"{path}:{lineno}: NaN or Inf in pose")
-            if np.linalg.norm(vals[4:8]) < 1e-9:
-                raise InputError(f"{path}:{lineno}: quaternion has zero length")
-            ts.append(vals[0])
-            rows.append(vals[1:])
+    for _, lineno, s in _open_lines(path):
+        parts = s.replace(",", " ").split()
+        if len(parts) != 8:
+            raise InputError(f"{path}:{lineno}: expected 8 numbers 't x y z qx qy qz qw', got {len(parts)} fields")
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            raise InputError(f"{path}:{lineno}: not a number in {s!r}") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise InputError(f"{path}:{lineno}: NaN or Inf in pose")
+        if np.linalg.norm(vals[4:8]) < 1e-9:
+            raise InputError(f"{path}:{lineno}: quaternion has zero length")
+        ts.append(vals[0])
+        rows.append(vals[1:])
     if not rows:
         raise InputError(f"{path}: no poses found")
     a = np.asarray(rows)
@@ -112,11 +108,10 @@ def _open_lines(path: str | Path):
     path = Path(path)
     if not path.is_file():
         raise InputError(f"trajectory file not found: {path}")
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if s and not s.startswith("#"):
-                yield path, lineno, s
+    for lineno, line in text_lines(path, "trajectory"):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            yield path, lineno, s
 
 
 def read_kitti(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

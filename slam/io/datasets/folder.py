@@ -18,6 +18,7 @@ import numpy as np
 
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import text_lines
 from swarmsplat.slam.io.trajectory import read_tum
 
 from ._sequence import ImageSequence, poses_at
@@ -37,25 +38,24 @@ def read_image_list(path: str | Path) -> tuple[np.ndarray, list[Path]]:
     if not path.is_file():
         raise InputError(f"image list not found: {path}")
     stamps, files = [], []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.split()
-            if len(parts) != 2:
-                raise InputError(f"{path}:{lineno}: expected 'timestamp relative/path', got {len(parts)} fields")
-            try:
-                t = float(parts[0])
-            except ValueError:
-                raise InputError(f"{path}:{lineno}: timestamp is not a number: {parts[0]!r}") from None
-            if not math.isfinite(t):
-                raise InputError(f"{path}:{lineno}: timestamp is NaN or Inf")
-            img = path.parent / parts[1]
-            if not img.is_file():
-                raise InputError(f"{path}:{lineno}: listed image not found: {img}")
-            stamps.append(t)
-            files.append(img)
+    for lineno, line in text_lines(path, "image list"):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split()
+        if len(parts) != 2:
+            raise InputError(f"{path}:{lineno}: expected 'timestamp relative/path', got {len(parts)} fields")
+        try:
+            t = float(parts[0])
+        except ValueError:
+            raise InputError(f"{path}:{lineno}: timestamp is not a number: {parts[0]!r}") from None
+        if not math.isfinite(t):
+            raise InputError(f"{path}:{lineno}: timestamp is NaN or Inf")
+        img = path.parent / parts[1]
+        if not img.is_file():
+            raise InputError(f"{path}:{lineno}: listed image not found: {img}")
+        stamps.append(t)
+        files.append(img)
     if not files:
         raise InputError(f"{path}: lists no images")
     return np.asarray(stamps), files
