@@ -48,12 +48,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         parts = s.replace(",", " ").split()
         if len(parts) != 8:
             raise InputError(f"{path}:{lineno}: expected 8 numbers 't x y z qx qy qz qw', got {len(parts)} fields")
-        try:
-            vals = [float(p) for p in parts]
-        except ValueError:
-            raise InputError(f"{path}:{lineno}: not a number in {s!r}") from None
-        if not all(math.isfinite(v) for v in vals):
-            raise InputError(f"{path}:{lineno}: NaN or Inf in pose")
+        vals = _numbers(path, lineno, s)
         if np.linalg.norm(vals[4:8]) < 1e-9:
             raise InputError(f"{path}:{lineno}: quaternion has zero length")
         ts.append(vals[0])
