@@ -6,7 +6,7 @@ VPY     := $(VENV)/bin/python
 STAMP   := $(VENV)/.swarmsplat-installed
 SUDO    := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 
-.PHONY: setup browser demo test bench device-check clean-venv
+.PHONY: setup browser demo test bench fuzz device-check clean-venv
 
 setup: $(STAMP)
 
@@ -47,6 +47,13 @@ test: setup browser
 
 bench: setup
 	$(VPY) -m perf all --quick --json runs/bench-quick.json --md runs/bench-quick.md
+
+# Coverage-guided fuzzing of every parser of outside data, FUZZ_SECONDS each (crashes land in tests/fuzz/crashes/,
+# which the suite replays).
+FUZZ_SECONDS ?= 600
+fuzz: setup
+	$(VPY) -m pip install -q 'atheris>=2.3'
+	$(VPY) -m perf fuzz --seconds $(FUZZ_SECONDS) --json runs/fuzz.json --md runs/fuzz.md
 
 # On a GPU machine (e.g. a Jetson): the suite's cases for DEVICE and a quick benchmark of every perf subject on
 # it, into perf/results/device-check-$(DEVICE).json. DEVICE=vulkan checks Taichi's Vulkan device instead.

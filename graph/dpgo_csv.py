@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import text_lines
 
 from .information import se_sync_information
 from .pose_graph import LOOP, ODOMETRY, Edge, PoseGraph, robot_key
@@ -64,8 +65,7 @@ def robot_files(folder: str | Path) -> dict[int, Path]:
 
 def _read_rows(path: Path, robot: int, robots: set[int]) -> list[tuple[str, dict]]:
     """Rows of one file as (file:line, {column: value}) with every field checked."""
-    with open(path) as f:
-        lines = f.read().splitlines()
+    lines = [line.rstrip("\r\n") for _, line in text_lines(path, "measurements.csv")]
     if not lines:
         raise InputError(f"{path}:1: empty file, expected the header {','.join(COLUMNS)}")
     header = [h.strip() for h in lines[0].split(",")]

@@ -44,18 +44,24 @@ def is_positive_definite(info: np.ndarray) -> np.ndarray:
     with room to spare)."""
     info = np.asarray(info, float)
     scale = np.abs(info).max(axis=(-2, -1))
-    return np.linalg.eigvalsh(0.5 * (info + np.swapaxes(info, -1, -2)))[..., 0] > 1e-12 * scale
+    # Divided by the largest entry first: the test is scale-free, and entries near the float range (1e308 in a
+    # file) do not overflow into a matrix LAPACK cannot decompose.
+    unit = info / np.where(scale > 0, scale, 1.0)[..., None, None]
+    return np.linalg.eigvalsh(0.5 * (unit + np.swapaxes(unit, -1, -2)))[..., 0] > 1e-12
 
 
 def nearest_pd(A: np.ndarray, floor: float = REPAIR_FLOOR) -> np.ndarray | None:
     """Nearest symmetric positive-definite matrix to A [n, n] in the Frobenius norm with eigenvalues >= floor *
     lambda_max; None if A has no positive eigenvalue."""
-    S = 0.5 * (A + A.T)
+    s = float(np.abs(A).max())
+    if not s > 0:
+        return None
+    S = 0.5 * (A / s + A.T / s)  # unit scale, as in is_positive_definite
     w, V = np.linalg.eigh(S)
     if not w[-1] > 0:
         return None
     w = np.maximum(w, floor * w[-1])
-    return (V * w) @ V.T
+    return ((V * w) @ V.T) * s
 
 
 def _block_weight(B: np.ndarray, dim: int) -> float | None:

@@ -62,6 +62,10 @@ def main(argv: list[str] | None = None, *, prog: str = "python -m perf",
         from .realtime import main as realtime
 
         return realtime(argv[1:])
+    if argv[:1] == ["fuzz"]:  # its own flags: seconds per target, targets (perf/fuzz.py)
+        from .fuzz import main as fuzz
+
+        return fuzz(argv[1:])
     if argv[:1] == ["team-link"]:  # its own flags and result files (perf/team_link.py)
         from .team_link import main as team_link
 

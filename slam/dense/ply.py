@@ -84,13 +84,17 @@ def _parse_header(path: Path, f) -> tuple[str, int, list[tuple[str, str]]]:
                 try:
                     count = int(parts[2])
                 except ValueError:
-                    raise InputError(f"{path}:{lineno}: bad vertex count {parts[2]!r}") from None
+                    count = -1
+                if count < 0:
+                    raise InputError(f"{path}:{lineno}: bad vertex count {parts[2]!r} (expected a whole number >= 0)")
             elif count is not None:
                 # Elements after the vertices (faces) would follow the vertex data; we read only vertices.
                 pass
         elif parts[0] == "property" and in_vertex:
             if len(parts) != 3 or parts[1] not in _PLY_TYPES:
                 raise InputError(f"{path}:{lineno}: unsupported vertex property line {' '.join(parts)!r}")
+            if any(parts[2] == q for q, _ in props):
+                raise InputError(f"{path}:{lineno}: vertex property {parts[2]!r} declared twice")
             props.append((parts[2], _PLY_TYPES[parts[1]]))
     if fmt not in ("binary_little_endian", "ascii"):
         raise InputError(f"{path}: PLY format {fmt!r} not supported (expected binary_little_endian or ascii)")

@@ -68,9 +68,11 @@ def _read_yaml_mapping(path: Path, what: str, keys: str) -> dict:
     if not path.is_file():
         raise InputError(f"{what} not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:
         raise InputError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text YAML file (bytes that are not UTF-8 text)") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping with keys {keys}")
     return data
