@@ -225,7 +225,8 @@ class LoopCloser:
                       gmap: GaussianMap, T_init: np.ndarray) -> LoopCandidate:
         """The cloud route (slam.dense.loops.local_clouds): ICP between the two keyframes' windows from the tracked
         guess (the match window takes only keyframes older than the query window's, so the two share none), the
-        cloud gates, the correction gate, then the render check of the match window's submaps from the result."""
+        cloud gates, the correction gate, then the render check of the match window's submaps from the result
+        (without the submaps the query window was mapped into: the render must be independent evidence)."""
         from .local_clouds import WindowRegistrar, window_keyframes
         from .render_check import RenderGate, record_scores, score_loop
 
@@ -236,7 +237,8 @@ class LoopCloser:
                                           min_fitness=cfg.cloud_min_fitness, max_rmse=cfg.cloud_max_rmse)
         first = f"keyframe ICP fitness {c.fitness:.3f}, RMSE {c.inlier_rmse:.4f} m"
         c.route = "cloud"
-        lo = min(k.id for k in window_keyframes(keyframes, q.id, cfg.cloud_window))
+        q_window = window_keyframes(keyframes, q.id, cfg.cloud_window)
+        lo = min(k.id for k in q_window)
         wq = self.clouds.window(q.id, keyframes, gmap, q, max_depth=self.max_depth)
         wj = self.clouds.window(j.id, keyframes, gmap, j, max_depth=self.max_depth, below=lo)
         out = self.clouds.register(wq, wj, init=T_init)
@@ -248,7 +250,8 @@ class LoopCloser:
         else:
             T = se3.project_rigid(out.T_match_query)
             c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ T)[:3, 3]))
-            s = score_loop(gmap, keyframes, j, T, q.small, cfg.cloud_window)
+            s = score_loop(gmap, keyframes, j, T, q.small, cfg.cloud_window,
+                           exclude_submaps={k.submap_id for k in q_window})
             record_scores(c, s)
             why = RenderGate(cfg.render_min_covisible, cfg.render_min_agree, cfg.render_max_violate,
                              cfg.render_max_photometric).verdict(s)

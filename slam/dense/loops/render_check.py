@@ -99,16 +99,18 @@ def score_view(params: GaussianParams, T_world_cam: np.ndarray, view, *, depth_a
     return RenderScore(nc / n, float(agree.mean()), float(violate.mean()), photometric, n)
 
 
-def score_loop(gmap, keyframes, match, T_match_query: np.ndarray, query_view, radius: int) -> RenderScore:
+def score_loop(gmap, keyframes, match, T_match_query: np.ndarray, query_view, radius: int, *,
+               exclude_submaps=()) -> RenderScore:
     """Render the submaps of the keyframes within `radius` ids of `match` (slam.dense.loops.local_clouds.
     window_keyframes) from the query camera's hypothesised pose, match's world pose @ T_match_query, and score it
-    against `query_view` (the query keyframe's loop-closure copy)."""
+    against `query_view` (the query keyframe's loop-closure copy). `exclude_submaps`: submap ids left out (within
+    one agent, those the query's own window was mapped into, so the render is evidence independent of it)."""
     from swarmsplat.slam.dense.submaps import world_pose
 
     from .local_clouds import window_keyframes
 
     window = window_keyframes(keyframes, match.id, max(radius, 1))
-    params = gaussians_in_world(gmap, [k.submap_id for k in window])
+    params = gaussians_in_world(gmap, [k.submap_id for k in window if k.submap_id not in set(exclude_submaps)])
     return score_view(params, world_pose(gmap, match) @ T_match_query, query_view)
 
 
