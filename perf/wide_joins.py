@@ -75,7 +75,8 @@ def _one(case: str, path: Path, out: Path) -> dict:
     n = m["loop_candidates"]
     return {"case": case, "cloud_route": True, "ate_cm": round(100 * m["ate_rmse"], 2),
             "ate_no_lc_cm": round(100 * m["ate_rmse_no_lc"], 2),
-            "psnr_merged": None if m.get("psnr") is None else round(m["psnr"], 2),
+            "psnr_merged": None if m.get("psnr_merged") is None else round(m["psnr_merged"], 2),
+            "psnr_submaps": None if m.get("psnr") is None else round(m["psnr"], 2),
             "loops_accepted": m["loops_accepted"], "loop_candidates": n,
             "accepted_fraction": round(m["loops_accepted"] / n, 3) if n else None,
             "cloud": m["loops_cloud_route"], "loop_s_per_keyframe": round(m["time_s"]["loop_closure"] /
@@ -123,7 +124,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         rows.append(_team("different-places", load_dataset(root), tmp / "two", limits=[160, 160], stride=2,
                           render_views=2))
     cols = ["case", "cloud_route", "joined", "joins", "ate_team_cm", "ate_agents_cm", "ate_agents_no_lc_cm",
-            "ate_cm", "ate_no_lc_cm", "psnr_merged", "inter_accepted", "inter_candidates", "intra_accepted",
+            "ate_cm", "ate_no_lc_cm", "psnr_merged", "psnr_submaps", "inter_accepted", "inter_candidates", "intra_accepted",
             "intra_candidates", "loops_accepted", "loop_candidates", "accepted_fraction", "loop_s_per_keyframe",
             "loop_s_ratio_to_off", "keyframes", "wall_s"]
     return {"rows": rows, "columns": cols,
