@@ -108,7 +108,7 @@ def test_a_live_agent_tracks_what_it_receives_and_publishes_every_pose(sequence,
         cfg = SlamConfig().override({"mapping": {"iterations": 4, "first_iterations": 8},
                                      "map_refine": {"iterations_per_keyframe": 0}})
         m = run_live(src, tmp_path / "live", cfg, publisher=PosePublisher(src.session, "swarmsplat/live/pose"),
-                     max_frames=len(sequence), camera_timeout=20, progress=False)
+                     max_frames=len(sequence), camera_timeout=20, idle_timeout=20, progress=False)
         driver.join()
         time.sleep(0.3)  # the last pose's way back
     finally:

@@ -80,7 +80,7 @@ def test_a_live_agent_is_a_team_member(tmp_path):
         driver.start()
         m = run_live_team_agent(src, 1, cfg, name="robot_b", connect=[server_at],
                                 publisher=PosePublisher(src.session, "swarmsplat/robot_b/pose"),
-                                max_frames=len(live_seq), camera_timeout=30, progress=False,
+                                max_frames=len(live_seq), camera_timeout=30, idle_timeout=30, progress=False,
                                 out=tmp_path / "robot_b")
         driver.join()
         time.sleep(0.3)
