@@ -248,10 +248,12 @@ class LoopClosureConfig(_Section):
     descriptor_min_overlap: float = Field(0.1, ge=0, le=1, description="without global_fallback, a descriptor "
                                           "candidate is registered only when the tracked poses make this fraction "
                                           "of the query's depth pixels land in the match view (0 = always)")
-    cloud_route: bool = Field(True, description="when keyframe ICP from the tracked pose fails the gates, register "
-                              "the two keyframes' local maps (a window of keyframes each, fused with depth; "
-                              "slam.dense.loops.local_clouds) by ICP from the same start, and accept the loop only "
-                              "if a render of the matched submaps from the result agrees with the query's view")
+    cloud_route: bool = Field(False, description="within one agent and between agents already in one frame: when "
+                              "keyframe ICP from the current pose fails the gates, register the two keyframes' local "
+                              "maps (a window of keyframes each, fused with depth; slam.dense.loops.local_clouds) by "
+                              "ICP from the same start, and accept the loop only if a render of the matched submaps "
+                              "from the result agrees with the query's view (wide revisits; costs time and mm of "
+                              "accuracy where keyframe ICP already closes the loops)")
     cloud_window: int = Field(6, ge=0, description="cloud route: keyframes within this many keyframe ids of the "
                               "candidate's, on each side, make its local map")
     cloud_voxel: float = Field(0.08, gt=0, description="cloud route: voxel grid (m); normals within 2.5 voxels, FPFH "

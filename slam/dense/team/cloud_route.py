@@ -32,10 +32,13 @@ def render_gate(lc) -> RenderGate:
 class CloudRoute:
     """Mixed into the Server (reads its slots, cfg, clouds, cloud_tries, join rules)."""
 
-    def cloud_allowed(self, a: int, q: Keyframe) -> bool:
-        """Whether the cloud route may still run for agent a's keyframe q (loop_closure.cloud_per_keyframe)."""
+    def cloud_allowed(self, a: int, q: Keyframe, same: bool = False) -> bool:
+        """Whether the cloud route may still run for agent a's keyframe q (loop_closure.cloud_per_keyframe):
+        between agents in two frames under server.cloud_route, between agents already in one frame (ICP from their
+        current relative pose, as within one agent) under loop_closure.cloud_route."""
         lc = self.slots[a].agent.cfg.loop_closure
-        return self.cfg.cloud_route and self.cloud_tries.get((a, q.id), 0) < lc.cloud_per_keyframe
+        on = lc.cloud_route if same else self.cfg.cloud_route
+        return on and self.cloud_tries.get((a, q.id), 0) < lc.cloud_per_keyframe
 
     def render_score(self, b: int, m: Keyframe, T_m_q: np.ndarray, q: Keyframe, rec: LoopRecord) -> str:
         """Render agent b's submaps around keyframe m from q's hypothesised pose (m's camera @ T_m_q), score

@@ -227,7 +227,7 @@ class Server(JoinRules, CloudRoute):
                           max_distance=lc.icp_max_distance, min_fitness=lc.fitness_min, max_rmse=lc.rmse_max,
                           global_fallback=fallback, depth_max=depth_max)
         rec.registration, rec.fitness, rec.inlier_rmse = r.reason, float(r.fitness), float(r.inlier_rmse)
-        if self._fails_gates(r, lc) and self.cloud_allowed(a, q):  # one frame: the windows' ICP from the same start
+        if self._fails_gates(r, lc) and self.cloud_allowed(a, q, same):  # one frame: the windows' ICP from there
             return self.verify_cloud(rec, a, q, b, m, f"keyframe ICP: {self._fails_gates(r, lc)}",
                                      init=T_init if same else None)
         if not r.success and r.reason != "poor alignment":
