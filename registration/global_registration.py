@@ -160,7 +160,18 @@ def refine(source: PreparedCloud, target: PreparedCloud, result: GlobalResult, *
                                  reg.ICPConvergenceCriteria(max_iteration=iterations))
         T = np.asarray(r.transformation, dtype=np.float64).copy()
     info = np.asarray(reg.get_information_matrix_from_point_clouds(source.pcd, target.pcd, fine, T))
-    out = GlobalResult(T, result.found, result.method, result.inliers, float(r.fitness),
-                       float(r.inlier_rmse) if r.fitness > 0 else float("inf"), info,
+    # Open3D sums in parallel, so the last bits of its results change from run to run; rounded far below any
+    # physical meaning (1e-10 m and rad, 10 significant digits), a run and its resumed twin agree bit for bit.
+    T, info = np.round(T, 10), _significant(info, 10)
+    out = GlobalResult(T, result.found, result.method, result.inliers, float(_significant(r.fitness, 10)),
+                       float(_significant(r.inlier_rmse, 10)) if r.fitness > 0 else float("inf"), info,
                        int(len(r.correspondence_set)), result.time_s + time.perf_counter() - t0, result.reason)
     return out
+
+
+def _significant(x, digits: int):
+    """x (scalar or array) rounded to `digits` significant digits."""
+    a = np.asarray(x, dtype=np.float64)
+    mag = np.where(a != 0, np.floor(np.log10(np.abs(np.where(a != 0, a, 1.0)))), 0.0)
+    scale = 10.0 ** (digits - 1 - mag)
+    return np.round(a * scale) / scale

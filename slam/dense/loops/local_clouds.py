@@ -20,13 +20,13 @@ from swarmsplat.slam.dense.gaussian_map import GaussianMap
 from swarmsplat.slam.dense.submaps import Keyframe, world_pose
 
 
-def window_keyframes(keyframes: list[Keyframe], center: int, radius: int, *, below: int | None = None
+def window_keyframes(keyframes: list[Keyframe], center: Keyframe, radius: int, *, below: int | None = None
                      ) -> list[Keyframe]:
-    """The keyframes whose ids are within `radius` of `center` (those that exist, and below id `below` when
-    given: two windows of one agent must not share keyframes), centre first."""
+    """`center` and the agent's keyframes whose ids are within `radius` of its id (those that exist, and below id
+    `below` when given: two windows of one agent must not share keyframes), centre first."""
     top = len(keyframes) if below is None else min(len(keyframes), below)
-    ids = [center] + [k for d in range(1, radius + 1) for k in (center - d, center + d)]
-    return [keyframes[k] for k in ids if 0 <= k < top or k == center]
+    ids = [k for d in range(1, radius + 1) for k in (center.id - d, center.id + d)]
+    return [center] + [keyframes[k] for k in ids if 0 <= k < top and keyframes[k] is not center]
 
 
 def window_points(keyframes: list[Keyframe], gmap: GaussianMap, center: Keyframe, window: list[Keyframe], *,
@@ -91,8 +91,11 @@ class WindowRegistrar:
         (with `below`: only keyframes with smaller ids, see window_keyframes)."""
         from swarmsplat.registration.global_registration import prepare_cloud
 
-        win = window_keyframes(keyframes, center.id, self.radius, below=below)
-        key = (key, len(win), win[-1].id if win else -1)
+        win = window_keyframes(keyframes, center, self.radius, below=below)
+        # The window's current poses are part of the key: a pose-graph optimisation that moved its submaps (or a
+        # resumed run, which starts with no cache) rebuilds it, so the cloud never lags the map.
+        poses = np.stack([world_pose(gmap, k) for k in win])
+        key = (key, tuple(k.id for k in win), np.round(poses, 6).tobytes())
         hit = self._cache.get(key)
         if hit is not None:
             return hit[1]

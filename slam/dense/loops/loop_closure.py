@@ -237,7 +237,7 @@ class LoopCloser:
                                           min_fitness=cfg.cloud_min_fitness, max_rmse=cfg.cloud_max_rmse)
         first = f"keyframe ICP fitness {c.fitness:.3f}, RMSE {c.inlier_rmse:.4f} m"
         c.route = "cloud"
-        q_window = window_keyframes(keyframes, q.id, cfg.cloud_window)
+        q_window = window_keyframes(keyframes, q, cfg.cloud_window)
         lo = min(k.id for k in q_window)
         wq = self.clouds.window(q.id, keyframes, gmap, q, max_depth=self.max_depth)
         wj = self.clouds.window(j.id, keyframes, gmap, j, max_depth=self.max_depth, below=lo)

@@ -109,7 +109,7 @@ def score_loop(gmap, keyframes, match, T_match_query: np.ndarray, query_view, ra
 
     from .local_clouds import window_keyframes
 
-    window = window_keyframes(keyframes, match.id, max(radius, 1))
+    window = window_keyframes(keyframes, match, max(radius, 1))
     params = gaussians_in_world(gmap, [k.submap_id for k in window if k.submap_id not in set(exclude_submaps)])
     return score_view(params, world_pose(gmap, match) @ T_match_query, query_view)
 
