@@ -193,8 +193,11 @@ def test_a_team_run_journals_every_agent(sequence, tmp_path):
 
 def test_a_killed_team_run_resumes_to_the_uninterrupted_result(sequence, tmp_path, capsys):
     """The in-process team checkpoints the whole team (agents and server) as its submaps finish; `--resume`
-    after SIGKILL continues from the last round checkpointed and ends with the uninterrupted team's result."""
-    cfg = _config(tmp_path)
+    after SIGKILL continues from the last round checkpointed and ends with the uninterrupted team's result.
+    The cloud route between unjoined agents is off here: KISS-Matcher's parallel matching is not bit-reproducible
+    across processes (6 or 7 inliers for one pair), so with it the two runs may differ in a candidate's verdict;
+    resuming itself is what this compares (docs/robustness.md)."""
+    cfg = _config(tmp_path, server={"cloud_route": False})
     split = ["--split", "0:22,22:45"]
     whole = tmp_path / "whole"
     _run(["run", str(sequence), "--out", str(whole), "--config", cfg, "--quiet", *split])
