@@ -24,6 +24,19 @@ def make_window_registrar(lc, method: str = "auto"):
                            min_fitness=lc.cloud_min_fitness, max_rmse=lc.cloud_max_rmse)
 
 
+def gate_failure(r, lc) -> tuple[str, str] | None:
+    """(reason code, sentence) of a keyframe registration `r` that fails loop_closure `lc`'s gates, else None."""
+    if not r.success and r.reason != "poor alignment":
+        return "registration", f"registration failed: {r.reason}"
+    if r.fitness <= lc.fitness_min:
+        return "fitness", f"fitness {r.fitness:.3f} <= tau_f {lc.fitness_min}"
+    if r.inlier_rmse >= lc.rmse_max:
+        return "rmse", f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {lc.rmse_max}"
+    if not r.success:
+        return "registration", f"registration failed: {r.reason}"
+    return None
+
+
 def render_gate(lc) -> RenderGate:
     """The render check's gate from loop_closure section `lc`."""
     return RenderGate(lc.render_min_covisible, lc.render_min_agree, lc.render_max_violate, lc.render_max_photometric)

@@ -24,7 +24,7 @@ from swarmsplat.slam.dense.loops.edge_information import fixed_information
 from swarmsplat.slam.dense.loops.loop_log import INTER, LoopRecord, from_intra
 from swarmsplat.slam.config import ServerConfig  # noqa: F401  (re-exported: slam.dense.team.server.ServerConfig)
 from swarmsplat.slam.dense.team.descriptors import coarse_view, describe_keyframe, make_recognizer_and_encoder
-from swarmsplat.slam.dense.team.cloud_route import CloudRoute
+from swarmsplat.slam.dense.team.cloud_route import CloudRoute, gate_failure
 from swarmsplat.slam.dense.team.joins import JoinRules
 from swarmsplat.slam.dense.submaps import Keyframe, last_keyframes, world_pose
 
@@ -227,17 +227,11 @@ class Server(JoinRules, CloudRoute):
                           max_distance=lc.icp_max_distance, min_fitness=lc.fitness_min, max_rmse=lc.rmse_max,
                           global_fallback=fallback, depth_max=depth_max)
         rec.registration, rec.fitness, rec.inlier_rmse = r.reason, float(r.fitness), float(r.inlier_rmse)
-        if self._fails_gates(r, lc) and self.cloud_allowed(a, q, same):  # one frame: the windows' ICP from there
-            return self.verify_cloud(rec, a, q, b, m, f"keyframe ICP: {self._fails_gates(r, lc)}",
-                                     init=T_init if same else None)
-        if not r.success and r.reason != "poor alignment":
-            return rec.reject("registration", f"registration failed: {r.reason}")
-        if r.fitness <= lc.fitness_min:
-            return rec.reject("fitness", f"fitness {r.fitness:.3f} <= tau_f {lc.fitness_min}")
-        if r.inlier_rmse >= lc.rmse_max:
-            return rec.reject("rmse", f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {lc.rmse_max}")
-        if not r.success:
-            return rec.reject("registration", f"registration failed: {r.reason}")
+        failed = gate_failure(r, lc)
+        if failed and self.cloud_allowed(a, q, same):  # one frame: the windows' ICP from the same start
+            return self.verify_cloud(rec, a, q, b, m, f"keyframe ICP: {failed[1]}", init=T_init if same else None)
+        if failed:
+            return rec.reject(*failed)
         ag = self.slots[a].agent
         info = ag.loops.loop_information(r) if ag.cfg.loop_closure.information == "registration" else None
         loop = InterLoop(b, m.id, a, q.id, _rigid(r.T_target_source), rec, info)
@@ -253,19 +247,6 @@ class Server(JoinRules, CloudRoute):
         rec.accepted, rec.reason_code, rec.reason = True, "accepted", f"accepted [{r.method}]"
         self.inter.append(loop)
         return rec
-
-    @staticmethod
-    def _fails_gates(r, lc) -> str:
-        """Why a keyframe registration fails the loop gates ('' when it passes them)."""
-        if not r.success and r.reason != "poor alignment":
-            return f"registration failed: {r.reason}"
-        if r.fitness <= lc.fitness_min:
-            return f"fitness {r.fitness:.3f} <= tau_f {lc.fitness_min}"
-        if r.inlier_rmse >= lc.rmse_max:
-            return f"inlier RMSE {r.inlier_rmse:.4f} m >= tau_rho {lc.rmse_max}"
-        if not r.success:
-            return f"registration failed: {r.reason}"
-        return ""
 
     # ---- poses, the pose graph and the submap moves -------------------------------------------------------------
 
