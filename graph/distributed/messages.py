@@ -1,11 +1,11 @@
 """What robots of the distributed solver send each other: one `Estimate` per neighbour per step, as bytes.
 
 An estimate carries only what its recipient needs: the sender's separator poses (those the recipient's loops
-touch), the scales and GNC weights of the loops the two share that the sender owns, and a few team-wide scalars
-(the shared scale's consensus terms, GNC's mu). Nothing is named on the wire: both robots of a pair derive the
-same lists from the loops they share (`partition.RobotPart.separators` and `pair_loops`), so poses come in the
-order of the sender's separator list for the recipient, scales and weights in the order of the pair's loops
-the sender owns (scales of its up-to-scale loops only, weights only when GNC runs).
+touch), the scales of the loops the two share, the GNC weights of those the sender owns, and a few team-wide
+scalars (the shared scale's consensus terms, GNC's mu). Nothing is named on the wire: both robots of a pair derive
+the same lists from the loops they share (`partition.RobotPart.separators` and `pair_loops`), so poses come in
+the order of the sender's separator list for the recipient, scales in the order of the pair's up-to-scale loops
+and weights in that of the pair's loops the sender owns (only when GNC runs).
 
 Wire format (little-endian, no pickle): a 23-byte header (magic, sender, recipient, stamp, counts, flags), then
 the poses as 6 float32 (rotation vector, translation) = 24 bytes each, scales and weights as float32, and with

@@ -2,9 +2,9 @@
 
 A robot holds its own keyframe poses (GTSAM Symbol keys: robot = key >> 56) and every edge that touches one of
 them; an inter-robot loop is therefore held by both of its robots, as their files hold it. Each loop has one
-owner, the lower-numbered of its two robots (an intra-robot loop: its robot): the owner holds the loop's scale
-variable (IS / SS; SS clusters join loops of one robot pair only, so a cluster has one owner) and decides its GNC
-weight. Neighbours are robots that share a loop; a robot sends each neighbour its separators (its poses that
+owner, the lower-numbered of its two robots (an intra-robot loop: its robot): the owner decides its GNC weight
+and reports its scale variable (IS / SS; SS clusters join loops of one robot pair only, so a cluster has one
+owner), which both robots of the pair move in their steps. Neighbours are robots that share a loop; a robot sends each neighbour its separators (its poses that
 the neighbour's loops touch) and the scales and weights of the loops the two share. Robots are coloured
 greedily in id order so that no two neighbours share a colour: robots of one colour update at the same time.
 """

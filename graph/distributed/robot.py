@@ -2,8 +2,9 @@
 
 The robot's part of the objective is every factor that touches one of its poses: its odometry, its intra-robot
 loops and each inter-robot loop it shares (graph.distributed.partition). A step minimises that part over the
-robot's own poses and the scales of the loops it owns, with its neighbours' poses and scales held at the latest
-values they sent (a few Levenberg-Marquardt iterations of graph.solvers on a graph.formulations problem, warm
+robot's own poses and the scales of its loops (both robots of a loop hold every factor on its scale, so either may
+move it: a scale free in one robot's step only zig-zags against the other's poses), with its neighbours' poses
+held at the latest values they sent (a few Levenberg-Marquardt iterations of graph.solvers on a graph.formulations problem, warm
 started): block-coordinate descent, in which every step lowers the team's objective, so every iterate is a
 usable estimate. The team's shared scale (formulation `shared`) is held fixed in the step; its consensus terms
 (gradient and Gauss-Newton curvature of the robot's owned loops) go to the keeper, the lowest-numbered robot,
@@ -116,7 +117,7 @@ class RobotSolver:
                 if s.formulation == "shared":
                     value, held_scale = self.shared, True
                 else:
-                    value, held_scale = self.scales[n], n not in self.part.owned
+                    value, held_scale = self.scales[n], False  # both robots of a loop hold every factor on it
                 problem.initial.update(k, float(value))
                 if held_scale:
                     problem.fixed.add(gtsam.PriorFactorDouble(k, float(value), hold))
@@ -140,7 +141,7 @@ class RobotSolver:
             for k, T in zip(keys, new):
                 self.poses[k] = T
         for m, v in res.scales.items():
-            if ids[m] in self.part.owned and self.settings.formulation != "shared":
+            if self.settings.formulation != "shared":
                 n = ids[m]
                 self.scales[n] = max(self.scales[n] + w * (float(v) - self.scales[n]), SCALE_MIN)
         drop = res.initial_error - res.final_error
@@ -184,8 +185,9 @@ class RobotSolver:
         """The loops of pair (self, q) whose scale and weight `sender` sends: those it owns, in pair order."""
         key = (q, sender)
         if key not in self._sent:
-            mine = [n for n in self.part.pair_loops.get(q, []) if self._owner[n] == sender]
-            scaled = [n for n in mine if self.settings.formulation in ("is", "ss") and self._scaled[n]]
+            pair = self.part.pair_loops.get(q, [])
+            mine = [n for n in pair if self._owner[n] == sender]
+            scaled = [n for n in pair if self.settings.formulation in ("is", "ss") and self._scaled[n]]
             self._sent[key] = (scaled, mine)
         return self._sent[key]
 
