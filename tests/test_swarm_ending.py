@@ -17,11 +17,11 @@ def late_schedule(ticks=16):
                                     Window(ticks - 1, ticks, frozenset({0, 1, 2}))])
 
 
-def run_to_end(sched, faults=None, on_tick=None, timeout_s=3.0):
+def run_to_end(sched, faults=None, on_tick=None, timeout_s=3.0, solver="lm"):
     """`test_swarm_runtime.run`, then the end protocol until every robot stops (at most timeout_s seconds)."""
     data = scenario(3, N_KF)
     net = InProcessNetwork(range(3), sched, faults)
-    nodes = [make_node(r, net) for r in range(3)]
+    nodes = [make_node(r, net, solver) for r in range(3)]
     for n in nodes:
         n.cfg.end_timeout = timeout_s
     ends = [MissionEnd.on_schedule(n, sched, range(3)) for n in nodes]

@@ -25,9 +25,9 @@ def schedule(ticks=40):
                                     Window(12, ticks, frozenset({0, 1, 2}))])
 
 
-def make_node(r, net):
+def make_node(r, net, solver="lm"):
     return RobotNode(r, CAMERA, net.endpoint(r), FakeRecognizer(), FakeRegistrar(),
-                     NodeConfig(solve=SolveConfig("is", "lm")))
+                     NodeConfig(solve=SolveConfig("is", solver)))
 
 
 def run(sched=None, faults=None, on_tick=None, data=None):

@@ -163,3 +163,26 @@ def test_swarm_processes_give_the_in_process_result(tmp_path):
         for name in ("agent_0", "agent_1", "agent_2"):
             np.testing.assert_allclose(np.loadtxt(out / f"{name}.txt"), np.loadtxt(tmp_path / "inproc" / f"{name}.txt"),
                                        atol=1e-6)
+
+
+def test_swarm_processes_solve_distributed(tmp_path):
+    """`swarm --processes --solver distributed`: every robot process solves its own part over Zenoh (the code of the
+    in-process run), no graph gathered; the team ends at the centralised optimum of its final graph, with the
+    in-process run's loops."""
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.run.swarm import run_swarm
+    from swarmsplat.slam.run.swarm_processes import launch
+
+    data = tmp_path / "data"
+    assert main(["generate", "--out", str(data), "--preset", "tiny", "--agents", "3", "--frames", "30", "--mono",
+                 "--quiet"]) == 0
+    (tmp_path / "late.yaml").write_text(LATE)
+    opts = {"stride": 2, "schedule": str(tmp_path / "late.yaml"), "solver": "distributed"}
+    ref = run_swarm(data, tmp_path / "inproc", progress=False, **opts)
+    m = launch(data, tmp_path / "zenoh", port_base=_free_port_base(3), **opts)
+    for run in (ref, m):
+        assert all(e["status"] == "complete" for e in run["end"].values()), run["end"]
+        assert run["distributed"]["ratio"] <= 1.001, run["distributed"]
+        assert all("GraphSubmission" not in b["sent_bytes"] for b in run["bytes"].values())
+    assert m["loop_closures"]["count"] == ref["loop_closures"]["count"]
+    assert abs(m["ate"]["merged_rmse"] - ref["ate"]["merged_rmse"]) <= 0.02 * ref["ate"]["merged_rmse"]

@@ -15,7 +15,9 @@ def add_swarm_options(p) -> None:
     add_config_flags(p)
     p.add_argument("--formulation", choices=["is", "ss", "base", "shared"],
                    help="pose-graph formulation for up-to-scale loops (default: is)")
-    p.add_argument("--solver", choices=["lm", "gnc"], help="Levenberg-Marquardt or GNC (default: lm)")
+    p.add_argument("--solver", choices=["lm", "gnc", "distributed"],
+                   help="Levenberg-Marquardt or GNC on the elected robot (default: lm), or distributed: every robot "
+                        "solves its own part")
     p.add_argument("--uniform-noise", action="store_true", default=None,
                    help="Swarm-SLAM-like baseline: one noise for every factor, confidences ignored")
     p.add_argument("--schedule", metavar="YAML", help="rendezvous schedule (default: pairs meet while recording, "

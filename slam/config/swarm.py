@@ -48,8 +48,9 @@ class SwarmConfig(_FrontEnd):
     formulation: Literal["is", "ss", "base", "shared"] = Field(
         "is", description="scale variables of the up-to-scale loops: independent (is), smoothed (ss), none (base) "
                           "or one shared (graph.formulations)")
-    solver: Literal["lm", "gnc"] = Field("lm", description="Levenberg-Marquardt, or GNC (rejects inconsistent "
-                                                           "loops)")
+    solver: Literal["lm", "gnc", "distributed"] = Field(
+        "lm", description="Levenberg-Marquardt or GNC (rejects inconsistent loops) on the elected robot, or "
+                          "distributed: every robot solves its own part (formulations base, is, ss)")
     uniform_noise: bool = Field(False, description="one noise for every factor, confidences ignored (the "
                                                    "Swarm-SLAM-like baseline)")
     odo_sigma_rot: float = Field(0.01, gt=0, description="odometry edge std (rad)")

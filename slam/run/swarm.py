@@ -50,9 +50,12 @@ def swarm_config(config: SlamConfig | SwarmConfig | None = None, **options) -> S
 
 def node_config(sw: SwarmConfig) -> NodeConfig:
     """A robot's NodeConfig (and its SolveConfig) from the swarm section."""
+    from swarmsplat.slam.flocc.swarm.distributed import check_solve_config
+
     solve = SolveConfig(formulation=sw.formulation, solver=sw.solver, uniform_noise=sw.uniform_noise,
                         odo_sigma_rot=sw.odo_sigma_rot, odo_sigma_trans=sw.odo_sigma_trans,
                         loop_sigma_rot=sw.loop_sigma_rot, loop_sigma_trans=sw.loop_sigma_trans)
+    check_solve_config(solve)
     return NodeConfig(threshold=sw.threshold, r_thr=sw.r_thr, k=sw.k, neighbour_timeout=sw.neighbour_timeout,
                       resend=sw.resend, end_timeout=sw.end_timeout, solve=solve)
 
@@ -159,6 +162,10 @@ def robot_results(nodes, ends=None) -> tuple[dict, dict]:
                   "bytes": n.tx.stats.to_dict(), "estimate": n.estimate, "n_solves": n.n_solves,
                   "end": ends[r].report() if ends else None}
               for r, n in enumerate(nodes)}
+    if nodes and nodes[0].dist is not None:  # no gather: every robot's own graph, for the outputs' evaluation
+        for r, n in enumerate(nodes):
+            robots[r].update(loop_scales=n.dist.loop_scales(), steps=n.dist.steps)
+        return robots, {n.id: n.submission() for n in nodes if len(n.odometry)}
     leader = min((n for n in nodes if n.last_solution is not None), key=lambda n: n.id, default=None)
     final = {int(r): leader.subs[int(r)] for r in leader.solved_basis} if leader else {}
     return robots, final

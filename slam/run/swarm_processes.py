@@ -103,6 +103,11 @@ def _write_state(d: Path, robot: int, node, tx, feeder, skipped_ticks: int | Non
     if node.solved_basis:
         for r in node.solved_basis:
             atomic_write_bytes(d / f"graph_{int(r)}.msg", M.encode(node.subs[int(r)], int(r), 0))
+    if node.dist is not None:  # the distributed solve: its own graph and loop scales, for the run's evaluation
+        atomic_write_bytes(d / f"graph_{robot}.msg", M.encode(node.submission(), robot, 0))
+        scales = node.dist.loop_scales()
+        atomic_write_text(d / "distributed.json", json.dumps({"steps": node.dist.steps, "loop_scales": [
+            [int(ki), int(kj), float(s)] for (ki, kj), s in sorted(scales.items())]}))
     atomic_write_text(d / "bytes.json", json.dumps({**tx.stats.to_dict(), "n_solves": node.n_solves,
                                                    "skipped_ticks": skipped_ticks, "status": status,
                                                    "reason": reason, "skipped_frames": feeder.skipped.rows,
@@ -218,7 +223,11 @@ def gather(out: Path, setup, *, status: str = "complete", reason: str | None = N
         robots[r] = {"trajectory": st["trajectory"], "odometry": st["odometry"], "timestamps": st["timestamps"],
                      "bytes": b, "estimate": est, "n_solves": b.get("n_solves", 0), "end": end}
         graphs = sorted(d.glob("graph_*.msg"))
-        if graphs and not final:  # the lowest robot that optimised: its last solve is the team's
+        if (d / "distributed.json").is_file():  # every robot solved its own part: its graph and loop scales
+            dj = json.loads((d / "distributed.json").read_text())
+            robots[r].update(steps=dj["steps"], loop_scales={(ki, kj): s for ki, kj, s in dj["loop_scales"]})
+            final.update({int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs})
+        elif graphs and not final:  # the lowest robot that optimised: its last solve is the team's
             final = {int(g.stem.split("_")[1]): M.decode(g.read_bytes())[1] for g in graphs}
     return write_outputs(out, setup, robots, final, mode="zenoh", status=status, reason=reason, skipped=skipped)
 

@@ -112,11 +112,12 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
         write_tum(out / f"{names[r]}.txt", d["timestamps"], d["trajectory"])
         write_tum(out / "odometry" / f"{names[r]}.txt", d["timestamps"], d["odometry"])
     stamps = {r: d["timestamps"] for r, d in robots.items()}
-    sol = solve_group(final_subs, setup.node_config.solve) if final_subs else None
+    cfg = setup.node_config.solve
+    distributed = cfg.solver == "distributed"  # final_subs: every robot's own graph; the reference solve is LM
+    sol = solve_group(final_subs, replace(cfg, solver="lm") if distributed else cfg) if final_subs else None
     linked = linked_robots(sol.graph) if sol else []
     run = _ate(setup, {r: d["trajectory"] for r, d in robots.items()}, stamps, linked)
     odo = _ate(setup, {r: d["odometry"] for r, d in robots.items()}, stamps, linked)
-    cfg = setup.node_config.solve
     complete = status == "complete"
     metrics = {"status": status, **({"reason": reason} if reason else {}), "skipped_frames": list(skipped or []),
                "mode": mode, "formulation": cfg.formulation, "solver": cfg.solver, "uniform_noise": cfg.uniform_noise,
@@ -130,8 +131,11 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
         off = 0
         for r, c in zip(sol.robots, sol.counts):
             for i in range(c):
-                poses[robot_key(chr(ord("a") + r), i)] = sol.poses[off + i]
+                poses[robot_key(chr(ord("a") + r), i)] = robots[r]["trajectory"][i] if distributed else \
+                    sol.poses[off + i]
             off += c
+        if distributed:
+            metrics["distributed"] = distributed_metrics(sol, poses, robots, cfg.formulation)
         write_g2o(sol.graph, out / "pose_graph_optimized.g2o", {k: poses[k] for k in keys})
         loops = sol.graph.loops()
         metrics["loop_closures"] = {"count": len(loops),
@@ -157,6 +161,27 @@ def write_outputs(out: Path, setup, robots: dict[int, dict], final_subs: dict, *
     if complete and run.get("_result") is not None:
         _plot(out / "trajectories.png", run["_result"])
     return metrics
+
+
+def distributed_metrics(sol, poses: dict, robots: dict[int, dict], formulation: str) -> dict:
+    """The distributed solve against the centralised one of the same final graph (`sol`, LM): the team's cost at
+    the robots' poses and loop scales (`final_error`, the centralised problem's objective), the centralised cost,
+    their ratio, each robot's steps and the bytes of the distributed estimates sent."""
+    from swarmsplat.graph.distributed.team import problem_error
+    from swarmsplat.graph.formulations import build_problem
+
+    from swarmsplat.slam.flocc.swarm.optimiser import initial_poses
+
+    g = sol.graph
+    held = {k: s for d in robots.values() for k, s in (d.get("loop_scales") or {}).items()}
+    scales = {n: held.get((e.key_i, e.key_j), e.odom_scale or 1.0) for n, e in enumerate(g.edges) if e.up_to_scale}
+    problem = build_problem(g, formulation, "odometry", initial_poses=initial_poses(g))
+    central = sol.final_error
+    final = problem_error(problem, poses, scales, {})
+    return {"final_error": final, "central_error": central, "ratio": final / central if central > 0 else None,
+            "steps": {str(r): d.get("steps", 0) for r, d in robots.items()},
+            "bytes_total": int(sum(d["bytes"].get("sent_bytes", {}).get("DistributedEstimate", 0)
+                                   for d in robots.values()))}
 
 
 def _per_pair(loops) -> dict:

@@ -14,6 +14,10 @@ on, a robot's group is fixed: the robots it is linked with at that tick (those l
     4. as another robot: stops once the optimiser has announced the end of the estimate it holds, echoing it.
 A robot of the group that never confirms (vanished or cut off) holds the others until the timeout; they then stop
 with what they hold, and `report()` names it.
+
+With the distributed solver (`swarm.solver: distributed`) there is no optimiser and no final estimate: a robot is
+ready when, besides the above, its part is built on its final graph and settled (its last steps and its
+neighbours' were still, distributed.py), and it stops once every robot of its group has reported ready.
 """
 
 from __future__ import annotations
@@ -83,6 +87,8 @@ class MissionEnd:
         self.last = tick
         if not self.group:
             return self._stop("complete")
+        if n.dist is not None:
+            return self._step_distributed(tick)
         ready = self.ready()
         stamp = stamp_of(n.estimate)
         end: list[int] = []
@@ -103,6 +109,17 @@ class MissionEnd:
         n.tx.send(None, M.Finish(tick=tick, ready=int(ready), graph_version=n.graph_version(),
                                  estimate_stamp=stamp, end=end))
         if stop:
+            return self._stop("complete")
+        if tick - self.first >= self.timeout_ticks:
+            return self._stop("timeout")
+        return False
+
+    def _step_distributed(self, tick: int) -> bool:
+        n = self.node
+        ready = self.ready() and n.dist.settled(self._in_range())
+        n.tx.send(None, M.Finish(tick=tick, ready=int(ready), graph_version=n.graph_version(),
+                                 estimate_stamp=[n.dist.stamp], end=[]))
+        if ready and all(r in n.finish and n.finish[r].ready for r in self.group):
             return self._stop("complete")
         if tick - self.first >= self.timeout_ticks:
             return self._stop("timeout")

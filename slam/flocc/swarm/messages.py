@@ -287,9 +287,31 @@ class Finish(Message):
             raise MessageError("Finish: versions and stamps must be lists of integers, ready 0 or 1")
 
 
+@dataclass
+class DistributedEstimate(Message):
+    """The distributed solver's estimate for one neighbour (`swarm.solver: distributed`, distributed.py): a
+    graph.distributed.messages.Estimate as its bytes, and `root`, the robot whose odometry frame its poses are in."""
+
+    TYPE: ClassVar[int] = 9
+    SCALARS: ClassVar[dict] = {"root": int}
+    ARRAYS: ClassVar[dict] = {"blob": ("|u1", 1)}
+    root: int = 0
+    blob: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
+
+    def validate(self) -> None:
+        from swarmsplat.graph.distributed.messages import Estimate as SolverEstimate
+
+        if not 0 <= self.root <= 254:
+            raise MessageError("DistributedEstimate: root must be a robot id")
+        try:
+            SolverEstimate.from_bytes(self.blob.tobytes())
+        except InputError as e:
+            raise MessageError(f"DistributedEstimate: {e}") from None
+
+
 MESSAGE_TYPES: dict[int, type[Message]] = {
     c.TYPE: c for c in (Hello, Descriptors, EncodingRequest, EncodingReply, LoopBatch, GraphSubmission, Estimate,
-                        Finish)}
+                        Finish, DistributedEstimate)}
 
 
 class Codec:

@@ -9,6 +9,8 @@ Each tick a node
        shares the loops with that neighbour (the lower-id robot of a pair registers it, so it is done once);
     5. elects the optimiser (lowest id in range): a follower submits its graph when the optimiser lacks its
        latest version; the optimiser solves once every member's latest graph is in and broadcasts the estimate.
+       With `solve.solver` "distributed" there is no optimiser: the robot steps its own part of the distributed
+       solver instead (distributed.py) and sends its neighbours their separators.
 A node keeps its odometry (its own frame) and the newest global estimate that includes it (`Estimate` stamps:
 more keyframes, then more robots, then more loops, then later), so a late or repeated estimate never replaces a
 newer one, and a robot that returns catches up from any neighbour's newer estimate.
@@ -110,6 +112,11 @@ class RobotNode:
         self._pending: set[int] = set()  # peers whose encodings we asked for and still lack (ask again)
         self._asked: dict[tuple[int, int], int] = {}  # (peer, keyframe) -> tick its encoding was last requested
         self.tick = 0
+        self.dist = None  # this robot's part of the distributed solve (swarm.solver distributed), else the gather
+        if self.cfg.solve.solver == "distributed":
+            from .distributed import SwarmPart
+
+            self.dist = SwarmPart(self, wait=self.cfg.neighbour_timeout)
 
     # ------------------------------------------------------------------------------------------ inputs
     def add_keyframe(self, image: np.ndarray, T_odom_kf: np.ndarray, timestamp: float = 0.0) -> int:
@@ -177,6 +184,9 @@ class RobotNode:
         for peer in sorted(self._dirty | (self._pending & set(nb))):
             self._close_loops(peer)
         self._dirty.clear()
+        if self.dist is not None:
+            self.dist.tick(self.tick, nb)
+            return
         leader = elect(self.id, nb)
         if leader != self.id and leader in self.hello:
             self._submit(leader)
@@ -217,6 +227,9 @@ class RobotNode:
                     self.subs[msg.robot] = msg
         elif isinstance(msg, M.Estimate):
             self._offer_estimate(msg)
+        elif isinstance(msg, M.DistributedEstimate):
+            if self.dist is not None:
+                self.dist.on_message(sender, msg)
         elif isinstance(msg, M.Finish):
             if msg.tick >= self.finish.get(sender, msg).tick:
                 self.finish[sender] = msg
@@ -357,6 +370,8 @@ class RobotNode:
     def trajectory(self) -> np.ndarray:
         """T_global_kf [n_kf, 4, 4]: the estimate where it covers this robot, odometry after its last estimated
         keyframe; the odometry itself (own frame) without an estimate."""
+        if self.dist is not None and len(self.odometry):
+            return self.dist.trajectory()
         odo = np.array(self.odometry).reshape(-1, 4, 4)
         if self.estimate is None:
             return odo.copy()

@@ -20,7 +20,8 @@ from .messages import GraphSubmission
 
 @dataclass
 class SolveConfig:
-    """formulation: base | is | ss | shared (graph.formulations); solver: lm | gnc.
+    """formulation: base | is | ss | shared (graph.formulations); solver: lm | gnc on the elected robot, or
+    distributed (every robot solves its own part, distributed.py; not through `solve_group`).
     uniform_noise: Swarm-SLAM-like baseline — every factor (odometry and loops) gets the same information and
     confidences are ignored. Sigmas in radians and metres."""
 
@@ -64,6 +65,7 @@ class GroupSolution:
     graph: object  # graph.pose_graph.PoseGraph that was solved
     n_loops: int
     time_s: float
+    final_error: float = 0.0  # the solved problem's objective
 
 
 def build_graph(subs: dict[int, GraphSubmission], cfg: SolveConfig):
@@ -125,4 +127,4 @@ def solve_group(subs: dict[int, GraphSubmission], cfg: SolveConfig) -> GroupSolu
     poses = np.stack([res.poses[robot_key(robot_char(r), i)] for r, c in zip(robots, counts) for i in range(c)])
     loops = [n for n, e in enumerate(g.edges) if e.kind == "loop"]
     scales = np.array([res.scales.get(n, g.edges[n].odom_scale or 1.0) for n in loops], dtype=np.float64)
-    return GroupSolution(robots, counts, poses, scales, g, len(loops), res.time_s)
+    return GroupSolution(robots, counts, poses, scales, g, len(loops), res.time_s, res.final_error)
