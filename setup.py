@@ -12,5 +12,6 @@ setup(
     + ["swarmsplat.configs"],
     package_dir={**{f"swarmsplat.{top}": top for top in FOLDERS}, "swarmsplat.configs": "configs"},
     package_data={"swarmsplat.configs": ["*.yaml"],
-                  "swarmsplat.registration": ["place_recognition/vocabularies/*.npz"]},
+                  "swarmsplat.registration": ["place_recognition/vocabularies/*.npz"],
+                  "swarmsplat.slam": ["io/ros2/msg/*/*.msg"]},
 )

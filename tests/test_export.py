@@ -115,3 +115,31 @@ def test_export_refuses_what_it_cannot_write(single_run, tmp_path, capsys):
     assert main(["export", str(run), "--to", "zip"]) == 2
     assert "--to 'zip': expected one of mcap, rosbag2, rosbag1" in capsys.readouterr().err
     assert main(["export", str(run)]) == 0 and (run / "bag_mcap" / "metadata.yaml").is_file()
+
+
+def test_an_mcap_export_reads_with_foxglove_readers(single_run, tmp_path):
+    """Foxglove's own MCAP readers (`mcap`, `mcap-ros2-support`), not rosbags: every message decodes with the
+    schemas the file carries (ros2msg), the summary and footer are there, the poses are the trajectory file's."""
+    pytest.importorskip("mcap")
+    pytest.importorskip("mcap_ros2")
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    run, *_ = single_run
+    counts = export_run(run, tmp_path / "out", "mcap")
+    (path,) = (tmp_path / "out").glob("*.mcap")
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == sum(counts.values())
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        decoded: dict[str, list] = {}
+        for _schema, channel, _message, msg in reader.iter_decoded_messages():
+            decoded.setdefault(channel.topic, []).append(msg)
+        f.seek(-8, 2)
+        assert f.read(8) == b"\x89MCAP0\r\n"  # the closing magic, after the footer
+    assert {k: len(v) for k, v in decoded.items()} == counts
+    got = np.stack([_T(m.pose) for m in decoded["/cam/pose"]])
+    np.testing.assert_allclose(got, read_tum(run / "trajectory.txt")[1], atol=5e-10)
+    assert decoded["/tf"][0].transforms[0].child_frame_id == "cam/camera"
+    assert decoded["/loops"][0].markers[0].type == 5

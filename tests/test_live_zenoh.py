@@ -16,6 +16,7 @@ pytest.importorskip("rosbags")
 
 from swarmsplat.kernels.errors import InputError  # noqa: E402
 from swarmsplat.slam.io.live import PosePublisher, ZenohRos2Source, role_of_key, zenoh_config  # noqa: E402
+from swarmsplat.slam.io.ros2 import type_hash  # noqa: E402
 
 
 def _free_port() -> int:
@@ -99,7 +100,7 @@ def test_a_live_agent_tracks_what_it_receives_and_publishes_every_pose(sequence,
             for i in range(len(sequence)):
                 robot.put("camera/color/camera_info", _cdr(store, sequence, i, "info"))
                 robot.put("camera/color/image_raw", _cdr(store, sequence, i, "color"))
-                robot.put("0/camera/depth/image_raw/sensor_msgs::msg::dds_::Image_/RIHS01_0",
+                robot.put(f"0/camera/depth/image_raw/sensor_msgs::msg::dds_::Image_/{type_hash('sensor_msgs/msg/Image')}",
                           _cdr(store, sequence, i, "depth"))
                 time.sleep(1 / 30)
 

@@ -51,16 +51,17 @@ def test_a_live_agent_is_a_team_member(tmp_path):
                                str(tmp_path / "cfg.yaml"), "--dataset", str(data), "--split", SPLIT, "--listen",
                                server_at, "--quiet"], env=env, cwd=REPO, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
-    recorded = subprocess.Popen([*cli, "agent", str(data), "--split", SPLIT, "--id", "0", "--server", server_at,
-                                 "--config", str(tmp_path / "cfg.yaml"), "--quiet"], env=env, cwd=REPO,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    cam_port = _free_port()
     from swarmsplat.slam.run.team_link.registry import ask_index
 
     # no --id: the server gives the index by name (the name of its dataset's second sequence: 1)
     assert ask_index("agent_1", connect=[server_at], timeout=60) == 1
     assert ask_index("agent_1", connect=[server_at], timeout=60) == 1  # asked again: the same
+    viewer = _TeamViewer.open(port)  # a ROS 2 client on the server's endpoint, before any agent sends
+    recorded = subprocess.Popen([*cli, "agent", str(data), "--split", SPLIT, "--id", "0", "--server", server_at,
+                                 "--config", str(tmp_path / "cfg.yaml"), "--quiet"], env=env, cwd=REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    cam_port = _free_port()
     src = ZenohRos2Source("", name="robot_b", listen=[f"tcp/127.0.0.1:{cam_port}"])
     _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{cam_port}"])
     robot = zenoh.open(conf)
@@ -95,6 +96,9 @@ def test_a_live_agent_is_a_team_member(tmp_path):
             for p in (recorded, server):
                 if p.poll() is None:
                     p.kill()
+            if viewer is not None:
+                time.sleep(0.5)
+                viewer.close()
     assert m["reason"] == "max_frames" and m["frames_tracked"] == len(live_seq), m
     assert m["acknowledged"] and m["poses_published"] == len(live_seq) and len(poses) == len(live_seq)
     assert recorded.returncode == 0, out_r
@@ -104,6 +108,12 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     by_name = {a["name"]: a for a in team["agents"]}
     assert by_name["robot_b"]["frames_tracked"] == len(live_seq) and by_name["robot_b"]["keyframes"] >= 2
     assert team["link"]["agents"]["robot_b"]["bytes_total"] > 0 and not team["link"]["lost_agents"]
+    # the team server published, the way rmw_zenoh does, every agent's corrected trajectory, the merged map and the
+    # loops: a ROS 2 client received every message it sent
+    sent = team["ros2"]["sent"]
+    assert viewer is None or viewer.counts() == {team["ros2"]["topics"][r]: k for r, k in sent.items()}, (viewer.counts(), sent)
+    assert all(sent.get(f"path:{a['name']}", 0) >= 1 for a in team["agents"]) and sent["map"] >= 1
+    assert viewer is None or len(viewer.last["/swarmsplat/team/robot_b/path"].poses) == by_name["robot_b"]["keyframes"]
     # the live agent's own folder: its pose journal up to its last keyframe, and its trajectory as corrected
     journal = [ln for ln in (tmp_path / "robot_b" / "progress" / "poses.tum").read_text().splitlines()
                if ln and not ln.startswith("#")]
@@ -126,6 +136,50 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     j_stamps, T_journal = read_tum(tmp_path / "robot_b" / "progress" / "poses.tum")
     np.testing.assert_allclose(j_stamps, stamps[:len(j_stamps)], atol=1e-6)
     np.testing.assert_allclose(T_journal[:, :3, 3], T_pub[:len(j_stamps), :3, 3], atol=1e-5)
+
+
+class _TeamViewer:
+    """zenoh-ros2-sdk (a client nobody here wrote) subscribed to the team server's topics; a plain Zenoh session
+    (the test then checks what the server says it sent, without it)."""
+
+    TOPICS = {"/swarmsplat/team/agent_0/path": "nav_msgs/msg/Path", "/swarmsplat/team/robot_b/path":
+              "nav_msgs/msg/Path", "/swarmsplat/team/map": "sensor_msgs/msg/PointCloud2",
+              "/swarmsplat/team/loops": "visualization_msgs/msg/MarkerArray"}
+
+    @classmethod
+    def open(cls, port: int):
+        try:
+            import zenoh_ros2_sdk  # noqa: F401
+        except ImportError:
+            return None
+        return cls(port)
+
+    def __init__(self, port: int):
+        from zenoh_ros2_sdk import ROS2Subscriber, message_registry
+
+        self.got: dict[str, list] = {t: [] for t in self.TOPICS}
+        message_registry._registry = message_registry.MessageRegistry(str(Path(__file__).parent / "ros2_definitions"))
+        self.subs = [ROS2Subscriber(t, m, (lambda msg, t=t: self.got[t].append(msg)), node_name="team_viewer",
+                                    router_port=port) for t, m in self.TOPICS.items()]
+        time.sleep(1.0)
+
+    def counts(self) -> dict:
+        return {t: len(v) for t, v in self.got.items() if v}
+
+    @property
+    def last(self) -> dict:
+        return {t: v[-1] for t, v in self.got.items() if v}
+
+    def close(self) -> None:
+        from zenoh_ros2_sdk import message_registry
+        from zenoh_ros2_sdk.session import ZenohSession
+
+        for s in self.subs:
+            s.close()
+        if ZenohSession._instance is not None:
+            ZenohSession._instance.close()
+        ZenohSession._instance = None
+        message_registry._registry = None
 
 
 def _decode_poses(store, payloads: list[bytes]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,9 @@
 """`swarmsplat agent SOURCE --out DIR`: one GRAND-SLAM agent on a robot. SOURCE `zenoh/[PREFIX]` reads live ROS 2
-RGB-D topics over Zenoh (the Zenoh-ROS 2 bridge or rmw_zenoh) and publishes each tracked pose back as
-geometry_msgs/PoseStamped; any other SOURCE is a recording (a sequence folder or a bag), run as `swarmsplat run`
+RGB-D topics over Zenoh (the Zenoh-ROS 2 bridge or rmw_zenoh) and publishes its poses, TF, keyframe path, map and
+loops as ROS 2 topics the way rmw_zenoh does (ROS 2 sees them); any other SOURCE is a recording (a sequence folder or a bag), run as `swarmsplat run`
 runs it. With --server ENDPOINT the agent is a member of a team served by `swarmsplat server` (also registered
 here): it sends its keyframes and submaps over Zenoh and the server closes the loops; on live topics it also
-publishes its poses back (--id K required)."""
+publishes what a lone agent does, corrected by the server."""
 
 from __future__ import annotations
 
@@ -26,8 +26,16 @@ def register(sub) -> None:
                    help="ROS 2 topics: color, depth, info (live; default /camera/color/image_raw, "
                         "/camera/depth/image_raw, /camera/color/camera_info) or any of color, depth, info, "
                         "odometry, gt for a bag (default: found)")
-    p.add_argument("--publish", metavar="KEY", help="Zenoh key of the published poses (default: "
-                                                   "swarmsplat/<name>/pose; the keyframe path goes to KEY/path)")
+    p.add_argument("--publish", metavar="TOPIC", help="the pose topic (default /swarmsplat/<name>/pose); with "
+                   "--ros-keys bridge the plain Zenoh key of the poses, the keyframe path going to KEY/path")
+    p.add_argument("--ros-keys", choices=("rmw", "bridge"), default="rmw",
+                   help="how published topics are keyed: rmw (rmw_zenoh's keys, liveliness tokens and attachments: "
+                        "ROS 2 sees them; default) or bridge (zenoh-bridge-ros2dds' plain keys)")
+    p.add_argument("--domain-id", type=int, metavar="N",
+                   help="ROS domain id of the published topics (default: ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--namespace", default="/", metavar="NS", help="the ROS node's namespace (default: /)")
+    p.add_argument("--map-period", type=float, default=10.0, metavar="S",
+                   help="publish the whole map every S seconds (0: at the end only; default: 10)")
     p.add_argument("--name", default="live", help="the agent's name (default: live)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
@@ -74,6 +82,13 @@ def register_server(sub) -> None:
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to (a router or the agents), repeatable")
     p.add_argument("--run", default="team", help="the team's Zenoh key prefix (default: team)")
+    p.add_argument("--ros-keys", choices=("rmw", "bridge", "off"), default="rmw",
+                   help="the team's corrected trajectories, loops and merged map as ROS 2 topics /swarmsplat/team/..."
+                        ": rmw (rmw_zenoh's keys; default), bridge (plain keys) or off")
+    p.add_argument("--domain-id", type=int, metavar="N",
+                   help="ROS domain id of the published topics (default: ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--map-period", type=float, default=10.0, metavar="S",
+                   help="publish the merged map every S seconds (0: at the end only; default: 10)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_backend_flags(p)
     p.set_defaults(func=run_server, kernels=None, device=None)
@@ -96,7 +111,8 @@ def run_server(args) -> int:
 
         dataset = split_sequence(load_dataset(dataset).agents[0], parse_ranges(args.split))
     m = serve_command(args.agents, args.out, cfg, dataset=dataset, listen=args.listen, connect=args.connect,
-                      run=args.run, progress=not args.quiet)
+                      run=args.run, progress=not args.quiet, ros_keys=args.ros_keys, domain=args.domain_id,
+                      map_period=args.map_period)
     lost = m["link"]["lost_agents"]
     print(f"wrote {args.out}: {m['loops_accepted']} loops accepted, {m['link']['bytes_total'] / 1e6:.1f} MB on the "
           f"link" + (f"; lost: {', '.join(lost)}" if lost else ""))
@@ -175,7 +191,7 @@ def run(args) -> int:
     with _live_topics(args, source, topics) as (src, pub):
         m = run_live(src, args.out, cfg, publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
                      camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
-                     progress=not args.quiet)
+                     map_period=args.map_period, progress=not args.quiet)
     lat = m["pose_latency_ms"]
     p50 = f", pose latency p50 {lat['p50']:.1f} ms / p95 {lat['p95']:.1f} ms" if lat["count"] else ""
     print(f"{m['frames_tracked']} frames tracked ({m['reason']}){p50}; wrote {args.out}")
@@ -195,7 +211,7 @@ def _live_team_member(args, source: str, cfg) -> int:
         m = run_live_team_agent(src, k, cfg, name=args.name, connect=args.server, run=args.run,
                                 publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
                                 camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
-                                progress=not args.quiet, out=args.out)
+                                map_period=args.map_period, progress=not args.quiet, out=args.out)
     print(f"{args.name}: {m['frames_tracked']} frames tracked ({m['reason']}), {m['poses_published']} poses "
           f"published, {m['bytes']['sent_total'] / 1e6:.2f} MB sent"
           + ("" if m["acknowledged"] else "; NOT all acknowledged by the server"))
@@ -207,14 +223,33 @@ def _live_topics(args, source: str, topics: dict):
     """(the live source on `source`'s topics, the publisher of its poses), closed on the way out."""
     from swarmsplat.kernels.errors import InputError
     from swarmsplat.slam.io.live import PosePublisher, ZenohRos2Source
+    from swarmsplat.slam.io.ros2 import AgentTopics, Ros2Node, domain_id
+    from swarmsplat.slam.io.ros2.publishers import ros_token
 
     unknown = set(topics) - {"color", "depth", "info"}
     if unknown:
         raise InputError(f"--topics: {', '.join(sorted(unknown))} cannot be read live; expected color, depth, info")
+    if args.map_period < 0:
+        raise InputError(f"--map-period must be >= 0, got {args.map_period}")
+    domain = domain_id(args.domain_id)
     src = ZenohRos2Source(source[len(LIVE):], topics, name=args.name, connect=args.connect, listen=args.listen)
+    node = pub = None
     try:
-        yield src, PosePublisher(src.session, args.publish or f"swarmsplat/{args.name}/pose")
+        if args.ros_keys == "bridge" and args.publish:
+            pub = PosePublisher(src.session, args.publish)
+        else:
+            node = Ros2Node(src.session, "swarmsplat_" + ros_token(args.name), namespace=args.namespace,
+                            domain=domain, form=args.ros_keys)
+            for role, topic in src.topics.items():  # announced, so a ROS 2 graph shows what the agent reads
+                node.subscription_token(topic, "sensor_msgs/msg/CameraInfo" if role == "info"
+                                        else "sensor_msgs/msg/Image")
+            pub = AgentTopics(node, args.name, topics={"pose": args.publish} if args.publish else None)
+        yield src, pub
     finally:
+        if pub is not None:
+            pub.close()
+        if node is not None:
+            node.close()
         src.close()
 
 

@@ -6,8 +6,8 @@ ROS 2 reaches Zenoh two ways, and both are read: the Zenoh-ROS 2 bridge (`zenoh-
 a ROS 2 bag, and are decoded with `rosbags`. `ZenohRos2Source` subscribes to `PREFIX/**` once and routes a sample
 to the colour, depth or camera-info role whose topic its key holds; a reader thread decodes and pairs colour and
 depth by header stamp (within `max_diff`), so Zenoh's own thread only queues bytes and no sample is dropped while
-the pipeline is busy (up to `max_queue` frames, then the oldest go and are counted). `PosePublisher` puts
-`geometry_msgs/PoseStamped` (and a `nav_msgs/Path` of the keyframes after each pose-graph optimisation) as CDR.
+the pipeline is busy (up to `max_queue` frames, then the oldest go and are counted). What the agent publishes goes
+out through slam.io.ros2 (rmw_zenoh's keys by default); `PosePublisher` is its plain-key form on one given key.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ import numpy as np
 
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.se3 import matrix_to_quat_wxyz
 
 from .bags.decode import camera_from_info, decode_color, decode_depth, stamp_of
 from .datasets.base import Frame
+from .ros2 import AgentTopics, Ros2Node, parse_topic_key, type_hash
 
 DEFAULT_TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/depth/image_raw",
                   "info": "/camera/color/camera_info"}
@@ -70,6 +70,23 @@ def _msgtype(role: str, topic: str, key: str) -> str:
     return _TYPES["CameraInfo"] if role == "info" else _TYPES["Image"]
 
 
+def refuse_type(role: str, topic: str, key: str) -> str | None:
+    """Why a sample on an rmw_zenoh key cannot be read for `role` (its type is not one read there, or its type hash
+    is not the one of the shipped definitions), in one line naming the topic and what was expected; None if it can
+    (and for a bridge key, which carries no type)."""
+    parsed = parse_topic_key(key)
+    if parsed is None:
+        return None
+    _, _, msgtype, got = parsed
+    allowed = [_TYPES["CameraInfo"]] if role == "info" else [_TYPES["Image"], _TYPES["CompressedImage"]]
+    if msgtype not in allowed:
+        return f"{topic}: samples of {msgtype}; expected {' or '.join(allowed)}; ignored"
+    want = type_hash(msgtype)
+    if got not in (want, "TypeHashNotSupported"):  # rmw_zenoh on Humble has no type hashes
+        return f"{topic}: type hash {got} of {msgtype}; expected {want} (ROS 2 Jazzy's definition); ignored"
+    return None
+
+
 @dataclass
 class SourceStats:
     samples: dict = field(default_factory=lambda: collections.Counter())  # per role
@@ -101,6 +118,7 @@ class ZenohRos2Source:
         self._store = None
         self._stop = threading.Event()
         self._last_sample = time.monotonic()
+        self._warned: set[str] = set()
         self._own_session = session is None
         if session is None:
             zenoh, conf = zenoh_config(connect=list(connect), listen=list(listen))
@@ -135,14 +153,21 @@ class ZenohRos2Source:
             self.stats.samples[role] += 1
             topic = self.topics[role]
             mtype = _msgtype(role, topic, key)
+            refused = refuse_type(role, topic, key)
+            if refused:
+                self.stats.undecodable += 1
+                self._warn_once(key, refused)
+                continue
             try:
                 msg = self._store.deserialize_cdr(data, mtype)
             except Exception:  # noqa: BLE001 - a sample of another type on a matching key, or garbage
                 self.stats.undecodable += 1
+                self._warn_once(key, f"{topic} (Zenoh key {key}): a sample that does not decode as {mtype}; "
+                                     "ignored")
                 continue
             if role == "info":
                 if self.camera is None:
-                    self.camera = camera_from_info(msg, f"zenoh {key}")[0]
+                    self.camera = camera_from_info(msg, f"{topic} (Zenoh key {key})")[0]
                     with self._ready:
                         self._ready.notify_all()
                 continue
@@ -209,14 +234,31 @@ class ZenohRos2Source:
     def _frame(self, index: int, c, d) -> Frame | None:
         (t, cmsg, ctype, ckey, _), (_, dmsg, dtype, dkey, _) = c, d
         try:
-            color = decode_color(cmsg, ctype, f"zenoh {ckey}")
-            depth = decode_depth(dmsg, dtype, f"zenoh {dkey}")
+            color = decode_color(cmsg, ctype, f"{self.topics['color']} (Zenoh key {ckey})")
+            depth = decode_depth(dmsg, dtype, f"{self.topics['depth']} (Zenoh key {dkey})")
+            self._check_size(color, depth)
         except InputError as e:
             self.stats.undecodable += 1
             warnings.warn(str(e), stacklevel=3)
             return None
         self.stats.frames += 1
         return Frame(index=index, timestamp=t, color=color, depth=depth)
+
+    def _check_size(self, color: np.ndarray, depth: np.ndarray) -> None:
+        h, w = color.shape[:2]
+        if depth.shape[:2] != (h, w):
+            raise InputError(f"{self.topics['depth']}: depth of {depth.shape[1]}x{depth.shape[0]} beside colour of "
+                             f"{w}x{h} on {self.topics['color']}; expected depth registered to the colour camera "
+                             "(same size); frame skipped")
+        cam = self.camera
+        if cam is not None and (cam.width, cam.height) != (w, h):
+            raise InputError(f"{self.topics['info']}: camera_info of {cam.width}x{cam.height} but images of {w}x{h} "
+                             f"on {self.topics['color']}; expected the same size; frame skipped")
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            warnings.warn(text, stacklevel=2)
 
     def _topics_text(self) -> str:
         return ", ".join(f"{r} {t}" for r, t in self.topics.items())
@@ -231,35 +273,13 @@ class ZenohRos2Source:
             self.session.close()
 
 
-class PosePublisher:
-    """Puts a frame's pose as geometry_msgs/PoseStamped on `key`, and the keyframe trajectory as nav_msgs/Path on
-    `key/path`, CDR-encoded (what a ROS 2 node behind the bridge or rmw_zenoh receives)."""
+class PosePublisher(AgentTopics):
+    """The bridge form with one key given (zenoh-bridge-ros2dds' convention, plain keys, no liveliness): poses on
+    `key`, the keyframe path on `key/path`, clouds on `key/submap` and `key/map`, loops on `key/loops`, TF on
+    `tf`. The default publications are rmw_zenoh's (slam.io.ros2.AgentTopics on an rmw-form node)."""
 
     def __init__(self, session, key: str, frame_id: str = "map"):
-        from rosbags.typesys import Stores, get_typestore
-
-        self.session, self.key, self.frame_id = session, key.strip("/"), frame_id
-        self.store = get_typestore(Stores.ROS2_HUMBLE)
-        self.published = 0
-
-    def _pose_stamped(self, t: float, T: np.ndarray):
-        ty = self.store.types
-        sec = int(np.floor(t))
-        stamp = ty["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
-        q = matrix_to_quat_wxyz(T[:3, :3])
-        pose = ty["geometry_msgs/msg/Pose"](
-            position=ty["geometry_msgs/msg/Point"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-            orientation=ty["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
-        header = ty["std_msgs/msg/Header"](stamp=stamp, frame_id=self.frame_id)
-        return ty["geometry_msgs/msg/PoseStamped"](header=header, pose=pose)
-
-    def pose(self, t: float, T_world_cam: np.ndarray) -> None:
-        msg = self._pose_stamped(t, T_world_cam)
-        self.session.put(self.key, bytes(self.store.serialize_cdr(msg, msg.__msgtype__)))
-        self.published += 1
-
-    def path(self, stamps: np.ndarray, T_world_cam: np.ndarray) -> None:
-        poses = [self._pose_stamped(float(t), T) for t, T in zip(stamps, T_world_cam)]
-        header = poses[-1].header if poses else self._pose_stamped(0.0, np.eye(4)).header
-        msg = self.store.types["nav_msgs/msg/Path"](header=header, poses=poses)
-        self.session.put(self.key + "/path", bytes(self.store.serialize_cdr(msg, msg.__msgtype__)))
+        key = key.strip("/")
+        self.key = key
+        super().__init__(Ros2Node(session, "swarmsplat", form="bridge"), "live", frame=frame_id,
+                         topics={"pose": key, **{r: f"{key}/{r}" for r in ("path", "submap", "map", "loops")}})

@@ -5,7 +5,8 @@ The run ends at `max_frames`, after `idle_timeout` seconds without a sample, or 
 end of a live run: status "complete", reason "stopped"); a second interrupt ends it at once. As it goes it appends
 progress/poses.tum (the pose journal, fsync'd at each keyframe: a hard kill keeps every pose up to the last
 keyframe). At the end it writes trajectory.txt / trajectory_no_lc.txt / keyframes.txt (TUM), map.ply, loops.csv,
-config.yaml and metrics.json with the pose latency (arrival of the frame's later message -> pose published: p50 /
+config.yaml and metrics.json with the publishing time per frame (publish_ms: what the caller's thread spends on
+ROS 2 output), the pose latency (arrival of the frame's later message -> pose published: p50 /
 p95 / max; it includes the time a frame waits while the agent works on earlier ones), the overhead (decoding and
 publishing: the latency less the queue wait and the agent's step) and what the source saw (samples per topic,
 frames, unpaired, dropped). There is no ground truth live: `swarmsplat eval` scores trajectory.txt later.
@@ -26,6 +27,7 @@ from swarmsplat.slam.dense.agent import Agent
 from .checkpoint import PoseJournal
 from .guard import guarded, keep
 from .partial_results import agent_counts, write_partial_agent
+from .ros2.feed import AgentFeed
 from .runtime import kernels_record
 
 
@@ -66,9 +68,11 @@ class _Stop:
 @guarded("agent")
 def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, publisher=None,
              max_frames: int = 0, idle_timeout: float = 0.0, camera_timeout: float = 30.0,
-             silent_warning: float = 5.0, progress: bool = True) -> dict:
-    """Track and map the frames of a live `source` (slam.io.live.ZenohRos2Source) until it ends; publish each pose
-    with `publisher` (slam.io.live.PosePublisher) if given. Returns the metrics written to out_dir/metrics.json."""
+             silent_warning: float = 5.0, map_period: float = 10.0, progress: bool = True) -> dict:
+    """Track and map the frames of a live `source` (slam.io.live.ZenohRos2Source) until it ends; publish its pose,
+    TF, path, submaps, map (every `map_period` s; 0: at the end only) and loops on `publisher` (slam.io.ros2.
+    AgentTopics, or slam.io.live.PosePublisher for plain keys) if given. Returns the metrics written to
+    out_dir/metrics.json."""
     from swarmsplat.slam.dense.ply import save_ply
     from swarmsplat.slam.io.jsonio import write_json
     from swarmsplat.slam.io.progress import bar
@@ -90,7 +94,8 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     t0 = time.perf_counter()
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason,
                                                     n_frames=len(agent.poses), wall_s=time.perf_counter() - t0))
-    optimisations = 0
+    feed = AgentFeed(publisher, map_period_s=map_period) if publisher is not None else None
+    t_last = 0.0
     reason = "source ended"
     with _Stop() as stop, journal, bar(max_frames or None, f"[{source.name}] live frames", unit="frame",
                               enabled=progress) as b:
@@ -100,15 +105,13 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
             rec = agent.step(frame.index, frame.timestamp, frame.color, frame.depth)
             step = time.monotonic() - t_step
             journal.follow(agent)
-            if rec is not None and publisher is not None:
-                T = agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam
-                publisher.pose(frame.timestamp, T)
-                done = time.monotonic()
-                latency.append(done - arrival)
-                overhead.append(done - taken - step)  # decoding and publishing: what the agent adds to the tracker
-                if agent.loops.optimisations != optimisations and agent.keyframes:
-                    optimisations = agent.loops.optimisations
-                    publisher.path(np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
+            if feed is not None:
+                feed.step(agent, frame.timestamp, rec)
+                if rec is not None:
+                    done = time.monotonic()
+                    latency.append(done - arrival)
+                    overhead.append(done - taken - step)  # decoding and publishing: what the agent adds to tracking
+            t_last = frame.timestamp
             b.update(1, f"{len(agent.gmap)} Gaussians")
         if stop.requested:
             reason = "stopped"
@@ -116,6 +119,8 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
             reason = "max_frames"
         elif idle_timeout:
             reason = f"no sample for {idle_timeout:g} s"
+    if feed is not None:
+        feed.finish(agent, t_last)  # the last path, submaps, loops and the whole map
     wall = time.perf_counter() - t0
     stamps, T_est = agent.trajectory()
     if len(stamps):
@@ -135,6 +140,8 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         "pose_graph_optimisations": agent.loops.optimisations,
         "pose_latency_ms": latency_ms(latency), "pose_overhead_ms": latency_ms(overhead),
         "poses_published": getattr(publisher, "published", 0),
+        "publish_ms": latency_ms(feed.publish_s) if feed is not None else latency_ms([]),
+        "ros2": publisher.stats() if hasattr(publisher, "stats") else None,
         "live": {"samples": dict(st.samples), "frames": st.frames, "unpaired": st.unpaired, "dropped": st.dropped,
                  "undecodable": st.undecodable},
         "fps": len(agent.poses) / wall if wall > 0 else float("nan"),

@@ -19,17 +19,16 @@ consecutive keyframes of one agent are loops).
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.se3 import matrix_to_quat_wxyz
+
+from ..ros2 import messages as M
 
 TARGETS = {"mcap": "mcap", "rosbag2": "db3", "rosbag1": "ros1"}
-_COLORS = {"intra": (0.1, 0.8, 0.2), "inter": (1.0, 0.55, 0.0)}
 
 
 def _run_parts(run: Path) -> tuple[dict, dict, list[tuple[np.ndarray, np.ndarray, str]]]:
@@ -120,22 +119,12 @@ def export_run(run: str | Path, out: str | Path, to: str = "mcap", *, frame_id: 
 
         writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP if to == "mcap" else StoragePlugin.SQLITE3)
 
-    def stamp(t: float):
-        sec = int(np.floor(t))
-        return ty["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
-
     def header(t: float, frame: str = frame_id):
         H = ty["std_msgs/msg/Header"]
-        return H(seq=0, stamp=stamp(t), frame_id=frame) if ros1 else H(stamp=stamp(t), frame_id=frame)
-
-    def pose(T):
-        q = matrix_to_quat_wxyz(T[:3, :3])
-        return ty["geometry_msgs/msg/Pose"](
-            position=ty["geometry_msgs/msg/Point"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-            orientation=ty["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
+        return H(seq=0, stamp=M.stamp(ty, t), frame_id=frame) if ros1 else M.header(ty, t, frame)
 
     def stamped(t, T):
-        return ty["geometry_msgs/msg/PoseStamped"](header=header(t), pose=pose(T))
+        return ty["geometry_msgs/msg/PoseStamped"](header=header(t), pose=M.pose(ty, T))
 
     def path_msg(t_end, stamps, Ts):
         return ty["nav_msgs/msg/Path"](header=header(t_end), poses=[stamped(float(s), T) for s, T in zip(stamps, Ts)])
@@ -160,7 +149,7 @@ def export_run(run: str | Path, out: str | Path, to: str = "mcap", *, frame_id: 
                     transform=ty["geometry_msgs/msg/Transform"](
                         translation=ty["geometry_msgs/msg/Vector3"](x=float(Ti[0, 3]), y=float(Ti[1, 3]),
                                                                      z=float(Ti[2, 3])),
-                        rotation=pose(Ti).orientation))
+                        rotation=M.quaternion(ty, Ti[:3, :3])))
                 put("/tf", ty["tf2_msgs/msg/TFMessage"](transforms=[tf]), float(s))
             if len(t):
                 put(f"/{name}/path", path_msg(float(t[-1]), t, T), float(t[-1]))
@@ -168,40 +157,6 @@ def export_run(run: str | Path, out: str | Path, to: str = "mcap", *, frame_id: 
             if len(Tk):
                 put(f"/{name}/keyframes", path_msg(t_last, ks, Tk), t_last)
         if loops:
-            put("/loops", _markers(ty, header(t_last), loops), t_last)
+            put("/loops", M.loop_markers(ty, header(t_last), loops), t_last)
     return counts
 
-
-def _markers(ty, hdr, loops):
-    """A MarkerArray with one LINE_LIST per loop kind. Marker's fields differ between ROS 1 and ROS 2 releases, so
-    the marker gets the fields its type has."""
-    Point, Color = ty["geometry_msgs/msg/Point"], ty["std_msgs/msg/ColorRGBA"]
-    Marker = ty["visualization_msgs/msg/Marker"]
-    have = {f.name for f in dataclasses.fields(Marker)  # fields with a default are the type's constants
-            if f.default is dataclasses.MISSING and f.name != "__msgtype__"}
-    empty = np.zeros(0, np.uint8)
-    markers = []
-    for k, kind in enumerate(("intra", "inter")):
-        pts = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for a, b, kd in loops if kd == kind for p in (a, b)]
-        if not pts:
-            continue
-        r, g, b = _COLORS[kind]
-        values = {
-            "header": hdr, "ns": f"loops_{kind}", "id": k, "type": 5, "action": 0,  # LINE_LIST, ADD
-            "pose": ty["geometry_msgs/msg/Pose"](position=Point(x=0.0, y=0.0, z=0.0),
-                                                 orientation=ty["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,
-                                                                                                w=1.0)),
-            "scale": ty["geometry_msgs/msg/Vector3"](x=0.01, y=0.0, z=0.0), "color": Color(r=r, g=g, b=b, a=1.0),
-            "lifetime": ty["builtin_interfaces/msg/Duration"](sec=0, nanosec=0), "frame_locked": False,
-            "points": pts, "colors": [], "text": "", "mesh_resource": "", "mesh_use_embedded_materials": False,
-            "texture_resource": "", "uv_coordinates": [],
-        }
-        if "texture" in have:
-            values["texture"] = ty["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=empty)
-        if "mesh_file" in have:
-            values["mesh_file"] = ty["visualization_msgs/msg/MeshFile"](filename="", data=empty)
-        missing = have - set(values)
-        if missing:
-            raise InputError(f"visualization_msgs/Marker has fields this export does not fill: {sorted(missing)}")
-        markers.append(Marker(**{f: values[f] for f in have}))
-    return ty["visualization_msgs/msg/MarkerArray"](markers=markers)

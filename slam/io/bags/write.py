@@ -11,27 +11,15 @@ from pathlib import Path
 import numpy as np
 
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.se3 import matrix_to_quat_wxyz
+
+from ..ros2 import messages as M
 
 FORMATS = ("mcap", "db3", "ros1")
 
 
-def _stamp(types, t: float):
-    sec = int(np.floor(t))
-    return types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
-
-
 def _header(types, ros1: bool, t: float, frame: str, seq: int):
     H = types["std_msgs/msg/Header"]
-    return H(seq=seq, stamp=_stamp(types, t), frame_id=frame) if ros1 else H(stamp=_stamp(types, t), frame_id=frame)
-
-
-def _pose(types, T: np.ndarray):
-    q = matrix_to_quat_wxyz(T[:3, :3])
-    P, Q = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
-    Pose = types["geometry_msgs/msg/Pose"]
-    return Pose(position=P(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                orientation=Q(x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])))
+    return H(seq=seq, stamp=M.stamp(types, t), frame_id=frame) if ros1 else M.header(types, t, frame)
 
 
 def write_bag(sequence, path: str | Path, fmt: str = "mcap", *, namespace: str = "/camera",
@@ -124,10 +112,10 @@ def _write_one(writer, store, ser, ros1: bool, sequence, namespace: str, pose_ns
                        binning_x=0, binning_y=0, roi=roi, **fields)
             writer.write(c_info, rec + 2000, ser(msg, msg.__msgtype__))
         if c_gt is not None and f.T_world_cam_gt is not None:
-            msg = types["geometry_msgs/msg/PoseStamped"](header=hdr, pose=_pose(types, f.T_world_cam_gt))
+            msg = types["geometry_msgs/msg/PoseStamped"](header=hdr, pose=M.pose(types, f.T_world_cam_gt))
             writer.write(c_gt, rec + 3000, ser(msg, msg.__msgtype__))
         if c_odom is not None and f.T_world_cam_odom is not None:
-            PwC = types["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(types, f.T_world_cam_odom),
+            PwC = types["geometry_msgs/msg/PoseWithCovariance"](pose=M.pose(types, f.T_world_cam_odom),
                                                                  covariance=np.zeros(36))
             TwC = types["geometry_msgs/msg/TwistWithCovariance"](
                 twist=types["geometry_msgs/msg/Twist"](linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),

@@ -1,6 +1,7 @@
 """A team agent on live ROS 2 topics (`swarmsplat agent zenoh/[PREFIX] --server ENDPOINT --id K`): the robot's
 camera frames arrive over Zenoh (slam.io.live.ZenohRos2Source), the agent tracks and maps each as it comes,
-publishes its pose back (geometry_msgs/PoseStamped, as a lone live agent does) and sends the server its keyframes,
+publishes what a lone live agent does (pose, TF, path, map, loops: slam.run.ros2.feed), its path again whenever the
+server's corrections move its map, and sends the server its keyframes,
 submaps and poses as a recorded team member does (slam.run.team_link.agent_node). It joins without a frame count,
 so the server never waits for it (slam.run.team_link.server_node); the stream ends on --frames, on
 --idle-timeout seconds without a sample, or on Ctrl-C, and the agent then waits for the server to acknowledge
@@ -18,12 +19,16 @@ from swarmsplat.slam.config import SlamConfig
 def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *, name: str | None = None,
                         connect: list[str] | None = None, listen: list[str] | None = None, run: str = "team",
                         publisher=None, max_frames: int = 0, idle_timeout: float = 0.0, camera_timeout: float = 30.0,
-                        silent_warning: float = 5.0, progress: bool = True, out=None) -> dict:
-    """Agent `index` of a team on the live `source`, sending to the server at `connect`; each tracked pose goes to
-    `publisher` (slam.io.live.PosePublisher) in the agent's world frame as the server last corrected it. Returns
+                        silent_warning: float = 5.0, map_period: float = 10.0, progress: bool = True,
+                        out=None) -> dict:
+    """Agent `index` of a team on the live `source`, sending to the server at `connect`; what it publishes (pose, TF,
+    path, submaps, map every `map_period` s, loops) goes to `publisher` (slam.io.ros2.AgentTopics) in the agent's
+    world frame as the server last corrected it, the path again after each correction. Returns
     the agent's link figures, plus `frames_tracked`, `reason` (why the stream ended) and `poses_published`."""
     from swarmsplat.slam.run.live import _Stop
     from swarmsplat.slam.run.runtime import check_device, use_kernels
+    from swarmsplat.slam.run.ros2.feed import AgentFeed
+
     from . import messages as L
     from .agent_node import AgentNode
     from .processes import _transport, agent_journal, check_member, finish_agent
@@ -40,16 +45,17 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
         node = AgentNode(camera, cfg, name, tx)
         node.journal = agent_journal(out)
         node.join(0, cfg.link.connect_timeout_s, say=say)  # 0 rounds: a live stream's length is not known
-        i, reason, last = 0, "source ended", time.monotonic()
+        feed = AgentFeed(publisher, map_period_s=map_period) if publisher is not None else None
+        i, reason, last, t_last = 0, "source ended", time.monotonic(), 0.0
         with _Stop() as stop:
             for frame, _arrival, _taken in source.frames(max_frames=max_frames, idle_timeout=idle_timeout,
                                                          silent_warning=silent_warning,
                                                          stop=lambda: stop.requested):
                 rec = node.step_frame(frame, i)
                 i += 1
-                if rec is not None and publisher is not None:
-                    publisher.pose(frame.timestamp, node.agent.gmap.submaps[rec.submap_id].T_world_local
-                                   @ rec.T_local_cam)
+                t_last = frame.timestamp
+                if feed is not None:  # the server's corrections move the map: the path follows
+                    feed.step(node.agent, frame.timestamp, rec, moved=node.corrections)
                 if progress and time.monotonic() - last > 10:
                     last = time.monotonic()
                     say(f"[{name}] frame {i}  keyframes {len(node.agent.keyframes)}  queued "
@@ -61,6 +67,8 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
             elif idle_timeout:
                 reason = f"no sample for {idle_timeout:g} s"
         figures = finish_agent(node, i, tx, name, out, say)
+        if feed is not None:  # after the server's last corrections
+            feed.finish(node.agent, t_last)
     finally:
         tx.close()
     return {**figures, "frames_tracked": len(node.agent.poses), "reason": reason,

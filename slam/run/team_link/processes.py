@@ -59,11 +59,14 @@ def _check_endpoints(flag: str, endpoints: list[str]) -> None:
 
 def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *, dataset=None,
                listen: list[str] | None = None, connect: list[str] | None = None, run: str = "team",
-               progress: bool = True, timeout: float | None = None) -> dict:
+               progress: bool = True, timeout: float | None = None, ros_keys: str = "rmw",
+               domain: int | None = None, map_period: float = 10.0) -> dict:
     """Serve `agents` team agents until each has finished or is lost; write the team's outputs to `out`.
     dataset: the agents' MultiAgentDataset (or a path), agent k its k-th sequence, for the evaluation
     (ATE, renders); without it only the estimates, map, loops and link figures are written. A server started on
-    a folder holding `link/journal.bin` continues from it (slam.run.team_link.server_node)."""
+    a folder holding `link/journal.bin` continues from it (slam.run.team_link.server_node). While it serves, the
+    agents' corrected trajectories, the loops and the merged map (every `map_period` s) go to ROS 2 on the link's
+    Zenoh session (slam.run.ros2.team_feed; `ros_keys` "rmw", "bridge" or "off", ROS domain `domain`)."""
     from swarmsplat.slam.dense.team.mirror import AgentMirror
     from swarmsplat.slam.run.runtime import use_kernels
     from swarmsplat.slam.run.team import Team, finish_team
@@ -89,6 +92,7 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
     tx = _transport(L.SERVER, list(range(agents + 1)), listen=listen, connect=connect, run=run)
     cpu0, t0 = time.process_time(), time.perf_counter()
+    ros: list = []
     try:
         node = ServerNode(team, tx, journal=out / "link" / "journal.bin")
         from .registry import Registry, serve_registry  # agents without --id ask for their index by name
@@ -96,9 +100,12 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
         registry = Registry(agents, fixed=names if ds is not None else None,
                             taken={p.name: a for a, p in enumerate(node.peers) if p.joined})
         queryable = serve_registry(tx.session, run, registry)
+        ros = _team_topics(node, tx.session, ros_keys, domain, map_period)
         if progress:
             print(f"[server] waiting for {agents} agents on {', '.join(listen + connect)}", file=sys.stderr)
         node.run(progress=progress, timeout=timeout)
+        if node.feed is not None:
+            node.feed.finish(node)
         if not any(p.joined for p in node.peers):
             raise SwarmsplatError(f"no agent joined within {cfg.link.agent_timeout_s:.0f} s (link.agent_timeout_s) "
                                   f"on {', '.join(listen + connect)}")
@@ -111,12 +118,31 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
         else:
             metrics = _write_estimates(team, out, wall, cpu0, run_info)
         metrics["link"] = node.link_metrics()
+        if ros:
+            metrics["ros2"] = ros[0].stats()  # messages sent per topic
         _add_link(out, metrics)
         node.finished()
         queryable.undeclare()
     finally:
+        for part in ros:
+            part.close()
         tx.close()
     return metrics
+
+
+def _team_topics(node, session, ros_keys: str, domain: int | None, map_period: float) -> list:
+    """Hang a TeamFeed on the server node (nothing for ros_keys "off"); returns what to close at the end."""
+    if ros_keys == "off":
+        return []
+    from swarmsplat.slam.io.ros2 import Ros2Node, TeamTopics
+    from swarmsplat.slam.run.ros2.team_feed import TeamFeed
+
+    if map_period < 0:
+        raise InputError(f"--map-period must be >= 0, got {map_period}")
+    ros_node = Ros2Node(session, "swarmsplat_team", domain=domain, form=ros_keys)
+    topics = TeamTopics(ros_node)
+    node.feed = TeamFeed(topics, map_period_s=map_period)
+    return [topics, ros_node]
 
 
 serve_command = guarded("server")(serve_team)  # `swarmsplat server`: interrupts and failures reported as a run's

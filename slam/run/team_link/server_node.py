@@ -101,6 +101,7 @@ class ServerNode:
         self.digest = config_digest(self.cfg)
         self.say = say or (lambda *a: print(*a, file=sys.stderr, flush=True))
         self._stamp = 0  # optimisations whose corrections were sent
+        self.feed = None  # what the team's state is published to (slam.run.ros2.team_feed), if anything
         self.replayed = 0
         self._journal = None
         if journal is not None:
@@ -288,6 +289,8 @@ class ServerNode:
         last = time.monotonic()
         while not self.all_ended():
             busy = self.step()
+            if self.feed is not None:
+                self.feed.step(self)
             now = time.monotonic()
             if progress and now - last > 10:
                 last = now

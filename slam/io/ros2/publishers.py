@@ -1,0 +1,217 @@
+"""What swarmsplat publishes to ROS 2, topic by topic, with the quality of service a ROS 2 driver would choose.
+
+An agent NAME (AgentTopics):
+  /swarmsplat/NAME/pose     geometry_msgs/PoseStamped       every tracked frame       reliable, volatile, depth 10
+  /tf                       tf2_msgs/TFMessage              every tracked frame       reliable, volatile, depth 100
+                            (map -> NAME/camera)
+  /swarmsplat/NAME/path     nav_msgs/Path                   keyframes, after each     reliable, volatile, depth 1
+                                                            new keyframe / optimisation
+  /swarmsplat/NAME/submap   sensor_msgs/PointCloud2         each finished submap      reliable, volatile, depth 10
+  /swarmsplat/NAME/map      sensor_msgs/PointCloud2         the whole map, slowly     reliable, volatile, depth 1
+  /swarmsplat/NAME/loops    visualization_msgs/MarkerArray  accepted loops            reliable, volatile, depth 1
+The team server (TeamTopics): /swarmsplat/team/<agent>/path per agent, /swarmsplat/team/map,
+/swarmsplat/team/loops, the same types and QoS.
+
+Poses and TF go out on the caller's thread (a few hundred microseconds); paths, clouds and markers are built and
+sent by a worker thread from a queue that keeps the newest of each (every finished submap, up to 32 waiting), so a
+map message never holds up tracking. A slow subscriber never blocks either: Zenoh drops rather than waits.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import re
+import threading
+
+import numpy as np
+
+from . import messages as M
+from .keys import Qos
+from .types import store
+
+POSE_QOS, TF_QOS, LATEST_QOS, SUBMAP_QOS = Qos(depth=10), Qos(depth=100), Qos(depth=1), Qos(depth=10)
+TYPES = {"pose": "geometry_msgs/msg/PoseStamped", "tf": "tf2_msgs/msg/TFMessage", "path": "nav_msgs/msg/Path",
+         "submap": "sensor_msgs/msg/PointCloud2", "map": "sensor_msgs/msg/PointCloud2",
+         "loops": "visualization_msgs/msg/MarkerArray"}
+QOS = {"pose": POSE_QOS, "tf": TF_QOS, "path": LATEST_QOS, "submap": SUBMAP_QOS, "map": LATEST_QOS,
+       "loops": LATEST_QOS}
+
+
+def ros_token(name: str) -> str:
+    """`name` as one ROS name token (characters other than letters, digits and _ become _)."""
+    t = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return t if t and not t[0].isdigit() else "_" + t
+
+
+def decimate(xyz: np.ndarray, rgb: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every k-th point, k the smallest stride that leaves at most `max_points` (deterministic)."""
+    k = max(1, -(-len(xyz) // max(1, max_points)))
+    return xyz[::k], rgb[::k]
+
+
+class Topics:
+    """Publishers of one node, and the worker that sends what may wait. `stats()`: messages sent per topic, queued
+    ones superseded by a newer one before they went, failures."""
+
+    def __init__(self, node, topics: dict[str, str], *, frame: str = "map", max_waiting: int = 32):
+        self.node, self.frame, self.ty = node, frame, store().types
+        self.topics = dict(topics)
+        self._pubs: dict[str, object] = {}
+        self.sent: collections.Counter = collections.Counter()
+        self.superseded: collections.Counter = collections.Counter()
+        self.failed = 0
+        self._latest: dict[str, tuple] = {}  # role -> (topic kind, build)
+        self._fifo: collections.deque = collections.deque(maxlen=max_waiting)
+        self._cv = threading.Condition()
+        self._busy = False
+        self._held = False
+        self._stop = False
+        self._worker = threading.Thread(target=self._work, name="ros2-publish", daemon=True)
+        self._worker.start()
+
+    def publisher(self, role: str, kind: str | None = None):
+        """The publisher of topic `role` (its type and QoS from `kind`, default the role up to a colon)."""
+        if role not in self._pubs:
+            kind = kind or role.split(":")[0]
+            self._pubs[role] = self.node.publisher(self.topics[role], TYPES[kind], QOS[kind])
+        return self._pubs[role]
+
+    def now(self, role: str, msg, kind: str | None = None) -> None:
+        self.publisher(role, kind).put(msg)
+        self.sent[role] += 1
+
+    def later(self, role: str, build, *, kind: str | None = None, keep_all: bool = False) -> None:
+        """Queue `build()` -> message for topic `role`; only the newest waiting one goes unless `keep_all`."""
+        self.publisher(role, kind)  # announced now, so subscribers can match before the first message
+        with self._cv:
+            if keep_all:
+                if len(self._fifo) == self._fifo.maxlen:
+                    self.superseded[self._fifo[0][0]] += 1
+                self._fifo.append((role, build))
+            else:
+                if role in self._latest:
+                    self.superseded[role] += 1
+                self._latest[role] = build
+            if not self._held:
+                self._cv.notify()
+
+    @contextlib.contextmanager
+    def held(self):
+        """Queue without waking the worker until the block ends: the worker takes the interpreter (GIL) from
+        the caller only once the caller's publishing is done."""
+        self._held = True
+        try:
+            yield self
+        finally:
+            with self._cv:
+                self._held = False
+                self._cv.notify()
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: (self._fifo or self._latest) and not self._held or self._stop)
+                if self._fifo:
+                    role, build = self._fifo.popleft()
+                elif self._latest:
+                    role = next(iter(self._latest))
+                    build = self._latest.pop(role)
+                else:
+                    return
+                self._busy = True
+            try:
+                msg = build()
+                if msg is not None:
+                    self._pubs[role].put(msg)
+                    self.sent[role] += 1
+            except Exception:  # noqa: BLE001 - a message that cannot be built must not end the publishing
+                self.failed += 1
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()
+
+    def path(self, stamps: np.ndarray, T_world_cam: np.ndarray, role: str = "path") -> None:
+        """A trajectory as nav_msgs/Path on `role` (queued; copies are taken now)."""
+        stamps, T = np.array(stamps, float), np.array(T_world_cam, float)
+        self.later(role, lambda: M.path(self.ty, stamps, T, self.frame), kind="path")
+
+    def cloud(self, role: str, t: float, arrays) -> None:
+        """A point cloud on `role` ("submap": every one is sent; others: the newest); `arrays()` -> (xyz [N, 3],
+        rgb [N, 3] uint8) is called on the worker thread."""
+        def build():
+            xyz, rgb = arrays()
+            return M.point_cloud(self.ty, t, xyz, rgb, self.frame)
+
+        self.later(role, build, kind="map", keep_all=role == "submap")
+
+    def loops(self, t: float, loops: list) -> None:
+        """Accepted loop edges [(p_i, p_j, "intra" | "inter")] as markers (queued)."""
+        loops = [(np.array(a, float), np.array(b, float), k) for a, b, k in loops]
+        self.later("loops", lambda: M.loop_markers(self.ty, M.header(self.ty, t, self.frame), loops))
+
+    def flush(self, timeout: float = 10.0) -> bool:
+        """Wait until everything queued has gone (True) or `timeout` s passed (False)."""
+        with self._cv:
+            return self._cv.wait_for(lambda: not (self._fifo or self._latest or self._busy), timeout=timeout)
+
+    def stats(self) -> dict:
+        return {"sent": dict(self.sent), "superseded": dict(self.superseded), "failed": self.failed,
+                "topics": {r: t for r, t in self.topics.items() if r in self._pubs}}
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Send what waits (up to `timeout` s), then stop the worker and undeclare the publishers."""
+        self.flush(timeout)
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        self._worker.join(timeout=2.0)
+        for p in self._pubs.values():
+            p.close()
+        self._pubs = {}
+
+
+class AgentTopics(Topics):
+    """An agent's topics (see the module docstring); `base` is the topics' namespace, `topics` overrides any."""
+
+    def __init__(self, node, agent: str, *, base: str = "/swarmsplat", topics: dict[str, str] | None = None,
+                 frame: str = "map"):
+        name = ros_token(agent)
+        default = {r: f"{base.rstrip('/')}/{name}/{r}" for r in ("pose", "path", "submap", "map", "loops")}
+        super().__init__(node, {**default, "tf": "/tf", **(topics or {})}, frame=frame)
+        self.child_frame = f"{name}/camera"
+        for role in self.topics:  # all announced now: the ROS graph shows them before their first message
+            self.publisher(role)
+
+    @property
+    def published(self) -> int:
+        """Poses sent (as PosePublisher counts them)."""
+        return self.sent["pose"]
+
+    def pose(self, t: float, T_world_cam: np.ndarray) -> None:
+        """The frame's pose and its TF map -> <agent>/camera, now."""
+        self.now("pose", M.pose_stamped(self.ty, t, T_world_cam, self.frame))
+        self.now("tf", M.tf(self.ty, t, [(T_world_cam, self.frame, self.child_frame)]))
+
+
+class TeamTopics(Topics):
+    """The team server's topics: every agent's corrected trajectory, the merged map, the loops."""
+
+    def __init__(self, node, *, base: str = "/swarmsplat/team", frame: str = "map"):
+        self.base = base.rstrip("/")
+        super().__init__(node, {"map": f"{self.base}/map", "loops": f"{self.base}/loops"}, frame=frame)
+        for role in ("map", "loops"):
+            self.publisher(role)
+
+    def trajectories(self, paths: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        """{agent: (stamps [N], T_world_cam [N, 4, 4])} in the team's frame, each on <base>/<agent>/path
+        (queued)."""
+        for a, (stamps, T) in paths.items():
+            self.topics.setdefault(f"path:{a}", f"{self.base}/{ros_token(a)}/path")
+            self.path(stamps, T, role=f"path:{a}")
+
+    def map(self, t: float, arrays) -> None:
+        """The merged map (`arrays()` -> (xyz, rgb), called on the worker thread; the newest waiting one goes)."""
+        self.cloud("map", t, arrays)
+
