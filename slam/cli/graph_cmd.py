@@ -55,9 +55,9 @@ def register(sub) -> None:
                         "number of rounds, --max-rounds)")
     s.add_argument("--port-base", type=int, default=17600,
                    help="--processes: robot K listens on TCP port PORT_BASE + K (default 17600)")
-    s.add_argument("--relax", type=float, default=1.0,
-                   help="--distributed: over-relaxation of each robot's step, 1 to 1.9 (default 1: every round "
-                        "lowers the cost)")
+    s.add_argument("--relax", type=float, default=0.0,
+                   help="--distributed: over-relaxation of each robot's step, 1 to 1.9 (1: every round lowers the "
+                        "cost; default 0: each robot adapts it to its observed rate of convergence)")
     s.set_defaults(func=run)
 
 
@@ -81,8 +81,8 @@ def run(args) -> int:
     if args.relative_tol > 1e-5 or args.absolute_tol > 1e-5:
         print("warning: tolerances looser than GTSAM's defaults (1e-5): LM may stop short of the minimum",
               file=sys.stderr)
-    if args.distributed and not (args.max_rounds >= 1 and 1.0 <= args.relax < 2.0):
-        raise InputError("--max-rounds must be >= 1 and --relax in [1, 2)")
+    if args.distributed and not (args.max_rounds >= 1 and (args.relax == 0.0 or 1.0 <= args.relax < 2.0)):
+        raise InputError("--max-rounds must be >= 1 and --relax in [1, 2) or 0 (adaptive)")
     if args.processes and not args.distributed:
         raise InputError("--processes runs the distributed solver: add --distributed")
     if args.processes and args.solver != "lm":
