@@ -91,8 +91,8 @@ def test_preset_then_file_then_overrides(tmp_path):
 
 BAD = {  # file text, the error after "FILE"
     "section": ("bogus: {a: 1}\n", ": field 'bogus': unknown section or key; expected one of image, tracking, "
-                                   "keyframes, mapping, map_refine, submaps, loop_closure, kernels, max_frames, "
-                                   "server, team, swarm, pairs, demo"),
+                                   "keyframes, mapping, map_refine, exposure, submaps, loop_closure, kernels, "
+                                   "max_frames, server, team, swarm, pairs, demo"),
     "key": ("swarm:\n  strides: 2\n", ": field 'swarm.strides': unknown key of section 'swarm'; expected one of "
                                       "strict, place, place_checkpoint, backend, checkpoint, device, r_thr, k, "
                                       "stride, schedule,"),

@@ -135,6 +135,24 @@ class MappingConfig(_Section):
     seed: int = Field(0, description="seed of the keyframe sampling")
 
 
+class ExposureConfig(_Section):
+    """The photometric model of a real camera (slam.dense.mapping.exposure): an affine colour transform per
+    keyframe (gain and offset per channel), fitted at each new keyframe against the map and optimised with it in
+    mapping and in the final map refinement."""
+
+    enabled: bool = Field(False, description="model each keyframe's exposure and white balance; false fits the "
+                          "map's colours to every image as it is")
+    lr: float = Field(5e-3, gt=0, description="Adam step on a keyframe's log gains and offsets")
+    regulariser: float = Field(1.0, ge=0, description="weight of the squared distance of a keyframe's exposure "
+                               "from its value fitted when it was made (per step, beside eq. 3's loss)")
+    min_pixels: int = Field(500, ge=10, description="fit a new keyframe's exposure on at least this many pixels "
+                            "where the map's render and the image agree in depth; fewer keep the previous "
+                            "keyframe's")
+    max_gain: float = Field(2.5, gt=1, description="a keyframe whose fitted gain differs from its predecessor's "
+                            "by more than this factor in a channel (or whose image is black or white) is an "
+                            "outlier: it keeps the previous exposure and its colour is left out of the loss")
+
+
 class MapRefineConfig(_Section):
     """Server-side refinement of each component's merged map after the final pose-graph optimisation
     (slam.dense.mapping.refine_merged): the merged map optimised jointly over all keyframes."""

@@ -18,7 +18,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, Field, model_validator
 
-from .agent import (ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfig, MapRefineConfig, MappingConfig,
+from .agent import (ExposureConfig, ImageConfig, KernelsConfig, KeyframeConfig, LoopClosureConfig, MapRefineConfig, MappingConfig,
                     SubmapConfig, TrackingConfig, _Section)
 from .link import LinkConfig
 from .load import deep_merge, preset_path, read_yaml, validate
@@ -60,6 +60,7 @@ class SlamConfig(_Section):
     keyframes: KeyframeConfig = KeyframeConfig()
     mapping: MappingConfig = MappingConfig()
     map_refine: MapRefineConfig = MapRefineConfig()
+    exposure: ExposureConfig = ExposureConfig()
     submaps: SubmapConfig = SubmapConfig()
     loop_closure: LoopClosureConfig = LoopClosureConfig()
     kernels: KernelsConfig = KernelsConfig()

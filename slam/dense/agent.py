@@ -18,6 +18,7 @@ from swarmsplat.slam.dense.loops.edge_information import OdometryChain, failed_c
 from .frames import RGBD, make_rgbd
 from .gaussian_map import GaussianMap, GaussianParams
 from swarmsplat.slam.dense.loops.loop_closure import LoopCloser
+from swarmsplat.slam.dense.mapping import exposure
 from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper, MappingStats
 from .render import render, viewmat_from_pose
 from .submap_codec import use_storage
@@ -51,7 +52,7 @@ class Agent:
         self.gmap = GaussianMap()
         use_storage(self.gmap, self.cfg.submaps.storage)  # in memory; a driver with a run folder may offload
         self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth)
-        self.mapper = Mapper(self.cfg.mapping)
+        self.mapper = Mapper(self.cfg.mapping, self.cfg.exposure if self.cfg.exposure.enabled else None)
         self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
         self._chain = OdometryChain(self.loops.model)  # tracking covariance since the last keyframe
         self.keyframes: list[Keyframe] = []
@@ -162,10 +163,46 @@ class Agent:
         s = self.gmap.active
         kf = Keyframe(len(self.keyframes), index, timestamp, s.id, T_local_cam.copy(),
                       frame.resized(self.cfg.mapping.max_width), frame.resized(self.cfg.submaps.keep_keyframe_width))
+        if self.cfg.exposure.enabled:
+            self._fit_exposure(kf, first_of_submap=not s.keyframe_ids)
         self.keyframes.append(kf)
         s.keyframe_ids.append(kf.id)
         self._last_kf_pose = T_local_cam.copy()
         return kf
+
+    def _fit_exposure(self, kf: Keyframe, *, first_of_submap: bool) -> None:
+        """Set kf's exposure (slam.dense.mapping.exposure) from the map already there: the render of the active
+        submap at its pose, or for a submap's first keyframe, of the previous submap. The agent's first keyframe
+        holds the gauge (identity); too little agreement keeps the previous keyframe's; an implausible step from
+        it (a black frame, an auto-exposure reset) marks kf an outlier."""
+        cfg = self.cfg.exposure
+        if not self.keyframes:
+            kf.exposure, kf.exposure_prior = exposure.identity(), exposure.identity()
+            return
+        prev = self.keyframes[-1].exposure
+        prev = exposure.identity() if prev is None else prev
+        s = self.gmap.active
+        if first_of_submap:
+            others = [m for m in self.gmap.submaps if m.id != s.id and len(m)]
+            ref = others[-1] if others else None
+            T = se3.inverse(ref.T_world_local) @ s.T_world_local @ kf.T_local_cam if ref is not None else None
+        else:
+            ref, T = s, kf.T_local_cam
+        f = kf.map_rgbd
+        fitted = None
+        if ref is not None and len(ref):
+            with torch.no_grad():
+                out = render(ref.params, viewmat_from_pose(T), f.camera)
+            fitted = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
+                                  f.color.astype(np.float32) / 255.0, f.depth, min_pixels=cfg.min_pixels)
+        mean = float(f.color.mean()) / 255.0
+        if fitted is None:
+            kf.exposure_outlier = not 0.03 < mean < 0.97
+            e = prev.copy()
+        else:
+            kf.exposure_outlier = exposure.is_outlier(fitted.exposure, prev, cfg.max_gain)
+            e = prev.copy() if kf.exposure_outlier else fitted.exposure
+        kf.exposure, kf.exposure_prior = e, e.copy()
 
     def _map(self, kf: Keyframe, *, iterations: int | None = None, stop=None) -> MappingStats:
         """Map keyframe `kf` into its submap: mapping.first_iterations for a submap's first keyframe, else
@@ -174,7 +211,9 @@ class Agent:
         kfs = [self.keyframes[i] for i in s.keyframe_ids]
         if iterations is None:
             iterations = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
-        return self.mapper.map(self.gmap, s, [MapKeyframe(k.T_local_cam, k.map_rgbd) for k in kfs], iterations,
+        mks = [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior, exposure_fixed=i == 0 or k.exposure_outlier,
+                           exposure_outlier=k.exposure_outlier) for i, k in enumerate(kfs)]
+        return self.mapper.map(self.gmap, s, mks, iterations,
                                stop=stop)
 
     def _detect_loops(self, kf: Keyframe, information: np.ndarray | None = None) -> None:

@@ -31,6 +31,12 @@ class Keyframe:
     small: RGBD | PackedRGBD  # kept for loop-closure registration (SubmapConfig.keep_keyframe_width)
     descriptor: np.ndarray | None = None  # [D] unit vector
     T_local_refined: np.ndarray | None = None  # [4, 4] after the map refinement's pose refinement
+    # The keyframe's exposure and white balance (slam.dense.mapping.exposure: [6] log gains, offsets; None when the
+    # model is off), the value fitted when the keyframe was made (the regulariser's anchor), and whether its image
+    # was an outlier (its colour left out of the loss).
+    exposure: np.ndarray | None = None
+    exposure_prior: np.ndarray | None = None
+    exposure_outlier: bool = False
 
     @property
     def T_local(self) -> np.ndarray:

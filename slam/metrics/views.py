@@ -7,6 +7,9 @@ as it was read, no downsampling). Shared by `swarmsplat run` (slam.run.sequence)
   psnr_input_resolution, ssim_input_resolution, ...           at `input_resolution` [w, h]
 
 When the two resolutions are equal the map is rendered once and the *_input_resolution figures are copies.
+Each keyframe is rendered as its camera saw the map: with its exposure and white balance (slam.dense.mapping.exposure,
+when the model is on; psnr_raw then scores the map's colours as they are); a held-out frame with the exposure
+interpolated from the keyframes around it (`held_out_exposure`).
 A single agent's run reports its keyframes rendered from their own submaps (psnr, ...: the mapping stage's result,
 scored before the final map refinement) and from its final merged map (psnr_merged, ...: overlapping submaps blend
 there, as in a team's merged map).
@@ -47,17 +50,23 @@ def resolutions(camera: PinholeCamera, cfg: SlamConfig) -> dict:
     return {"render_resolution": [w, h], "input_resolution": [w, h]}
 
 
-def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD) -> tuple[dict, torch.Tensor]:
-    """Render `params` at T_local_cam [4, 4] (camera-to-local) with ref's camera and score it against `ref`.
-    Returns ({psnr, ssim, depth_l1, psnr_valid_depth} (None where undefined), rendered colour [H, W, 3])."""
+def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD, exposure: np.ndarray | None = None
+                ) -> tuple[dict, torch.Tensor]:
+    """Render `params` at T_local_cam [4, 4] (camera-to-local) with ref's camera, as a camera of `exposure` sees
+    it (slam.dense.mapping.exposure; None: the map's colours as they are), and score it against `ref`.
+    Returns ({psnr, ssim, depth_l1, psnr_valid_depth} (None where undefined), plus psnr_raw (the map's colours
+    without the exposure) when an exposure is given; rendered colour [H, W, 3])."""
+    from swarmsplat.slam.dense.mapping.exposure import apply
     from swarmsplat.slam.metrics import depth_l1, psnr, ssim
 
     with torch.no_grad():
         o = render(params, viewmat_from_pose(T_local_cam), ref.camera)
-    color = o.color.clamp(0, 1)
+        color = apply(o.color, o.alpha, exposure).clamp(0, 1)
     pred, gt = color.permute(2, 0, 1), ref.color_tensor().permute(2, 0, 1)
     valid = ref.depth > 0
     s = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "depth_l1": None, "psnr_valid_depth": None}
+    if exposure is not None:
+        s["psnr_raw"] = psnr(o.color.clamp(0, 1).permute(2, 0, 1), gt)
     if valid.any():
         s["depth_l1"] = depth_l1(o.depth_normalised, torch.as_tensor(ref.depth))
         s["psnr_valid_depth"] = psnr(pred, gt, mask=torch.as_tensor(valid))
@@ -65,14 +74,16 @@ def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD) -> t
 
 
 def score_view(params: GaussianParams, T_local_cam: np.ndarray, color: np.ndarray, depth: np.ndarray,
-               camera: PinholeCamera, cfg: SlamConfig, *, input_resolution: bool = True) -> tuple[dict, RGBD, torch.Tensor]:
+               camera: PinholeCamera, cfg: SlamConfig, *, input_resolution: bool = True,
+               exposure: np.ndarray | None = None) -> tuple[dict, RGBD, torch.Tensor]:
     """One view at both resolutions. color [H, W, 3] uint8 and depth [H, W] metres are the input frame of
-    `camera`. Returns (scores keyed as in the module docstring, working reference frame, working render)."""
+    `camera`; `exposure` as in score_frame. Returns (scores keyed as in the module docstring, working reference
+    frame, working render)."""
     work, full = reference_frames(color, depth, camera, cfg)
-    s, rendered = score_frame(params, T_local_cam, work)
+    s, rendered = score_frame(params, T_local_cam, work, exposure)
     if input_resolution:
         same = work.camera.width == full.camera.width and work.camera.height == full.camera.height
-        s_in = s if same else score_frame(params, T_local_cam, full)[0]
+        s_in = s if same else score_frame(params, T_local_cam, full, exposure)[0]
         s.update({k + INPUT: s_in[k] for k in METRICS})
     return s, work, rendered
 
@@ -90,26 +101,73 @@ def mean_scores(scores: list[dict]) -> dict:
 MERGED = "_merged"
 
 
-def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True) -> dict:
+def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True, held_out: int = 64) -> dict:
     """Training-view quality of one agent at the working and the input resolution. own: every keyframe rendered
     from its own submap at its pose (the keys in the module docstring). merged: every keyframe rendered from the
     merged map, every submap at its final place, at the keyframe's final pose (the same keys with MERGED before
     any resolution suffix, e.g. psnr_merged, psnr_merged_input_resolution: what a team reports as psnr). Plus
-    render_views and both resolutions."""
-    scores, merged_scores = [], []
+    render_views and both resolutions. With merged, also up to `held_out` tracked frames that are not keyframes
+    (evenly spread; no mapping or refinement step saw them), from the merged map at their trajectory pose with the
+    exposure of the keyframes around them: psnr_novel, ssim_novel (and _input_resolution), novel_views."""
+    scores, merged_scores, novel_scores = [], [], []
     merged_map = agent.gmap.merged() if merged else None
     for kf, T_world in zip(agent.keyframes, agent.keyframe_world_poses()):
         f = seq[kf.frame_index]
         if own:
             scores.append(score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local, f.color, f.depth,
-                                     seq.camera, agent.cfg)[0])
+                                     seq.camera, agent.cfg, exposure=kf.exposure)[0])
         if merged:
-            merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg)[0])
+            merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg,
+                                            exposure=kf.exposure)[0])
+    if merged and held_out > 0 and agent.poses:
+        kf_frames = {kf.frame_index for kf in agent.keyframes}
+        _, T_all = agent.trajectory()
+        held = [(rec.frame_index, T_all[i]) for i, rec in enumerate(agent.poses) if rec.frame_index not in kf_frames]
+        if len(held) > held_out:
+            held = [held[i] for i in np.unique(np.linspace(0, len(held) - 1, held_out).round().astype(int))]
+        for index, T in held:
+            f = seq[index]
+            novel_scores.append(score_view(merged_map, T, f.color, f.depth, seq.camera, agent.cfg,
+                                           exposure=held_out_exposure(agent.keyframes, index))[0])
     out = {"render_views": len(agent.keyframes), **resolutions(seq.camera, agent.cfg)}
     if own:
         means = mean_scores(scores)
         out.update({k: means.get(k) for k in METRICS} | {k + INPUT: means.get(k + INPUT) for k in METRICS})
+        if means.get("psnr_raw") is not None:
+            out["psnr_raw"] = means["psnr_raw"]
     if merged:
         mm = mean_scores(merged_scores)
         out.update({k + MERGED: mm.get(k) for k in METRICS} | {k + MERGED + INPUT: mm.get(k + INPUT) for k in METRICS})
+        if mm.get("psnr_raw") is not None:
+            out["psnr" + MERGED + "_raw"] = mm["psnr_raw"]
+        nv = mean_scores(novel_scores)
+        out.update(psnr_novel=nv.get("psnr"), ssim_novel=nv.get("ssim"), psnr_novel_input_resolution=nv.get("psnr" + INPUT),
+                   ssim_novel_input_resolution=nv.get("ssim" + INPUT), novel_views=len(novel_scores))
     return out
+
+
+def held_out_exposure(keyframes, frame_index: int) -> np.ndarray | None:
+    """The exposure of a frame that is not a keyframe: interpolated linearly (by frame index) between the
+    keyframes before and after it, the nearest one's beyond the ends (None when the keyframes have none). The
+    frame's own image is not used: a held-out score stays a prediction."""
+    kfs = [k for k in keyframes if k.exposure is not None]
+    if not kfs:
+        return None
+    idx = np.array([k.frame_index for k in kfs])
+    order = np.argsort(idx)
+    idx = idx[order]
+    es = np.stack([kfs[i].exposure for i in order])
+    return np.array([np.interp(frame_index, idx, es[:, c]) for c in range(es.shape[1])])
+
+
+def exposure_record(keyframes) -> dict:
+    """metrics.json `exposure`: the keyframes' exposures (slam.dense.mapping.exposure.summary) and how the renders
+    above were scored against them."""
+    from swarmsplat.slam.dense.mapping.exposure import summary
+
+    rec = summary([k.exposure for k in keyframes], sum(1 for k in keyframes if k.exposure_outlier))
+    if rec["keyframes"]:
+        rec["evaluation"] = ("keyframes rendered with their own exposure; held-out frames with the exposure "
+                             "interpolated from the keyframes around them; psnr_raw / psnr_merged_raw: the map's "
+                             "colours without any exposure")
+    return rec

@@ -81,15 +81,19 @@ def render_report(m: dict, files: set[str] | None = None) -> str:
              "server's global map refinement (" + f"{ref.get('config', {}).get('iterations_per_keyframe')} steps "
              "per keyframe)." if refined else " Global map refinement was off."), "",
           "| Agent | keyframes | PSNR [dB] ↑ | SSIM ↑ | Depth L1 [cm] ↓ | PSNR before refinement | "
-          "held-out frames | held-out PSNR |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+          "held-out frames | held-out PSNR | own submaps' PSNR |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for a in ag:
         L.append(f"| {a['name']} | {a.get('render_views', 0)} | {_f(a.get('psnr'), '.2f')} | "
                  f"{_f(a.get('ssim'), '.3f')} | {_cm(a.get('depth_l1'))} | {_f(a.get('psnr_before_refine'), '.2f')} | "
-                 f"{a.get('novel_views', 0)} | {_f(a.get('psnr_novel'), '.2f')} |")
+                 f"{a.get('novel_views', 0)} | {_f(a.get('psnr_novel'), '.2f')} | {_f(a.get('psnr_submaps'), '.2f')} |")
     L.append(f"| **all** | {m.get('render_views', 0)} | {_f(m.get('psnr'), '.2f')} | {_f(m.get('ssim'), '.3f')} | "
              f"{_cm(m.get('depth_l1'))} | {_f(m.get('psnr_before_refine'), '.2f')} | {m.get('novel_views', 0)} | "
-             f"{_f(m.get('psnr_novel'), '.2f')} |")
+             f"{_f(m.get('psnr_novel'), '.2f')} | {_f(m.get('psnr_submaps'), '.2f')} |")
     L.append("")
+    L += ["*Own submaps' PSNR*: the same keyframes rendered from their own submap alone, as mapping left it "
+          "(the merged map's loss against it is what the merge costs). Renders are scored as each camera saw the "
+          "map: with the keyframe's exposure and white balance (`exposure` in metrics.json), a held-out frame with "
+          "the exposure interpolated from the keyframes around it.", ""]
     if "renders.png" in files:
         L += ["![input vs merged-map render](renders.png)", ""]
 

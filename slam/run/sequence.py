@@ -16,7 +16,7 @@ from swarmsplat.kernels.fileio import atomic_write_text, output_dir
 
 from swarmsplat.slam.dense.agent import Agent
 from swarmsplat.slam.config import SlamConfig
-from swarmsplat.slam.metrics.views import keyframe_metrics
+from swarmsplat.slam.metrics.views import exposure_record, keyframe_metrics
 from swarmsplat.slam.io.jsonio import write_json
 from swarmsplat.slam.dense.loops.loop_log import count_by_source
 from .partial_results import write_partial_agent
@@ -149,7 +149,7 @@ def finish_agent_run(agent: Agent, seq, out: Path, cfg: SlamConfig, *, n_frames:
 
         before = agent.trajectory()[1] if rc.refine_poses else None
         with reporting(progress):
-            refined = refine_agent(agent, rc, cfg.mapping)
+            refined = refine_agent(agent, rc, cfg.mapping, cfg.exposure if cfg.exposure.enabled else None)
     wall = time.perf_counter() - t0 - t_eval
     return write_results(agent, seq, out, wall_s=wall, n_frames=n_frames, map_refine=refined, own_scores=own,
                          trajectory_before_refine=before, extra=extra)
@@ -199,6 +199,8 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
         "time_s": {"total": wall_s, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure,
                    "map_refine": map_refine["seconds"] if map_refine else 0.0},
         "map_refine": map_refine,
+        # the keyframes' exposure and white balance (slam.dense.mapping.exposure) and how renders are scored
+        "exposure": exposure_record(agent.keyframes),
         "kernels": kernels_record(agent.cfg.kernels),
     }
     metrics.update(guard_warnings([agent]))

@@ -137,7 +137,7 @@ class Team:
         rc = self.cfg.map_refine
         if rc.iterations_per_keyframe <= 0 or rc.max_iterations <= 0:
             return {}
-        return self.server.refine_maps(rc, self.cfg.mapping)
+        return self.server.refine_maps(rc, self.cfg.mapping, self.cfg.exposure if self.cfg.exposure.enabled else None)
 
     def status(self, done: int, total: int, elapsed: float) -> str:
         loops = self.server.records

@@ -26,6 +26,7 @@ from swarmsplat.kernels.fileio import atomic_write_text
 
 from swarmsplat.slam.io.jsonio import write_json
 from swarmsplat.slam.dense.loops.loop_log import summarise, write_loops_csv
+from swarmsplat.slam.metrics.views import exposure_record
 from .runtime import check_not_empty, guard_warnings, kernels_record
 
 
@@ -95,6 +96,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
             "component": names[srv.slots[a].component], "in_global_frame": srv.slots[a].component == 0,
             **traj["agents"][a], **render["agents"][a],
             "psnr_before_refine": before["agents"][a]["psnr"] if before else None,
+            "exposure": exposure_record(ag.keyframes),
             "time_s": {"tracking": t.tracking, "mapping": t.mapping},
         })
     summary = summarise(srv.records)
@@ -108,6 +110,8 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "all_agents_joined": all(srv.slots[a].component == 0 for a in range(len(names))),
         "psnr": render["psnr"], "ssim": render["ssim"],
         "depth_l1": render["depth_l1"], "render_views": render["views"],
+        # the same keyframes from their own submaps alone: the merged map's loss against it is the merge's cost
+        "psnr_submaps": render["psnr_submaps"],
         "psnr_novel": render["psnr_novel"], "ssim_novel": render["ssim_novel"], "novel_views": render["novel_views"],
         "psnr_before_refine": before.get("psnr"), "ssim_before_refine": before.get("ssim"),
         "render_resolution": render["resolution"], "input_resolution": render["input_resolution"],
@@ -232,22 +236,25 @@ def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
     Returns {"agents": [...], "psnr", "ssim", "depth_l1", "views", "psnr_novel", "ssim_novel", "novel_views",
     the same with the suffix _input_resolution, "resolution" (working [w, h]), "input_resolution" [w, h], "grid"}
     (grid: rows for renders.png)."""
-    from swarmsplat.slam.metrics.views import INPUT, mean_scores, resolutions, score_view
+    from swarmsplat.slam.metrics.views import INPUT, held_out_exposure, mean_scores, resolutions, score_view
 
     srv, cfg = team.server, team.cfg
     maps = {root: srv.merged_map(root) for root in srv.components()}
     per, grid, res = [], [], {}
     acc = {"kf": [], "novel": []}
 
-    def score(params, T, seq, index):
+    def score(params, T, seq, index, exposure):
         f = seq[index]
-        return score_view(params, T, f.color, f.depth, seq.camera, cfg)
+        return score_view(params, T, f.color, f.depth, seq.camera, cfg, exposure=exposure)
 
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
         params = maps[srv.slots[a].component]
         kfs, novel_s = [], []
         for kf in _spread(ag.keyframes, views):
-            s, ref, color = score(params, srv.global_pose(a, kf), seq, kf.frame_index)
+            s, ref, color = score(params, srv.global_pose(a, kf), seq, kf.frame_index, kf.exposure)
+            own = ag.gmap.submaps[kf.submap_id]  # the same view from its own submap alone: what the merge costs
+            if len(own):
+                s["psnr_submaps"] = score(own.params, kf.T_local, seq, kf.frame_index, kf.exposure)[0]["psnr"]
             kfs.append(s)
             res = resolutions(seq.camera, cfg)
             if len(grid) < 3 * (a + 1):
@@ -257,8 +264,8 @@ def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
             _, T_all = srv.global_trajectory(a)
             held = [(rec.frame_index, T_all[i]) for i, rec in enumerate(ag.poses) if rec.frame_index not in kf_frames]
             for index, T in _spread(held, views):
-                s, _, _ = score(params, T, seq, index)
-                novel_s.append({k: s[k] for k in ("psnr", "ssim", "psnr" + INPUT, "ssim" + INPUT)})
+                s, _, _ = score(params, T, seq, index, held_out_exposure(ag.keyframes, index))
+                novel_s.append({k: s.get(k) for k in ("psnr", "ssim", "psnr" + INPUT, "ssim" + INPUT, "psnr_raw")})
         m, mn = mean_scores(kfs), mean_scores(novel_s)
         per.append({**_render_keys(m, mn), "render_views": len(kfs), "novel_views": len(novel_s)})
         acc["kf"] += kfs
@@ -274,7 +281,9 @@ def _render_keys(m: dict, mn: dict) -> dict:
     from swarmsplat.slam.metrics.views import INPUT
 
     out = {k: m.get(k) for k in ("psnr", "ssim", "depth_l1")}
-    out.update(psnr_novel=mn.get("psnr"), ssim_novel=mn.get("ssim"))
+    out.update(psnr_submaps=m.get("psnr_submaps"), psnr_novel=mn.get("psnr"), ssim_novel=mn.get("ssim"))
+    if m.get("psnr_raw") is not None:  # the same views without the keyframes' exposures (slam.metrics.views)
+        out.update(psnr_raw=m.get("psnr_raw"), psnr_novel_raw=mn.get("psnr_raw"))
     out.update({k + INPUT: m.get(k + INPUT) for k in ("psnr", "ssim", "depth_l1")})
     out.update(psnr_novel_input_resolution=mn.get("psnr" + INPUT), ssim_novel_input_resolution=mn.get("ssim" + INPUT))
     return out

@@ -19,11 +19,12 @@ import numpy as np
 import torch
 
 from swarmsplat.kernels.errors import SanityError
-from swarmsplat.slam.config import MappingConfig
+from swarmsplat.slam.config import ExposureConfig, MappingConfig
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, Submap
 from swarmsplat.slam.dense.param_ops import Activated, activate, isotropic_penalty
 from swarmsplat.slam.dense.render import render, rgbd_loss_fused, viewmat_from_pose
+from .exposure import apply, unapply
 
 
 @dataclass
@@ -32,6 +33,12 @@ class MapKeyframe:
 
     T_local_cam: np.ndarray  # [4, 4]
     rgbd: RGBD
+    # slam.dense.mapping.exposure: the keyframe's exposure [6] (optimised in place unless `exposure_fixed`; None:
+    # no photometric model), its regulariser's anchor, and whether its colour is an outlier left out of the loss.
+    exposure: np.ndarray | None = None
+    exposure_prior: np.ndarray | None = None
+    exposure_fixed: bool = False
+    exposure_outlier: bool = False
 
 
 @dataclass
@@ -90,7 +97,7 @@ def seed_gaussians(submap: Submap, kf: MapKeyframe, cfg: MappingConfig, *, gener
     T = kf.T_local_cam
     pts = pts_cam @ T[:3, :3].T + T[:3, 3]
     radius = cfg.init_scale_factor * 0.5 * s * z / cam.fx
-    rgb = f.color[vs, us].astype(np.float32) / 255.0
+    rgb = unapply(f.color[vs, us].astype(np.float32) / 255.0, kf.exposure)  # in the map's colour gauge
     return GaussianParams.from_points(torch.as_tensor(pts, dtype=torch.float32), torch.as_tensor(rgb),
                                       torch.as_tensor(radius, dtype=torch.float32), cfg.init_opacity)
 
@@ -149,9 +156,46 @@ def drop_non_finite(submap: Submap) -> int:
     return bad
 
 
-class Mapper:
-    def __init__(self, cfg: MappingConfig):
+class ExposureSteps:
+    """The exposures of a set of views as leaves of one Adam (slam.dense.mapping.exposure), each regularised
+    toward its anchor; views without a model, or fixed, render with theirs as constants."""
+
+    def __init__(self, exposures: list, priors: list, fixed: list[bool], cfg: ExposureConfig | None):
         self.cfg = cfg
+        self.values = [None if e is None else torch.as_tensor(np.asarray(e), dtype=torch.float32) for e in exposures]
+        self.priors = [None if p is None else torch.as_tensor(np.asarray(p), dtype=torch.float32) for p in priors]
+        self.leaves = {j: v.clone().requires_grad_(True) for j, v in enumerate(self.values)
+                       if v is not None and not fixed[j] and cfg is not None}
+        self.opt = torch.optim.Adam(list(self.leaves.values()), lr=cfg.lr) if self.leaves else None
+
+    def color(self, j: int, out):
+        """`out` (a render) with its colour as view j sees it."""
+        e = self.leaves.get(j, self.values[j])
+        return out if e is None else out._replace(color=apply(out.color, out.alpha, e))
+
+    def penalty(self, j: int) -> torch.Tensor | float:
+        leaf = self.leaves.get(j)
+        if leaf is None or self.priors[j] is None or self.cfg.regulariser <= 0:
+            return 0.0
+        return self.cfg.regulariser * ((leaf - self.priors[j]) ** 2).sum()
+
+    def zero_grad(self) -> None:
+        if self.opt is not None:
+            self.opt.zero_grad(set_to_none=True)
+
+    def step(self) -> None:
+        if self.opt is not None:
+            self.opt.step()
+
+    def result(self, j: int) -> np.ndarray | None:
+        e = self.leaves.get(j, self.values[j])
+        return None if e is None else e.detach().double().numpy()
+
+
+class Mapper:
+    def __init__(self, cfg: MappingConfig, exposure: ExposureConfig | None = None):
+        self.cfg = cfg
+        self.exposure = exposure
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.non_finite_dropped = 0  # Gaussians removed for NaN / Inf parameters (metrics.json "warnings")
 
@@ -189,6 +233,8 @@ class Mapper:
             return float("nan"), float("nan"), 0
         p = submap.params.detached().requires_grad_(True)
         opt = make_optimizer(p, cfg)
+        ex = ExposureSteps([k.exposure for k in keyframes], [k.exposure_prior for k in keyframes],
+                           [k.exposure_fixed for k in keyframes], self.exposure)
         targets = [(viewmat_from_pose(k.T_local_cam), k.rgbd.color_tensor(), k.rgbd.depth_tensor(), k.rgbd.camera)
                    for k in keyframes]
         losses = []
@@ -203,16 +249,24 @@ class Mapper:
                 j = int(torch.randint(0, len(targets), (1,), generator=self.gen))
             vm, color, depth, cam = targets[j]
             opt.zero_grad(set_to_none=True)
+            ex.zero_grad()
             act = activate(p)
             out = render(p, vm, cam, activated=act)
             if j == newest and not checked:
                 _check_alpha(out.alpha, depth, submap.id)
                 checked = True
-            loss = mapping_loss(out, color, depth, p, cfg, cfg.lambda_color, cfg.isotropic_regulariser, act)
+            lambda_color = 0.0 if keyframes[j].exposure_outlier else cfg.lambda_color
+            loss = mapping_loss(ex.color(j, out), color, depth, p, cfg, lambda_color, cfg.isotropic_regulariser, act)
+            loss = loss + ex.penalty(j)
             loss.backward()
             opt.step()
+            ex.step()
             losses.append(float(loss.detach()))
         submap.params = p.detached()
+        for j, k in enumerate(keyframes):  # each keyframe's exposure array, updated in place (it is the Keyframe's)
+            e = ex.result(j)
+            if e is not None and k.exposure is not None and not k.exposure_fixed:
+                k.exposure[:] = e
         if not losses:
             return float("nan"), float("nan"), 0
         return losses[0], float(np.mean(losses[-5:])), len(losses)

@@ -30,11 +30,12 @@ def _view(kf, T_frame_cam, cfg, cache: ViewCache | None = None) -> RefineView:
     f = kf.map_rgbd if cfg.views == "mapping" and kf.map_rgbd is not None else kf.small
     # A stored keyframe's images stay as stored and are decoded when used, through `cache` (bounded memory over a
     # long mission); the active submap's raw ones are made tensors once.
+    ex = {"exposure": kf.exposure, "exposure_prior": kf.exposure_prior, "exposure_outlier": kf.exposure_outlier}
     if isinstance(f, PackedRGBD):
         return RefineView(viewmat_from_pose(se3.project_rigid(T_frame_cam)), None, None, f.camera, frame=f,
-                          cache=cache)
+                          cache=cache, **ex)
     return RefineView(viewmat_from_pose(se3.project_rigid(T_frame_cam)), f.color_tensor(), f.depth_tensor(),
-                      f.camera)
+                      f.camera, **ex)
 
 
 def _overlap_keep(parts, views, view_submaps, cfg, mapping, means):
@@ -66,7 +67,8 @@ def _frame_means(params: GaussianParams, T: np.ndarray) -> torch.Tensor:
         return params.means @ R.T + t
 
 
-def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) -> dict:
+def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None, exposure=None,
+                  exposure_gauge=None) -> dict:
     """parts: [(submap, T frame <- submap local)]; refine their merged map over `views` (in that frame;
     view_keyframes[i] = (submap, keyframe) of views[i]), hand each submap its surviving Gaussians back and each
     keyframe its refined pose (with cfg.refine_poses). Returns the statistics."""
@@ -84,7 +86,12 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None) 
     starts = np.cumsum([0] + [n for _, _, n in parts])
     merged = GaussianParams.concat([transform_params(sm.params, T).select(owned[a:a + n])
                                     for (sm, T, n), a in zip(parts, starts)])
-    refined, kept, st, regions = refine_by_region(merged, views, cfg, mapping, fixed_views=fixed_views)
+    refined, kept, st, regions = refine_by_region(merged, views, cfg, mapping, fixed_views=fixed_views,
+                                                  exposure=exposure, exposure_gauge=exposure_gauge)
+    if st.exposures is not None:  # each keyframe keeps its refined exposure (slam.dense.mapping.exposure)
+        for (_, kf), e in zip(view_keyframes, st.exposures):
+            if e is not None and kf.exposure is not None:
+                kf.exposure = np.asarray(e, dtype=np.float64)
     keep = owned.clone()
     keep[owned] = kept
     overlap, hidden = int((~owned).sum()), int((~kept).sum())
@@ -123,9 +130,10 @@ def _start_pose(server, a, kf, cfg):
     return server.global_pose(a, kf)
 
 
-def refine_components(server, cfg, mapping) -> dict:
+def refine_components(server, cfg, mapping, exposure=None) -> dict:
     """Refine each component of `server` (slam.dense.team.server.Server) in place. cfg: MapRefineConfig; mapping:
-    MappingConfig (loss, learning rates, pruning). Returns per-component statistics keyed by the root agent."""
+    MappingConfig (loss, learning rates, pruning); exposure: ExposureConfig to refine the keyframes' exposures
+    with the map (None: they stay as they are). Returns per-component statistics keyed by the root agent."""
     out = {}
     for root, members in server.components().items():
         parts, views, view_keyframes, fixed = [], [], [], set()
@@ -138,17 +146,19 @@ def refine_components(server, cfg, mapping) -> dict:
             views += [_view(kf, _start_pose(server, a, kf, cfg), cfg, cache) for kf in s.agent.keyframes]
             view_keyframes += [(s.agent.gmap.submaps[kf.submap_id], kf) for kf in s.agent.keyframes]
         out[server.slots[root].agent.name] = _refine_parts(parts, views, view_keyframes, cfg, mapping,
-                                                           fixed or None)
+                                                           fixed or None, exposure,
+                                                           {min(fixed)} if fixed else None)
     return out
 
 
-def refine_agent(agent, cfg, mapping) -> dict | None:
-    """Refine one agent's merged map (world frame) over its keyframes, in place; None when there is nothing to
-    refine (refinement off, or no keyframe)."""
+def refine_agent(agent, cfg, mapping, exposure=None) -> dict | None:
+    """Refine one agent's merged map (world frame) over its keyframes, in place (with their exposures, given an
+    ExposureConfig `exposure`); None when there is nothing to refine (refinement off, or no keyframe)."""
     if cfg.iterations_per_keyframe <= 0 or cfg.max_iterations <= 0 or not agent.keyframes:
         return None
     poses = agent.keyframe_world_poses()
     cache = ViewCache(cfg.view_cache_mb * 1e6)
     views = [_view(kf, T, cfg, cache) for kf, T in zip(agent.keyframes, poses)]
     view_keyframes = [(agent.gmap.submaps[kf.submap_id], kf) for kf in agent.keyframes]
-    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping)
+    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping,
+                         exposure=exposure)

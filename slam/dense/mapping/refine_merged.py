@@ -35,9 +35,9 @@ import torch
 from swarmsplat.kernels import se3
 from swarmsplat.kernels.camera import PinholeCamera
 
-from swarmsplat.slam.config import MappingConfig, MapRefineConfig
+from swarmsplat.slam.config import ExposureConfig, MappingConfig, MapRefineConfig
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
-from .mapper import make_optimizer, mapping_loss
+from .mapper import ExposureSteps, make_optimizer, mapping_loss
 from swarmsplat.slam.dense.param_ops import activate
 from swarmsplat.slam.io.progress import bar
 from swarmsplat.slam.dense.render import NEAR, render
@@ -52,17 +52,26 @@ class RefineView:
     long mission's keyframes then holds them as stored (PNG for a finished submap's keyframes) plus the decoded
     ones the cache keeps, instead of every view as float tensors at once (1.2 MB each at 320x240)."""
 
-    __slots__ = ("viewmat", "camera", "_color", "_depth", "frame", "cache")
+    __slots__ = ("viewmat", "camera", "_color", "_depth", "frame", "cache", "exposure", "exposure_prior",
+                 "exposure_outlier")
 
     def __init__(self, viewmat: torch.Tensor, color: torch.Tensor | None, depth: torch.Tensor | None,
-                 camera: PinholeCamera, *, frame=None, cache: "ViewCache | None" = None):
+                 camera: PinholeCamera, *, frame=None, cache: "ViewCache | None" = None,
+                 exposure: np.ndarray | None = None, exposure_prior: np.ndarray | None = None,
+                 exposure_outlier: bool = False):
         self.viewmat = viewmat  # [4, 4] map frame -> camera (OpenCV axes)
         self.camera = camera
         self._color, self._depth, self.frame, self.cache = color, depth, frame, cache
+        # the keyframe's exposure (slam.dense.mapping.exposure; None: no photometric model), its anchor, outlier
+        self.exposure, self.exposure_prior, self.exposure_outlier = exposure, exposure_prior, exposure_outlier
 
-    def at(self, viewmat: torch.Tensor) -> "RefineView":
-        """The same keyframe and images seen from `viewmat` (a refined pose)."""
-        return RefineView(viewmat, self._color, self._depth, self.camera, frame=self.frame, cache=self.cache)
+    def at(self, viewmat: torch.Tensor | None = None, exposure: np.ndarray | None = None) -> "RefineView":
+        """The same keyframe and images seen from `viewmat` (a refined pose) and/or with `exposure` (refined);
+        None keeps the view's."""
+        return RefineView(self.viewmat if viewmat is None else viewmat, self._color, self._depth, self.camera,
+                          frame=self.frame, cache=self.cache,
+                          exposure=self.exposure if exposure is None else exposure,
+                          exposure_prior=self.exposure_prior, exposure_outlier=self.exposure_outlier)
 
     def _images(self) -> tuple[torch.Tensor, torch.Tensor]:
         if self.cache is None:
@@ -131,6 +140,7 @@ class RefineStats:
     seconds: float
     viewmats: list[torch.Tensor] | None = None  # [4, 4] per view after pose refinement (None: poses not refined)
     pose_moves: np.ndarray | None = None  # [views, 2] rotation (rad) and translation (m) each view was moved by
+    exposures: list[np.ndarray | None] | None = None  # [6] per view after refinement (slam.dense.mapping.exposure)
 
 
 class _PoseSteps:
@@ -232,7 +242,8 @@ def lr_factor(final: float, step: int, steps: int) -> float:
 
 def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig, mapping: MappingConfig, *,
                iterations: int | None = None, fixed_views: set[int] | None = None,
-               context: GaussianParams | None = None) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
+               context: GaussianParams | None = None, exposure: ExposureConfig | None = None,
+               exposure_gauge: set[int] | None = None) -> tuple[GaussianParams, torch.Tensor, RefineStats]:
     """Optimise every Gaussian of `params` (one component's merged map, in its frame) over `views` with Adam: the
     mapping loss (eq. 3, masks from `mapping`, λ_c and the isotropic penalty from `cfg`), the mapping learning
     rates x `cfg.lr_scale`, decaying geometrically to `cfg.lr_final_scale` of that at the last step (`lr_factor`).
@@ -245,6 +256,11 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
 
     With `cfg.refine_poses` the views' poses are refined too, all but `fixed_views` (default: the first view,
     which holds the gauge): `stats.viewmats` has them, `stats.pose_moves` how far each moved.
+
+    With `exposure` (slam.dense.mapping.exposure) every view with an exposure has it optimised too, all but
+    `exposure_gauge` (default: `fixed_views`; a team's first keyframe of one agent only, since all agents' colours
+    meet in one map), regularised toward its anchor; `stats.exposures` has them. An outlier view's colour takes
+    no part in the loss.
 
     `context`: Gaussians rendered with `params` at every step (those in the step's view) but not optimised: the
     rest of the map when `params` is one region of it (slam.dense.mapping.refine_regions).
@@ -277,6 +293,10 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     poses = (_PoseSteps(views, cfg.lr_pose_rotation, cfg.lr_pose_translation,
                         fixed={0} if fixed_views is None else set(fixed_views))
              if cfg.refine_poses and len(views) > 1 else None)
+    gauge = {0} if fixed_views is None else set(fixed_views)
+    ex_gauge = gauge if exposure_gauge is None else set(exposure_gauge)
+    ex = ExposureSteps([v.exposure for v in views], [v.exposure_prior for v in views],
+                       [j in ex_gauge for j in range(len(views))], exposure)
     order: list[int] = []
     losses: list[float] = []
     b = bar(n_it, "[refine] steps", unit="step", enabled=None)  # shown inside slam.io.progress.reporting(True)
@@ -310,8 +330,12 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
                                          for a, b in zip(sub.tensors(), ctx.tensors())))
         act = activate(drawn)
         out = render(drawn, viewmat, v.camera, activated=act)
-        loss = mapping_loss(out, v.color, v.depth, drawn, mapping, cfg.lambda_color, cfg.isotropic_regulariser, act)
+        ex.zero_grad()
+        lambda_color = 0.0 if v.exposure_outlier else cfg.lambda_color
+        loss = mapping_loss(ex.color(j, out), v.color, v.depth, drawn, mapping, lambda_color,
+                            cfg.isotropic_regulariser, act) + ex.penalty(j)
         loss.backward()
+        ex.step()
         if poses is not None:
             poses.step(j, leaf)
         grads = [sub.means.grad, sub.log_scales.grad, sub.quats.grad, sub.logit_opacities.grad, sub.colors.grad]
@@ -326,5 +350,6 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
     first = float(np.mean(losses[:k])) if losses else float("nan")
     last = float(np.mean(losses[-k:])) if losses else float("nan")
     mats, moves = poses.result(views[0].viewmat.dtype) if poses is not None else (None, None)
+    exposures = [ex.result(j) for j in range(len(views))]
     return p.detached(), keep, RefineStats(len(losses), len(views), len(params), first, last,
-                                           time.perf_counter() - t0, mats, moves)
+                                           time.perf_counter() - t0, mats, moves, exposures)

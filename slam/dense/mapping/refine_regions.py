@@ -42,7 +42,7 @@ import time
 import numpy as np
 import torch
 
-from swarmsplat.slam.config import MappingConfig, MapRefineConfig
+from swarmsplat.slam.config import ExposureConfig, MappingConfig, MapRefineConfig
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from .refine_merged import RefineStats, RefineView, contributions, iteration_budget, refine_map, visible_indices
 
@@ -112,14 +112,16 @@ def unoccluded(means: torch.Tensor, view: RefineView, cfg: MapRefineConfig) -> t
 
 
 def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRefineConfig,
-                     mapping: MappingConfig, *, fixed_views: set[int] | None = None
+                     mapping: MappingConfig, *, fixed_views: set[int] | None = None,
+                     exposure: ExposureConfig | None = None, exposure_gauge: set[int] | None = None
                      ) -> tuple[GaussianParams, torch.Tensor, RefineStats, dict]:
     """refine_map's result (kept Gaussians refined, in order; keep [N] over the input; statistics) with the work done
     region by region (module docstring), and {"regions": how many, "region_gaussians_max": the most Gaussians one
     optimised, "region_keyframes_max": the most keyframes one visited}."""
     n_it = iteration_budget(cfg, len(views))
     if cfg.region_gaussians <= 0 or len(params) <= cfg.region_gaussians or n_it <= 0 or not views:
-        refined, keep, st = refine_map(params, views, cfg, mapping, fixed_views=fixed_views)
+        refined, keep, st = refine_map(params, views, cfg, mapping, fixed_views=fixed_views, exposure=exposure,
+                                       exposure_gauge=exposure_gauge)
         return refined, keep, st, {"regions": 1, "region_gaussians_max": int(keep.sum()),
                                    "region_keyframes_max": len(views)}
     t0 = time.perf_counter()
@@ -144,6 +146,7 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
     takes_part = (of_view >= GLIMPSE) | (of_region >= GLIMPSE) | (np.arange(len(regions))[None, :] == home[:, None])
     takes_part &= seen > 0
     gauge = {0} if fixed_views is None else set(fixed_views)
+    ex_gauge = gauge if exposure_gauge is None else set(exposure_gauge)
     per_view = n_it / len(views)  # visits of each keyframe in the whole-map refinement
     current = list(views)
     moved = cfg.refine_poses and len(views) > 1
@@ -165,9 +168,11 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
             others[rows] = False
             sub = GaussianParams(*(t.index_select(0, rows) for t in tensors))
             fixed = {i for i, j in enumerate(vs.tolist()) if j in gauge or home[j] != k}
+            ex_fixed = {i for i, j in enumerate(vs.tolist()) if j in ex_gauge or home[j] != k}
             refined, _, st = refine_map(sub, [current[j] for j in vs],
                                         swept.model_copy(update={"seed": cfg.seed + sweep * len(regions) + k}),
-                                        mapping, iterations=steps, fixed_views=fixed, context=out.select(others))
+                                        mapping, iterations=steps, fixed_views=fixed, context=out.select(others),
+                                        exposure=exposure, exposure_gauge=ex_fixed)
             for t, new in zip(tensors, refined.tensors()):
                 t.index_copy_(0, rows, new)
             iters += st.iterations
@@ -175,10 +180,10 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
                 firsts.append((st.loss_first, st.iterations))
             if st.iterations and sweep == SWEEPS - 1:
                 lasts.append((st.loss_last, st.iterations))
-            if st.viewmats is not None:
-                for i, j in enumerate(vs.tolist()):
-                    if home[j] == k:
-                        current[j] = current[j].at(st.viewmats[i])
+            for i, j in enumerate(vs.tolist()):  # a view's pose and exposure move in its home region only
+                if home[j] == k and (st.viewmats is not None or st.exposures is not None):
+                    current[j] = current[j].at(None if st.viewmats is None else st.viewmats[i],
+                                               None if st.exposures is None else st.exposures[i])
 
     def mean(pairs):
         return float(np.average([x for x, _ in pairs], weights=[w for _, w in pairs])) if pairs else float("nan")
@@ -193,6 +198,6 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
             moves[j, 0] = float(torch.arccos(cos.clamp(-1.0, 1.0)))
             moves[j, 1] = float((-T[:3, :3].T @ T[:3, 3] + T0[:3, :3].T @ T0[:3, 3]).norm())
     stats = RefineStats(iters, len(views), len(params), mean(firsts), mean(lasts), time.perf_counter() - t0,
-                        viewmats, moves)
+                        viewmats, moves, [v.exposure for v in current])
     return out, keep, stats, {"regions": len(regions), "region_gaussians_max": max(len(r) for r in regions),
                               "region_keyframes_max": most_views}

@@ -36,10 +36,12 @@ class AgentMirror(Agent):
 
     def add_keyframe(self, kf_id: int, frame_index: int, timestamp: float, submap_id: int, T_local_cam: np.ndarray,
                      descriptor: np.ndarray | None, small, map_rgbd, odometry: tuple | None,
-                     submap_start: np.ndarray | None) -> Keyframe | None:
+                     submap_start: np.ndarray | None, *, exposure: np.ndarray | None = None) -> Keyframe | None:
         """Keyframe `kf_id` (the next one: ids arrive in order) with its images (RGBD or PackedRGBD), tracking
         edge from the previous keyframe (T [4, 4], information [6, 6]) and, for a submap's first keyframe, the
-        new submap's origin relative to the previous one. Returns the keyframe (None: already known)."""
+        new submap's origin relative to the previous one, and its exposure as fitted when it was made
+        (slam.dense.mapping.exposure; the server's map refinement optimises it from there). Returns the keyframe
+        (None: already known)."""
         if kf_id < len(self.keyframes):
             return None
         if kf_id != len(self.keyframes):
@@ -52,6 +54,8 @@ class AgentMirror(Agent):
                              f"{len(self.gmap.submaps) - 1}")
         kf = Keyframe(kf_id, frame_index, timestamp, submap_id, np.array(T_local_cam, dtype=np.float64), map_rgbd,
                       small, None if descriptor is None or not len(descriptor) else np.asarray(descriptor))
+        if exposure is not None:
+            kf.exposure, kf.exposure_prior = np.array(exposure, dtype=np.float64), np.array(exposure, dtype=np.float64)
         self.keyframes.append(kf)
         self.gmap.submaps[submap_id].keyframe_ids.append(kf.id)
         if odometry is not None:

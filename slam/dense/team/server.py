@@ -412,12 +412,13 @@ class Server(JoinRules, CloudRoute):
                     T[n] = T_kf @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
         return stamps, T
 
-    def refine_maps(self, cfg, mapping) -> dict:
-        """Global map refinement of every component after the final optimisation (slam.dense.mapping.refine)."""
+    def refine_maps(self, cfg, mapping, exposure=None) -> dict:
+        """Global map refinement of every component after the final optimisation (slam.dense.mapping.refine);
+        `exposure` (ExposureConfig) refines the keyframes' exposures with the maps."""
         from swarmsplat.slam.dense.mapping.refine import refine_components
 
         t0 = time.perf_counter()
-        out = refine_components(self, cfg, mapping)
+        out = refine_components(self, cfg, mapping, exposure)
         self.time["refine"] = self.time.get("refine", 0.0) + time.perf_counter() - t0
         return out
 

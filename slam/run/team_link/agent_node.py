@@ -229,7 +229,8 @@ class AgentNode:
             submap_id=kf.submap_id, round=int(round_), T_local_cam=kf.T_local_cam[None],
             descriptor=np.zeros(0, np.float32) if kf.descriptor is None else np.asarray(kf.descriptor, np.float32),
             odom_T=e(4) if odom is None else odom.T_ij[None], odom_info=e(6) if odom is None else odom.info[None],
-            submap_start=e(4) if start is None else start[None]))
+            submap_start=e(4) if start is None else start[None],
+            exposure=np.zeros(0) if kf.exposure_prior is None else np.asarray(kf.exposure_prior, np.float64)))
         link = self.cfg.link
         big = kf.map_rgbd if self.map_views and link.map_views else None
         self.outbox.put(L.KeyframeImage(mid=self.outbox.next_mid(), id=kf.id, **encode_images(kf.small, big, link)))

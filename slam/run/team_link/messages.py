@@ -80,7 +80,7 @@ class KeyframeMeta(Message):
     SCALARS: ClassVar[dict] = {"mid": int, "id": int, "frame_index": int, "timestamp": float, "submap_id": int,
                                "round": int}
     ARRAYS: ClassVar[dict] = {"T_local_cam": ("<f8", 3), "descriptor": ("<f4", 1), "odom_T": ("<f8", 3),
-                              "odom_info": ("<f8", 3), "submap_start": ("<f8", 3)}
+                              "odom_info": ("<f8", 3), "submap_start": ("<f8", 3), "exposure": ("<f8", 1)}
     mid: int = 0
     id: int = 0
     frame_index: int = 0
@@ -92,6 +92,8 @@ class KeyframeMeta(Message):
     odom_T: np.ndarray = field(default_factory=_f((4, 4)))  # [1, 4, 4] previous keyframe -> this one, or [0]
     odom_info: np.ndarray = field(default_factory=_f((6, 6)))  # [1, 6, 6] or [0]
     submap_start: np.ndarray = field(default_factory=_f((4, 4)))  # [1, 4, 4] T_prev_local_new, or [0]
+    # [6] the exposure fitted when the keyframe was made (slam.dense.mapping.exposure), or [0]: no model
+    exposure: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def validate(self) -> None:
         _finite_poses(self.T_local_cam, "KeyframeMeta")
@@ -99,8 +101,10 @@ class KeyframeMeta(Message):
         _finite_poses(self.submap_start, "KeyframeMeta")
         if len(self.T_local_cam) != 1 or len(self.odom_T) != len(self.odom_info) or len(self.odom_T) > 1 \
                 or len(self.submap_start) > 1 or self.odom_info.shape[1:] != (6, 6) \
-                or not np.all(np.isfinite(self.odom_info)) or not np.all(np.isfinite(self.descriptor)):
-            raise MessageError("KeyframeMeta: one pose, at most one finite edge and submap start expected")
+                or not np.all(np.isfinite(self.odom_info)) or not np.all(np.isfinite(self.descriptor)) \
+                or len(self.exposure) not in (0, 6) or not np.all(np.isfinite(self.exposure)):
+            raise MessageError("KeyframeMeta: one pose, at most one finite edge and submap start, and 0 or 6 "
+                               "finite exposure numbers expected")
         if min(self.id, self.frame_index, self.submap_id, self.round) < 0 or (self.id > 0) != (len(self.odom_T) == 1):
             raise MessageError("KeyframeMeta: negative ids, or an edge missing / given for the first keyframe")
 

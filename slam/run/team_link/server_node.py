@@ -254,7 +254,8 @@ class ServerNode:
         kf = ag.add_keyframe(m.id, m.frame_index, m.timestamp, m.submap_id, m.T_local_cam[0],
                              m.descriptor if img is not None else None, small, map_rgbd,
                              (m.odom_T[0], m.odom_info[0]) if len(m.odom_T) else None,
-                             m.submap_start[0] if len(m.submap_start) else None)
+                             m.submap_start[0] if len(m.submap_start) else None,
+                             exposure=m.exposure if len(m.exposure) else None)
         p.processed += 1
         if len(ag.gmap.submaps) > n_sm:
             team._record_origin(a)

@@ -1,0 +1,178 @@
+"""The photometric model of a real camera (slam.dense.mapping.exposure): the affine transform, its robust fit,
+mapping with it on an analytic scene whose second view is darker, and a black frame that must not corrupt the map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from swarmsplat import kernels
+from swarmsplat.kernels import se3
+from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.frames import make_rgbd
+from swarmsplat.slam.dense.gaussian_map import GaussianMap
+from swarmsplat.slam.dense.mapping import exposure
+from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper
+from swarmsplat.slam.dense.render import render, viewmat_from_pose
+from swarmsplat.slam.metrics import psnr
+from swarmsplat.slam.metrics.views import exposure_record, held_out_exposure
+
+import slam_scene
+
+E = np.array([np.log(0.6), np.log(0.7), np.log(0.55), 0.0, 0.0, 0.0])  # a darker, bluer camera
+E_OFFSET = np.array([np.log(0.6), np.log(0.7), np.log(0.55), 0.03, 0.01, 0.05])  # ... with a black level
+
+
+@pytest.fixture(scope="module")
+def warp_cpu():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    kernels.use("warp", "cpu")
+    yield
+    torch.set_num_threads(n)
+
+
+def test_apply_and_unapply_are_inverse_and_keep_empty_pixels_black():
+    rng = np.random.default_rng(0)
+    c = rng.uniform(0.1, 0.9, (5, 7, 3)).astype(np.float32)
+    seen = exposure.apply(torch.as_tensor(c), torch.ones(5, 7), E_OFFSET).numpy()
+    assert np.allclose(seen, c * np.exp(E_OFFSET[:3]) + E_OFFSET[3:], atol=1e-6)
+    assert np.allclose(exposure.unapply(seen, E_OFFSET), c, atol=1e-5)
+    assert torch.equal(exposure.apply(torch.as_tensor(c), torch.ones(5, 7), None), torch.as_tensor(c))
+    assert torch.equal(exposure.apply(torch.zeros(2, 2, 3), torch.zeros(2, 2), E_OFFSET), torch.zeros(2, 2, 3))
+    assert np.allclose(exposure.apply(torch.as_tensor(c), torch.ones(5, 7), exposure.identity()).numpy(), c)
+
+
+def _scene(width=96, height=72):
+    cam = slam_scene.camera(width, height)
+    color, depth = slam_scene.render(np.eye(4), cam)
+    return cam, color.astype(np.float64) / 255.0, depth
+
+
+def test_fit_recovers_an_affine_camera_despite_outliers():
+    cam, c, depth = _scene()
+    rng = np.random.default_rng(1)
+    image = np.clip(c * np.exp(E[:3]) + E[3:] + rng.normal(0, 0.005, c.shape), 0, 1)
+    bad = rng.random(depth.shape) < 0.05  # highlights and moving things: 5 % of the pixels far off
+    image[bad] = rng.uniform(0, 1, (int(bad.sum()), 3))
+    f = exposure.fit(c, np.ones_like(depth), depth, image, depth, min_pixels=100)
+    assert f is not None
+    assert np.allclose(f.exposure, E, atol=0.02), f.exposure
+    assert f.rmse_after < 0.3 * f.rmse_before
+    # a black level is left to the optimisation: the gains alone still explain most of the difference
+    image2 = np.clip(c * np.exp(E_OFFSET[:3]) + E_OFFSET[3:], 0, 1)
+    f2 = exposure.fit(c, np.ones_like(depth), depth, image2, depth, min_pixels=100)
+    assert f2 is not None and (f2.exposure[3:] == 0).all() and f2.rmse_after < 0.5 * f2.rmse_before
+    # depth that disagrees with the render is not a surface both saw: no pixels, no fit
+    assert exposure.fit(c, np.ones_like(depth), depth + 1.0, image, depth, min_pixels=100) is None
+    # nor a black frame
+    assert exposure.fit(c, np.ones_like(depth), depth, np.zeros_like(c), depth, min_pixels=100) is None
+
+
+def test_an_implausible_step_is_an_outlier():
+    prev = exposure.identity()
+    assert not exposure.is_outlier(np.array([0.3, 0.2, 0.25, 0.02, 0, 0]), prev, 2.5)
+    assert exposure.is_outlier(np.array([np.log(0.2), 0, 0, 0, 0, 0]), prev, 2.5)
+    assert exposure.is_outlier(np.array([0, 0, 0, 0.5, 0, 0]), prev, 2.5)
+
+
+def test_held_out_frames_take_the_exposure_between_their_keyframes():
+    class K:
+        def __init__(self, i, e):
+            self.frame_index, self.exposure, self.exposure_outlier = i, np.full(6, e), False
+
+    kfs = [K(10, 0.0), K(20, 1.0)]
+    assert np.allclose(held_out_exposure(kfs, 15), 0.5)
+    assert np.allclose(held_out_exposure(kfs, 0), 0.0) and np.allclose(held_out_exposure(kfs, 99), 1.0)
+    assert held_out_exposure([], 3) is None
+    rec = exposure_record(kfs)
+    assert rec["keyframes"] == 2 and rec["outlier_keyframes"] == 0 and "evaluation" in rec
+
+
+def _map_two_views(darker_exposure, cfg, iterations=60):
+    """One submap mapped from the analytic room at two nearby poses; the second image seen by a darker camera.
+    Returns (submap params, [(pose, clean image tensor, image as captured, exposure the mapper ended with)])."""
+    cam = slam_scene.camera(64, 48)
+    poses = [np.eye(4), se3.exp(np.array([0.0, 0.05, 0.0, 0.06, 0.0, 0.0]))]
+    views = []
+    for i, T in enumerate(poses):
+        color, depth = slam_scene.render(T, cam)
+        clean = color.astype(np.float32) / 255.0
+        seen = clean if i == 0 else np.clip(clean * np.exp(E[:3]) + E[3:], 0, 1)
+        views.append((T, clean, make_rgbd((seen * 255).round().astype(np.uint8), depth, cam, min_depth=0.1,
+                                          max_depth=10.0)))
+    gm = GaussianMap()
+    sm = gm.new_submap(np.eye(4))
+    mapper = Mapper(cfg.mapping, cfg.exposure if darker_exposure is not None else None)
+    first = MapKeyframe(poses[0], views[0][2], exposure.identity() if darker_exposure is not None else None,
+                        exposure.identity() if darker_exposure is not None else None, exposure_fixed=True)
+    mapper.map(gm, sm, [first], 60)
+    e2 = None
+    if darker_exposure is not None:  # what the agent does at a new keyframe: fit against the map's render
+        with torch.no_grad():
+            out = render(sm.params, viewmat_from_pose(poses[1]), cam)
+        f2 = views[1][2]
+        fitted = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
+                              f2.color / 255.0, f2.depth, min_pixels=200)
+        assert fitted is not None
+        e2 = fitted.exposure
+    second = MapKeyframe(poses[1], views[1][2], e2, None if e2 is None else e2.copy())
+    mapper.map(gm, sm, [first, second], iterations)
+    return sm.params, [(T, torch.as_tensor(clean), f.color_tensor(), k.exposure)
+                       for (T, clean, f), k in zip(views, [first, second])]
+
+
+def test_mapping_with_the_model_keeps_the_map_in_the_first_cameras_colours(warp_cpu):
+    cfg = SlamConfig().override({"exposure": {"enabled": True}})
+    with_model, views = _map_two_views(True, cfg)
+    without, _ = _map_two_views(None, cfg)
+    e2 = views[1][3]
+    assert np.allclose(np.exp(e2[:3]), np.exp(E[:3]), atol=0.08), e2  # the darker camera is recognised
+
+    def scores(params, T, target, e=None):
+        with torch.no_grad():
+            o = render(params, viewmat_from_pose(T), slam_scene.camera(64, 48))
+            c = exposure.apply(o.color, o.alpha, e).clamp(0, 1)
+        return psnr(c.permute(2, 0, 1), target.permute(2, 0, 1))
+
+    # The first view, in the map's own colours: the model keeps it; without the model the darker second image
+    # pulls the shared surfaces' colours toward it.
+    T0, clean0 = views[0][0], views[0][1]
+    assert scores(with_model, T0, clean0) > scores(without, T0, clean0) + 1.0
+    # The second view as its camera saw it: the model renders it darker, as captured.
+    T1, _, seen1, _ = views[1]
+    assert scores(with_model, T1, seen1, e2) > scores(without, T1, seen1) + 1.0
+
+
+def test_a_black_keyframe_is_an_outlier_and_leaves_the_map_alone(warp_cpu):
+    from swarmsplat.slam.dense.agent import Agent
+
+    cam = slam_scene.camera(64, 48)
+    cfg = SlamConfig().override({"image": {"max_width": 64}, "keyframes": {"every": 1}, "exposure": {"enabled": True},
+                                 "loop_closure": {"enabled": False}, "map_refine": {"single_agent": False}})
+    path = [se3.exp(np.array([0.0, 0.01 * i, 0.0, 0.02 * i, 0.0, 0.0])) for i in range(5)]
+
+    def run(black: bool):
+        ag = Agent(cam, cfg)
+        for i, T in enumerate(path):
+            color, depth = slam_scene.render(T, cam)
+            if black and i == 3:
+                color = np.zeros_like(color)
+            ag.step(i, 0.1 * i, color, depth)
+        return ag
+
+    clean, dark = run(False), run(True)
+    assert exposure_record(dark.keyframes)["outlier_keyframes"] == 1
+    assert exposure_record(clean.keyframes)["outlier_keyframes"] == 0
+    black = dark.keyframes[3]  # keeps the exposure it inherited, not the black frame's
+    assert black.exposure_outlier and np.array_equal(black.exposure, black.exposure_prior)
+    assert np.abs(black.exposure[:3]).max() < 0.1
+    color, _ = slam_scene.render(path[2], cam)
+    target = torch.as_tensor(color).float().permute(2, 0, 1) / 255.0
+
+    def score(ag):
+        c, _ = ag.render_keyframe(ag.keyframes[2], cam)
+        return psnr(c.permute(2, 0, 1), target)
+
+    assert score(dark) > score(clean) - 1.5  # the black frame did not paint the map black
