@@ -35,6 +35,7 @@ SUBJECTS = {
     "long-run": ".long_run",
     "loop-graph": ".loop_graph",
     "distributed": ".distributed",
+    "distributed-processes": ".distributed_processes",
     "team-scale": ".team_scale",
     "wide-joins": ".wide_joins",
 }

@@ -4,7 +4,6 @@ without a robot that vanished. Skipped without eclipse-zenoh."""
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -15,26 +14,16 @@ import pytest
 
 from swarmsplat.slam.flocc.swarm import messages as M
 from swarmsplat.slam.flocc.swarm.rendezvous import Schedule, Window
-from swarmsplat.slam.flocc.swarm.zenoh_transport import zenoh_available
+from swarmsplat.slam.flocc.swarm.zenoh_transport import free_port_base, zenoh_available
 
 pytestmark = pytest.mark.skipif(not zenoh_available(), reason="eclipse-zenoh is not installed")
 
 
 def _free_port_base(n=3):
-    for base in range(23000 + os.getpid() % 500 * 13, 60000, 97):
-        try:
-            socks = []
-            for r in range(n):
-                s = socket.socket()
-                socks.append(s)
-                s.bind(("127.0.0.1", base + r))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    pytest.skip("no free loopback ports")
+    base = free_port_base(n)
+    if base is None:
+        pytest.skip("no free loopback ports")
+    return base
 
 
 def _drain(tx, want, timeout=5.0):

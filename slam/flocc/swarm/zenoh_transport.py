@@ -23,6 +23,28 @@ from .rendezvous import Schedule
 from .transport import Transport
 
 
+def free_port_base(n: int, start: int = 23000) -> int | None:
+    """A port base whose n ports port_base .. port_base + n - 1 are free on the loopback now (robot K listens on
+    port_base + K), searched from `start` on in steps that spread concurrent callers; None if there is none."""
+    import os
+    import socket
+
+    for base in range(start + os.getpid() % 500 * 13, 60000, 97):
+        socks = []
+        try:
+            for r in range(n):
+                s = socket.socket()
+                socks.append(s)
+                s.bind(("127.0.0.1", base + r))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    return None
+
+
 def zenoh_available() -> bool:
     try:
         import zenoh  # noqa: F401
