@@ -52,6 +52,8 @@ def test_measurements_folder_reads_as_one_team(tmp_path):
                            r".*robot0/measurements.csv:5 has 1"),
     ("not a number", r"robot0/measurements.csv:2: field qw is 'abc', not a number"),
     ("foreign row", r"robot0/measurements.csv:5: fields robot_src,robot_dst are 1,1"),
+    ("short row", r"robot0/measurements.csv:3: 14 fields, the header has 15"),
+    ("empty file", r"robot1/measurements.csv:1: empty file, expected the header robot_src,pose_src"),
 ])
 def test_bad_measurements_name_file_line_and_field(tmp_path, case, expect):
     odo0 = [_row(0, i, 0, i + 1) for i in range(3)]
@@ -71,8 +73,13 @@ def test_bad_measurements_name_file_line_and_field(tmp_path, case, expect):
         kw["rows0"] = [odo0[0].replace(",1.0,", ",abc,", 1)] + odo0[1:] + [loop]
     elif case == "foreign row":
         kw["rows0"] = odo0 + [_row(1, 0, 1, 1)]
+    elif case == "short row":
+        kw["rows0"] = [odo0[0], odo0[1].rsplit(",", 1)[0], odo0[2], loop]
+    folder = _team(tmp_path, **kw)
+    if case == "empty file":
+        (folder / "robot1" / "measurements.csv").write_text("")
     with pytest.raises(InputError, match=expect) as e:
-        read_team([_team(tmp_path, **kw)])
+        read_team([folder])
     assert "\n" not in str(e.value)
 
 
@@ -144,3 +151,21 @@ def test_graph_solve_distributed_on_a_measurements_folder(tmp_path):
                                      "gather_bytes"}
     assert d["distributed"]["robots"] == 2 and d["rejected_loops"] == central["rejected_loops"] == []
     assert d["final_error"] <= central["final_error"] * 1.01 + 1e-9
+
+
+def test_a_disconnected_team_is_solved_per_group_and_reported(tmp_path):
+    """Two robots that never met: each is solved in its own frame (anchored at its first pose), centralised and
+    distributed alike, and the JSON lists the groups."""
+    import json
+
+    from swarmsplat.slam.cli import main
+
+    folder = _team(tmp_path, rows0=[_row(0, i, 0, i + 1) for i in range(3)],
+                   rows1=[_row(1, i, 1, i + 1) for i in range(3)])
+    g = read_team([folder])
+    assert len(g.components()) == 2 and g.anchors() == [robot_key("a", 0), robot_key("b", 0)]
+    for flags, name in (([], "c"), (["--distributed"], "d")):
+        assert main(["graph", "solve", str(folder), "--out", str(tmp_path / f"{name}.g2o"), *flags]) == 0
+        out = json.loads((tmp_path / f"{name}.json").read_text())
+        assert out["final_error"] <= 1e-9 and out["components"] == 2  # odometry alone: nothing to disagree with
+    assert out["distributed"]["groups"] == [[0], [1]]
