@@ -111,7 +111,7 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         tmp = tempfile.mkdtemp(prefix="perf-live-")
         seq, name = load_sequence(generate(Path(tmp), GeneratorConfig.preset("default", agents=1, frames=60))
                                   / "agent_0"), "generated"
-    n = 30 if quick else 90
+    n = min(30 if quick else 90, len(seq))
     msgs = _messages(seq, n)
     rows = []
     for hz in (30.0, 15.0):

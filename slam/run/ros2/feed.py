@@ -3,7 +3,8 @@
 After each step: the frame's pose and TF (if it was tracked); the keyframe path when a keyframe was added, the pose
 graph was optimised or the caller says the map moved (a team server's correction); each submap that finished
 since, as a point cloud of its Gaussian centres with their colour (at most `submap_points`, every k-th); the
-accepted loops when there are more; and every `map_period_s` seconds the whole map (at most `map_points`). Only
+accepted loops when there are more; and every `map_period_s` seconds the whole map (at most `map_points`): the
+finished submaps' points as they were sent, moved to where their frames are now, and the active submap's. Only
 references and small copies are taken on the caller's thread; the clouds are read, decimated and sent by the
 publishers' worker. `publish_s` keeps the caller's time per step (what publishing adds to tracking).
 """
@@ -15,24 +16,46 @@ import time
 import numpy as np
 
 
-def gaussian_points(submaps: list[tuple[object, np.ndarray]], max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz [N, 3] float32 in the world, rgb [N, 3] uint8) of the Gaussian centres of [(submap, T_world_local)],
-    at most `max_points` over all, each submap's share in proportion to its size (every k-th Gaussian)."""
-    sizes = np.array([len(s) for s, _ in submaps], float)
-    total = max(1.0, sizes.sum())
-    xyz, rgb = [], []
-    for (s, T), n in zip(submaps, sizes):
-        if n == 0:
-            continue
-        k = max(1, int(np.ceil(total / max(1, max_points))))
-        p = s.params
-        local = p.means.detach()[::k].cpu().numpy().astype(np.float64)
-        xyz.append((local @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
-        c = p.colors.detach()[::k].cpu().numpy()
-        rgb.append(np.clip(np.rint(c * 255.0), 0, 255).astype(np.uint8))
-    if not xyz:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    return np.concatenate(xyz), np.concatenate(rgb)
+def local_points(submap, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz [N, 3] float32 in the submap's frame, rgb [N, 3] uint8) of every k-th Gaussian centre of `submap`
+    (anything with len() and .params), k the smallest stride that leaves at most `max_points`."""
+    k = max(1, -(-len(submap) // max(1, max_points)))
+    p = submap.params
+    c = p.colors.detach()[::k].cpu().numpy()
+    return (p.means.detach()[::k].cpu().numpy().astype(np.float32),
+            np.clip(np.rint(c * 255.0), 0, 255).astype(np.uint8))
+
+
+class PointCache:
+    """Clouds of Gaussian centres for the publishing thread: a finished submap's points are read (and decoded, if
+    it is stored compactly) once, then only moved to where its frame is now."""
+
+    def __init__(self, submap_points: int = 20_000):
+        self.submap_points = int(submap_points)
+        self._local: dict = {}
+
+    def local(self, key, submap, finished: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        if key in self._local:
+            return self._local[key]
+        pts = local_points(submap, self.submap_points)
+        if finished:
+            self._local[key] = pts
+        return pts
+
+    def world(self, parts: list[tuple], max_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz [N, 3] float32 in the world, rgb [N, 3] uint8) of [(key, submap, T_world_local, finished)], every
+        k-th point of their union so that at most `max_points` remain."""
+        xyz, rgb = [], []
+        for key, submap, T, finished in parts:
+            if len(submap):
+                p, c = self.local(key, submap, finished)
+                xyz.append((p.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
+                rgb.append(c)
+        if not xyz:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+        xyz, rgb = np.concatenate(xyz), np.concatenate(rgb)
+        k = max(1, -(-len(xyz) // max(1, max_points)))
+        return xyz[::k], rgb[::k]
 
 
 def accepted_loops(agent) -> list[tuple[np.ndarray, np.ndarray, str]]:
@@ -50,8 +73,8 @@ class AgentFeed:
     def __init__(self, topics, *, map_period_s: float = 10.0, map_points: int = 100_000,
                  submap_points: int = 20_000, clock=time.monotonic):
         self.topics, self.clock = topics, clock
-        self.map_period_s, self.map_points, self.submap_points = float(map_period_s), int(map_points), \
-            int(submap_points)
+        self.map_period_s, self.map_points = float(map_period_s), int(map_points)
+        self.points = PointCache(submap_points)  # used on the publishing thread only
         self._state = None
         self._submaps_sent = 0
         self._loops = 0
@@ -78,8 +101,8 @@ class AgentFeed:
         finished = len(agent.gmap.submaps) - 1  # all but the active one
         while self._submaps_sent < finished:
             s = agent.gmap.submaps[self._submaps_sent]
-            part = [(s, s.T_world_local.copy())]
-            self.topics.cloud("submap", t, lambda part=part: gaussian_points(part, self.submap_points))
+            part = [(s.id, s, s.T_world_local.copy(), True)]
+            self.topics.cloud("submap", t, lambda part=part: self.points.world(part, self.points.submap_points))
             self._submaps_sent += 1
         n_loops = sum(1 for c in agent.loops.log if c.accepted)
         if n_loops != self._loops:
@@ -89,8 +112,9 @@ class AgentFeed:
     def whole_map(self, agent, t: float) -> None:
         """The whole map now (queued: the newest request wins)."""
         self._map_at = self.clock()
-        part = [(s, s.T_world_local.copy()) for s in agent.gmap.submaps]
-        self.topics.cloud("map", t, lambda: gaussian_points(part, self.map_points))
+        last = len(agent.gmap.submaps) - 1
+        part = [(s.id, s, s.T_world_local.copy(), i < last) for i, s in enumerate(agent.gmap.submaps)]
+        self.topics.cloud("map", t, lambda: self.points.world(part, self.map_points))
 
     def finish(self, agent, t: float, timeout: float = 10.0) -> None:
         """At the end: the last path, submaps and loops, the whole map, and wait (up to `timeout` s) until sent."""

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from .feed import gaussian_points
+from .feed import PointCache
 
 
 class _Received:
@@ -35,6 +35,7 @@ class TeamFeed:
     def __init__(self, topics, *, map_period_s: float = 10.0, map_points: int = 200_000, clock=time.monotonic):
         self.topics, self.clock = topics, clock
         self.map_period_s, self.map_points = float(map_period_s), int(map_points)
+        self.points = PointCache()  # used on the publishing thread only
         self._state = None
         self._loops = 0
         self._map_at = clock()
@@ -88,11 +89,12 @@ class TeamFeed:
             sms = team.agents[a].gmap.submaps
             for sid, sd in sorted(p.submaps.items()):
                 if sid < len(sms):
-                    part.append((_Received(sd), self._global(srv, a) @ sms[sid].T_world_local))
-        state = tuple((id(s.data), T.tobytes()) for s, T in part)
+                    part.append(((a, sid, id(sd)), _Received(sd), self._global(srv, a) @ sms[sid].T_world_local,
+                                 True))
+        state = tuple((key, T.tobytes()) for key, _, T, _ in part)
         if part and state != self._map_state:  # nothing new: nothing sent again
             self._map_state = state
-            self.topics.map(self._stamp(team), lambda: gaussian_points(part, self.map_points))
+            self.topics.map(self._stamp(team), lambda: self.points.world(part, self.map_points))
 
     def finish(self, node, timeout: float = 10.0) -> None:
         """At the end: the last trajectories and loops, the merged map, and wait (up to `timeout` s) until sent."""
