@@ -149,3 +149,21 @@ def test_loop_scales_move_with_either_robot_of_the_loop():
         ref = solve(build_problem(g, formulation, initial_poses=P0), "lm")
         res = solve_distributed(g, Settings(formulation=formulation), initial_poses=P0, max_rounds=40)
         assert res.rounds_to(ref.final_error, 0.001) is not None, formulation
+
+
+def test_every_robot_starts_gnc_at_the_teams_smallest_mu():
+    """GNC's initial mu is the smallest over all loops (the centralised GNC's), relayed: on blocks_world's 9 robots
+    (a 3 x 3 grid) the robot that proposes it is no neighbour of most others, and every robot must still hold it."""
+    from scipy.stats import chi2
+
+    from swarmsplat.graph.distributed.team import Team
+    from swarmsplat.graph.team_files import read_team
+
+    g = read_team([shared_data("dgs_multirobot", "blocks_world", "9robots")])
+    team = Team(g, Settings())  # from the files' poses: loops far from agreeing, so every robot proposes a mu
+    team.start()
+    barc = 0.5 * float(chi2.ppf(0.99, 6))
+    mu = team.agree_mu0(barc)
+    own = [rob.mu0[rob.robot] for rob in team.robots.values()]
+    smallest = min(v for v in own if v > 0)
+    assert len(set(own)) > 1 and set(mu.values()) == {max(smallest, 1e-6)}

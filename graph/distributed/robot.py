@@ -76,7 +76,7 @@ class RobotSolver:
         self.shared = settings.shared_s0
         self.shared_stamp = 0
         self.terms: dict[int, tuple[float, float]] = {}  # robot -> its shared-scale (g, H)
-        self.mu0: dict[int, float] = {}  # robot -> its GNC mu0 proposal
+        self.mu0: dict[int, float] = {}  # robot -> the smallest GNC mu0 proposal it has heard of
         self.still = False
         self.omega = 1.0  # over-relaxation in use when relax is 0 (_adapt)
         self._steps: list[float] = []
@@ -206,7 +206,7 @@ class RobotSolver:
                 m.flags |= FLAG_SCALARS
                 g, h = self.terms.get(self.robot, (0.0, 0.0))
                 m.shared_g, m.shared_h, m.shared_s, m.shared_stamp = g, h, self.shared, self.shared_stamp
-                m.mu0 = self.mu0.get(self.robot, 0.0)
+                m.mu0 = self.team_mu0()  # the smallest proposal heard: relayed, it reaches every robot
         return out
 
     def _sent_loops(self, q: int, sender: int) -> tuple[list[int], list[int]]:

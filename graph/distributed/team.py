@@ -173,6 +173,18 @@ class Team:
         self.still_rounds = self.still_rounds + 1 if still else 0
         return self.still_rounds >= 2
 
+    def agree_mu0(self, barc: float) -> dict[int, float]:
+        """GNC's initial mu: each robot proposes one from its own loops and relays the smallest it has heard with
+        its estimates, as many times as there are robots, so that every robot of a group ends with the group's
+        smallest (the centralised GNC's) even when the robot that proposed it is no neighbour of its own."""
+        for rob in self.robots.values():
+            rob.propose_mu0(barc)
+        for _ in range(len(self.robots)):
+            for rob in self.robots.values():
+                self.send(rob.messages(scalars=True))
+            self.deliver()
+        return {r: rob.team_mu0() for r, rob in self.robots.items()}
+
     def record(self) -> None:
         self.history.append(self.cost())
         self.bytes_history.append(self.bytes_total)
@@ -233,12 +245,7 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
     k = 0
     if solver == "gnc":
         barc = 0.5 * float(chi2.ppf(probability, 3 if graph.is_2d else 6))
-        for rob in team.robots.values():
-            rob.propose_mu0(barc)
-        for rob in team.robots.values():
-            team.send(rob.messages(scalars=True))
-        team.deliver()
-        mu = {r: rob.team_mu0() for r, rob in team.robots.items()}
+        mu = team.agree_mu0(barc)
         if max(mu.values()) > 0:
             for k in range(1, max_gnc + 1):
                 for r, rob in team.robots.items():
