@@ -89,8 +89,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     check_device(cfg.kernels, [camera], cfg.image.max_width)  # a device that computes wrongly stops here
     agent = Agent(camera, cfg, name=source.name)
     journal = PoseJournal(out / JOURNAL)  # a hard kill keeps every pose up to the last keyframe
-    latency: list[float] = []
-    overhead: list[float] = []
+    frames: list[tuple] = []  # per published pose: (arrival, taken from the queue, agent's step s, handed over)
     t0 = time.perf_counter()
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason,
                                                     n_frames=len(agent.poses), wall_s=time.perf_counter() - t0))
@@ -108,9 +107,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
             if feed is not None:
                 feed.step(agent, frame.timestamp, rec)
                 if rec is not None:
-                    done = time.monotonic()
-                    latency.append(done - arrival)
-                    overhead.append(done - taken - step)  # decoding and publishing: what the agent adds to tracking
+                    frames.append((arrival, taken, step, time.monotonic()))
             t_last = frame.timestamp
             b.update(1, f"{len(agent.gmap)} Gaussians")
         if stop.requested:
@@ -121,6 +118,11 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
             reason = f"no sample for {idle_timeout:g} s"
     if feed is not None:
         feed.finish(agent, t_last)  # the last path, submaps, loops and the whole map
+    # a pose is published when its thread sent it (in order); without that record, when it was handed over
+    sent = getattr(publisher, "pose_sent_at", None)
+    done = sent if sent is not None and len(sent) == len(frames) else [f[3] for f in frames]
+    latency = [d - f[0] for f, d in zip(frames, done)]
+    overhead = [d - f[1] - f[2] for f, d in zip(frames, done)]  # decoding and publishing, beyond the agent
     wall = time.perf_counter() - t0
     stamps, T_est = agent.trajectory()
     if len(stamps):

@@ -52,9 +52,12 @@ def check_name(kind: str, name: str) -> str:
 
 
 class Ros2Publisher:
-    """One topic's publisher. `put(msg)` serialises and sends; `put_bytes(cdr)` sends CDR bytes as they are."""
+    """One topic's publisher. `put(msg)` serialises and sends; `put_bytes(cdr)` sends CDR bytes as they are.
+    `priority` is Zenoh's (a name of zenoh.Priority: a link sends higher priorities first, so small pose messages
+    do not queue behind a large cloud); `blocking` waits for a congested link instead of dropping."""
 
-    def __init__(self, node: Ros2Node, topic: str, msgtype: str, qos: Qos, entity_id: int):
+    def __init__(self, node: Ros2Node, topic: str, msgtype: str, qos: Qos, entity_id: int, *,
+                 priority: str = "DATA", blocking: bool = False):
         import zenoh
 
         self.topic, self.msgtype, self.qos = topic, msgtype, qos
@@ -71,10 +74,12 @@ class Ros2Publisher:
         else:
             self.key = keys.bridge_key(topic, node.prefix)
             self.gid, self._token = b"", None
-        # DROP: a slow subscriber never blocks the publisher (rmw_zenoh does the same for keep-last history)
-        self._pub = s.declare_publisher(self.key, congestion_control=zenoh.CongestionControl.DROP,
-                                        reliability=zenoh.Reliability.RELIABLE if qos.reliable
-                                        else zenoh.Reliability.BEST_EFFORT)
+        # DROP: a slow subscriber never blocks the caller (rmw_zenoh does the same for keep-last history); BLOCK for
+        # a publisher that is used from a thread of its own, where waiting costs no one
+        self._pub = s.declare_publisher(
+            self.key, congestion_control=zenoh.CongestionControl.BLOCK if blocking else zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT,
+            priority=getattr(zenoh.Priority, priority))
 
     def put(self, msg) -> None:
         self.put_bytes(serialize(msg))
@@ -117,10 +122,12 @@ class Ros2Node:
             self._tokens.append(session.liveliness().declare_token(
                 keys.node_token(self.domain, self.zid, self.node_id, self.namespace, self.name)))
 
-    def publisher(self, topic: str, msgtype: str, qos: Qos = Qos()) -> Ros2Publisher:
+    def publisher(self, topic: str, msgtype: str, qos: Qos = Qos(), *, priority: str = "DATA",
+                  blocking: bool = False) -> Ros2Publisher:
         if self.form == "rmw":  # a bridge key is any Zenoh key
             check_name("topic", topic)
-        pub = Ros2Publisher(self, "/" + topic.strip("/"), msgtype, qos, next(self._entities))
+        pub = Ros2Publisher(self, "/" + topic.strip("/"), msgtype, qos, next(self._entities), priority=priority,
+                            blocking=blocking)
         self.publishers.append(pub)
         return pub
 

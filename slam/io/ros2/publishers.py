@@ -12,9 +12,11 @@ An agent NAME (AgentTopics):
 The team server (TeamTopics): /swarmsplat/team/<agent>/path per agent, /swarmsplat/team/map,
 /swarmsplat/team/loops, the same types and QoS.
 
-Poses and TF go out on the caller's thread (a few hundred microseconds); paths, clouds and markers are built and
-sent by a worker thread from a queue that keeps the newest of each (every finished submap, up to 32 waiting), so a
-map message never holds up tracking. A slow subscriber never blocks either: Zenoh drops rather than waits.
+The caller's thread only queues (tens of microseconds): poses and TF are built and sent, every one in order, by
+one thread; paths, clouds and markers by another, from a queue that keeps the newest of each (every finished
+submap, up to 32 waiting), so a map message never holds up tracking, nor a pose. Poses and TF go at a higher Zenoh priority than clouds (a link sends them
+first) and are dropped rather than wait for a congested link; the worker waits instead (what it sends arrives,
+at no cost to tracking).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import collections
 import contextlib
 import re
 import threading
+import time
 
 import numpy as np
 
@@ -36,6 +39,10 @@ TYPES = {"pose": "geometry_msgs/msg/PoseStamped", "tf": "tf2_msgs/msg/TFMessage"
          "loops": "visualization_msgs/msg/MarkerArray"}
 QOS = {"pose": POSE_QOS, "tf": TF_QOS, "path": LATEST_QOS, "submap": SUBMAP_QOS, "map": LATEST_QOS,
        "loops": LATEST_QOS}
+# Zenoh priorities: per-frame messages first, clouds last; the queued kinds are sent by the worker, which may wait
+PRIORITY = {"pose": "DATA_HIGH", "tf": "DATA_HIGH", "path": "DATA", "loops": "DATA", "submap": "DATA_LOW",
+            "map": "DATA_LOW"}
+QUEUED = ("path", "submap", "map", "loops")
 
 
 def ros_token(name: str) -> str:
@@ -44,93 +51,118 @@ def ros_token(name: str) -> str:
     return t if t and not t[0].isdigit() else "_" + t
 
 
-def decimate(xyz: np.ndarray, rgb: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every k-th point, k the smallest stride that leaves at most `max_points` (deterministic)."""
-    k = max(1, -(-len(xyz) // max(1, max_points)))
-    return xyz[::k], rgb[::k]
+class _Lane:
+    """A queue and the thread that empties it: `put(role, build)` queues `build()` -> message for topic `role`,
+    keeping only the newest waiting one per role unless `keep_all` (then up to `max_waiting`, oldest out first)."""
+
+    def __init__(self, name: str, send, max_waiting: int):
+        self.send = send  # send(role, msg)
+        self.fifo: collections.deque = collections.deque(maxlen=max_waiting)
+        self.latest: dict = {}
+        self.superseded: collections.Counter = collections.Counter()
+        self.failed = 0
+        self.cv = threading.Condition()
+        self.busy = self.held = self.stop = False
+        self.thread = threading.Thread(target=self._work, name=name, daemon=True)
+        self.thread.start()
+
+    def put(self, role: str, build, keep_all: bool) -> None:
+        with self.cv:
+            if keep_all:
+                if len(self.fifo) == self.fifo.maxlen:
+                    self.superseded[self.fifo[0][0]] += 1
+                self.fifo.append((role, build))
+            else:
+                if role in self.latest:
+                    self.superseded[role] += 1
+                self.latest[role] = build
+            if not self.held:
+                self.cv.notify()
+
+    def release(self) -> None:
+        with self.cv:
+            self.held = False
+            self.cv.notify()
+
+    def _work(self) -> None:
+        while True:
+            with self.cv:
+                self.cv.wait_for(lambda: (self.fifo or self.latest) and not self.held or self.stop)
+                if self.fifo:
+                    role, build = self.fifo.popleft()
+                elif self.latest:
+                    role = next(iter(self.latest))
+                    build = self.latest.pop(role)
+                else:
+                    return
+                self.busy = True
+            try:
+                msg = build()
+                if msg is not None:
+                    self.send(role, msg)
+            except Exception:  # noqa: BLE001 - a message that cannot be built or sent must not end the publishing
+                self.failed += 1
+            finally:
+                with self.cv:
+                    self.busy = False
+                    self.cv.notify_all()
+
+    def flush(self, timeout: float) -> bool:
+        with self.cv:
+            return self.cv.wait_for(lambda: not (self.fifo or self.latest or self.busy), timeout=timeout)
+
+    def close(self) -> None:
+        with self.cv:
+            self.stop = True
+            self.cv.notify_all()
+        self.thread.join(timeout=2.0)
 
 
 class Topics:
-    """Publishers of one node, and the worker that sends what may wait. `stats()`: messages sent per topic, queued
-    ones superseded by a newer one before they went, failures."""
+    """Publishers of one node, and two threads that build and send their messages: one for the per-frame messages
+    (every one, in order), one for those that may wait (the newest of each; see _Lane). The caller's thread only
+    queues. `stats()`: messages sent per topic, queued ones superseded by a newer one before they went, failures."""
 
     def __init__(self, node, topics: dict[str, str], *, frame: str = "map", max_waiting: int = 32):
         self.node, self.frame, self.ty = node, frame, store().types
         self.topics = dict(topics)
         self._pubs: dict[str, object] = {}
         self.sent: collections.Counter = collections.Counter()
-        self.superseded: collections.Counter = collections.Counter()
-        self.failed = 0
-        self._latest: dict[str, tuple] = {}  # role -> (topic kind, build)
-        self._fifo: collections.deque = collections.deque(maxlen=max_waiting)
-        self._cv = threading.Condition()
-        self._busy = False
-        self._held = False
-        self._stop = False
-        self._worker = threading.Thread(target=self._work, name="ros2-publish", daemon=True)
-        self._worker.start()
+        self._fast = _Lane("ros2-publish-frames", self._send, 1000)
+        self._slow = _Lane("ros2-publish-maps", self._send, max_waiting)
+
+    def _send(self, role: str, msg) -> None:
+        self._pubs[role].put(msg)
+        self.sent[role] += 1
 
     def publisher(self, role: str, kind: str | None = None):
         """The publisher of topic `role` (its type and QoS from `kind`, default the role up to a colon)."""
         if role not in self._pubs:
             kind = kind or role.split(":")[0]
-            self._pubs[role] = self.node.publisher(self.topics[role], TYPES[kind], QOS[kind])
+            self._pubs[role] = self.node.publisher(self.topics[role], TYPES[kind], QOS[kind], priority=PRIORITY[kind],
+                                                   blocking=kind in QUEUED)
         return self._pubs[role]
 
-    def now(self, role: str, msg, kind: str | None = None) -> None:
-        self.publisher(role, kind).put(msg)
-        self.sent[role] += 1
+    def soon(self, role: str, build, kind: str | None = None) -> None:
+        """Queue `build()` -> message for topic `role` on the per-frame thread (every one is sent, in order)."""
+        self.publisher(role, kind)
+        self._fast.put(role, build, keep_all=True)
 
     def later(self, role: str, build, *, kind: str | None = None, keep_all: bool = False) -> None:
         """Queue `build()` -> message for topic `role`; only the newest waiting one goes unless `keep_all`."""
         self.publisher(role, kind)  # announced now, so subscribers can match before the first message
-        with self._cv:
-            if keep_all:
-                if len(self._fifo) == self._fifo.maxlen:
-                    self.superseded[self._fifo[0][0]] += 1
-                self._fifo.append((role, build))
-            else:
-                if role in self._latest:
-                    self.superseded[role] += 1
-                self._latest[role] = build
-            if not self._held:
-                self._cv.notify()
+        self._slow.put(role, build, keep_all)
 
     @contextlib.contextmanager
     def held(self):
-        """Queue without waking the worker until the block ends: the worker takes the interpreter (GIL) from
-        the caller only once the caller's publishing is done."""
-        self._held = True
+        """Queue without waking the threads until the block ends: they take the interpreter (GIL) from the caller
+        only once the caller's publishing is done."""
+        self._fast.held = self._slow.held = True
         try:
             yield self
         finally:
-            with self._cv:
-                self._held = False
-                self._cv.notify()
-
-    def _work(self) -> None:
-        while True:
-            with self._cv:
-                self._cv.wait_for(lambda: (self._fifo or self._latest) and not self._held or self._stop)
-                if self._fifo:
-                    role, build = self._fifo.popleft()
-                elif self._latest:
-                    role = next(iter(self._latest))
-                    build = self._latest.pop(role)
-                else:
-                    return
-                self._busy = True
-            try:
-                msg = build()
-                if msg is not None:
-                    self._pubs[role].put(msg)
-                    self.sent[role] += 1
-            except Exception:  # noqa: BLE001 - a message that cannot be built must not end the publishing
-                self.failed += 1
-            finally:
-                with self._cv:
-                    self._busy = False
-                    self._cv.notify_all()
+            self._fast.release()
+            self._slow.release()
 
     def path(self, stamps: np.ndarray, T_world_cam: np.ndarray, role: str = "path") -> None:
         """A trajectory as nav_msgs/Path on `role` (queued; copies are taken now)."""
@@ -153,20 +185,19 @@ class Topics:
 
     def flush(self, timeout: float = 10.0) -> bool:
         """Wait until everything queued has gone (True) or `timeout` s passed (False)."""
-        with self._cv:
-            return self._cv.wait_for(lambda: not (self._fifo or self._latest or self._busy), timeout=timeout)
+        t_end = time.monotonic() + timeout
+        return self._fast.flush(timeout) and self._slow.flush(max(0.0, t_end - time.monotonic()))
 
     def stats(self) -> dict:
-        return {"sent": dict(self.sent), "superseded": dict(self.superseded), "failed": self.failed,
+        return {"sent": dict(self.sent), "superseded": dict(self._fast.superseded + self._slow.superseded),
+                "failed": self._fast.failed + self._slow.failed,
                 "topics": {r: t for r, t in self.topics.items() if r in self._pubs}}
 
     def close(self, timeout: float = 10.0) -> None:
-        """Send what waits (up to `timeout` s), then stop the worker and undeclare the publishers."""
+        """Send what waits (up to `timeout` s), then stop the threads and undeclare the publishers."""
         self.flush(timeout)
-        with self._cv:
-            self._stop = True
-            self._cv.notify_all()
-        self._worker.join(timeout=2.0)
+        self._fast.close()
+        self._slow.close()
         for p in self._pubs.values():
             p.close()
         self._pubs = {}
@@ -181,8 +212,14 @@ class AgentTopics(Topics):
         default = {r: f"{base.rstrip('/')}/{name}/{r}" for r in ("pose", "path", "submap", "map", "loops")}
         super().__init__(node, {**default, "tf": "/tf", **(topics or {})}, frame=frame)
         self.child_frame = f"{name}/camera"
+        self.pose_sent_at: list[float] = []  # time.monotonic() at which each pose was sent
         for role in self.topics:  # all announced now: the ROS graph shows them before their first message
             self.publisher(role)
+
+    def _send(self, role: str, msg) -> None:
+        super()._send(role, msg)
+        if role == "pose":
+            self.pose_sent_at.append(time.monotonic())
 
     @property
     def published(self) -> int:
@@ -190,9 +227,10 @@ class AgentTopics(Topics):
         return self.sent["pose"]
 
     def pose(self, t: float, T_world_cam: np.ndarray) -> None:
-        """The frame's pose and its TF map -> <agent>/camera, now."""
-        self.now("pose", M.pose_stamped(self.ty, t, T_world_cam, self.frame))
-        self.now("tf", M.tf(self.ty, t, [(T_world_cam, self.frame, self.child_frame)]))
+        """The frame's pose and its TF map -> <agent>/camera (queued for the per-frame thread)."""
+        T = np.array(T_world_cam, float)
+        self.soon("pose", lambda: M.pose_stamped(self.ty, t, T, self.frame))
+        self.soon("tf", lambda: M.tf(self.ty, t, [(T, self.frame, self.child_frame)]))
 
 
 class TeamTopics(Topics):

@@ -85,9 +85,9 @@ class AgentFeed:
         """After `agent` stepped on the frame at time t (rec: its FramePose, None if untracked); `moved` changes
         when something outside the agent moved its map (a team server's corrections)."""
         t0 = time.perf_counter()
-        if rec is not None:
-            self.topics.pose(t, agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam)
-        with self.topics.held():  # the worker starts on what is queued once this returns
+        with self.topics.held():  # the publishing threads start on what is queued once this returns
+            if rec is not None:
+                self.topics.pose(t, agent.gmap.submaps[rec.submap_id].T_world_local @ rec.T_local_cam)
             self._follow(agent, t, moved)
             if self.map_period_s > 0 and self.clock() - self._map_at >= self.map_period_s:
                 self.whole_map(agent, t)
