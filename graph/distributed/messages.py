@@ -9,7 +9,8 @@ and weights in that of the pair's loops the sender owns (only when GNC runs).
 
 Wire format (little-endian, no pickle): a 23-byte header (magic, sender, recipient, stamp, counts, flags), then
 the poses as 6 float32 (rotation vector, translation) = 24 bytes each, scales and weights as float32, and with
-FLAG_SCALARS four float64 and a uint32 stamp. float32 rounds a position 1 km from the origin by ~30 µm, far
+FLAG_SCALARS four float64 and a uint32 stamp, then a uint16 count of relayed terms, each robot (uint8), stamp
+(uint32), g and H (float64): the shared scale's terms of robots that are not the recipient's neighbours. float32 rounds a position 1 km from the origin by ~30 µm, far
 below any loop's noise; the sender keeps its own estimate in float64. Bytes that do not decode raise InputError; the transport drops
 them, and a robot drops an estimate whose counts are not those it expects.
 """
@@ -28,6 +29,8 @@ from .. import lie
 MAGIC = b"DPG1"
 _HEAD = struct.Struct("<4sBBIIIIB")
 _SCALARS = struct.Struct("<ddddI")
+_COUNT = struct.Struct("<H")
+_RELAYED = struct.Struct("<BIdd")  # robot, the stamp of its terms, its shared-scale g and H
 FLAG_SCALARS = 1  # the consensus scalars follow
 FLAG_STILL = 2  # the sender's last step moved its poses by less than the tolerance
 FLAG_BINARY = 4  # every GNC weight the sender owns is 0 or 1
@@ -50,6 +53,7 @@ class Estimate:
     shared_s: float = 0.0
     mu0: float = 0.0
     shared_stamp: int = 0
+    relayed: list = field(default_factory=list)  # [(robot, stamp, g, H)]: other robots' terms, passed on
 
     def to_bytes(self) -> bytes:
         P, S, W = len(self.poses), len(self.scales), len(self.weights)
@@ -59,6 +63,8 @@ class Estimate:
                np.asarray(self.weights, "<f4").tobytes()]
         if self.flags & FLAG_SCALARS:
             out.append(_SCALARS.pack(self.shared_g, self.shared_h, self.shared_s, self.mu0, self.shared_stamp))
+            out.append(_COUNT.pack(len(self.relayed)))
+            out += [_RELAYED.pack(*r) for r in self.relayed]
         return b"".join(out)
 
     @classmethod
@@ -68,7 +74,13 @@ class Estimate:
         magic, sender, recipient, stamp, P, S, W, flags = _HEAD.unpack_from(data)
         if magic != MAGIC:
             raise InputError("distributed estimate: wrong magic")
-        size = _HEAD.size + P * POSE_BYTES + 4 * (S + W) + (_SCALARS.size if flags & FLAG_SCALARS else 0)
+        size = _HEAD.size + P * POSE_BYTES + 4 * (S + W)
+        n_relayed = 0
+        if flags & FLAG_SCALARS:
+            size += _SCALARS.size + _COUNT.size
+            if len(data) >= size:
+                n_relayed = _COUNT.unpack_from(data, size - _COUNT.size)[0]
+                size += n_relayed * _RELAYED.size
         if len(data) != size:
             raise InputError(f"distributed estimate: {len(data)} bytes, expected {size}")
         o = _HEAD.size
@@ -90,4 +102,8 @@ class Estimate:
         msg = cls(sender, recipient, stamp, T, s, w, flags)
         if flags & FLAG_SCALARS:
             msg.shared_g, msg.shared_h, msg.shared_s, msg.mu0, msg.shared_stamp = _SCALARS.unpack_from(data, o)
+            o += _SCALARS.size + _COUNT.size
+            msg.relayed = [_RELAYED.unpack_from(data, o + i * _RELAYED.size) for i in range(n_relayed)]
+            if not all(np.isfinite(r[2:]).all() for r in msg.relayed):
+                raise InputError("distributed estimate: non-finite value")
         return msg

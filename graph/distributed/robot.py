@@ -75,7 +75,8 @@ class RobotSolver:
         self.weights = {n: 1.0 for n, e in zip(self.edge_ids, self.edges) if e.kind != "odometry"}
         self.shared = settings.shared_s0
         self.shared_stamp = 0
-        self.terms: dict[int, tuple[float, float]] = {}  # robot -> its shared-scale (g, H)
+        self.terms: dict[int, tuple[float, float]] = {}  # robot -> its shared-scale (g, H), relayed to all
+        self.term_stamp: dict[int, int] = {}  # robot -> the stamp of the step its terms come from
         self.mu0: dict[int, float] = {}  # robot -> the smallest GNC mu0 proposal it has heard of
         self.still = False
         self.omega = 1.0  # over-relaxation in use when relax is 0 (_adapt)
@@ -154,6 +155,7 @@ class RobotSolver:
         self.still = drop <= self.settings.still_tol * max(res.initial_error, 1e-300)
         if self.settings.formulation == "shared" and problem.scale_loops is not None:
             self.terms[self.robot] = self._shared_terms(problem, res.values, weights, ids)
+            self.term_stamp[self.robot] = self.stamp
             if self.is_keeper():
                 self._shared_newton()
         return self.messages()
@@ -196,7 +198,7 @@ class RobotSolver:
                 msg.weights = np.array([self.weights.get(n, 1.0) for n in wt])
             out.append(msg)
         if scalars:
-            for q in sorted(set(self.part.neighbours) | set(self.heard) | set(self.terms)):
+            for q in sorted(set(self.part.neighbours) | set(self.heard)):
                 if q == self.robot:
                     continue
                 m = next((m for m in out if m.recipient == q), None)
@@ -207,6 +209,8 @@ class RobotSolver:
                 g, h = self.terms.get(self.robot, (0.0, 0.0))
                 m.shared_g, m.shared_h, m.shared_s, m.shared_stamp = g, h, self.shared, self.shared_stamp
                 m.mu0 = self.team_mu0()  # the smallest proposal heard: relayed, it reaches every robot
+                m.relayed = [(r, self.term_stamp[r], *self.terms[r]) for r in sorted(self.terms)
+                             if r not in (self.robot, q)]
         return out
 
     def _sent_loops(self, q: int, sender: int) -> tuple[list[int], list[int]]:
@@ -227,7 +231,9 @@ class RobotSolver:
             return False
         self.heard[q] = self.stamp
         if msg.flags & FLAG_SCALARS:
-            self.terms[q] = (msg.shared_g, msg.shared_h)
+            for r, stamp, g, h in [(q, msg.stamp, msg.shared_g, msg.shared_h)] + list(msg.relayed):
+                if r != self.robot and stamp >= self.term_stamp.get(r, -1):
+                    self.terms[r], self.term_stamp[r] = (g, h), stamp
             if msg.mu0:
                 self.mu0[q] = msg.mu0
             if msg.shared_stamp > self.shared_stamp:
@@ -254,11 +260,19 @@ class RobotSolver:
 
     # --------------------------------------------------------------------------------------- shared scale
     def is_keeper(self, alive: set[int] | None = None) -> bool:
-        """The lowest-numbered robot among those heard recently keeps the shared scale."""
-        recent = {q for q, t in self.heard.items() if self.stamp - t <= 3} if alive is None else alive
+        """The lowest-numbered robot among those heard of recently (directly, or through relayed terms) keeps the
+        shared scale."""
+        if alive is None:
+            lag = 3 + len(self.term_stamp)  # relayed terms are a hop behind per robot on the way
+            recent = {q for q, t in self.heard.items() if self.stamp - t <= 3}
+            recent |= {q for q, s in self.term_stamp.items() if s >= self.stamp - lag}
+        else:
+            recent = alive
         return all(self.robot < q for q in recent if q != self.robot)
 
     def _shared_terms(self, problem, values, weights, ids) -> tuple[float, float]:
+        """This robot's consensus terms for the shared scale: gradient and Gauss-Newton curvature of its owned loops'
+        cost in it (each loop counted once in the team's sum)."""
         sl = problem.scale_loops
         own = np.array([ids[int(m)] in self.part.owned for m in sl.edge])
         if not own.any():
