@@ -54,14 +54,14 @@ def test_distributed_lm_reaches_the_centralised_optimum(tiny, formulation):
 
 def test_adaptive_over_relaxation_speeds_up_a_chain_of_robots():
     """DGS's blocks_world, 16 robots of 8 poses in a chain: plain block-coordinate descent is 1 % above the
-    optimum after 56 rounds; with omega adapted to each robot's rate of convergence, within 1 % in at most 20."""
+    optimum after 56 rounds; with omega adapted to each robot's rate of convergence, within 1 % in 19 (25 allowed)."""
     from swarmsplat.graph.init import initialize
     from swarmsplat.graph.team_files import read_team
 
     g = read_team([shared_data("dgs_multirobot", "blocks_world", "16robots")])
     P0, _ = initialize(g, "best")
     ref = solve(build_problem(g, "base", initial_poses=P0), "lm")
-    res = solve_distributed(g, Settings(), initial_poses=P0, max_rounds=20)
+    res = solve_distributed(g, Settings(), initial_poses=P0, max_rounds=25)
     assert res.rounds_to(ref.final_error, 0.01) is not None
 
 
