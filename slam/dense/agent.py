@@ -88,6 +88,7 @@ class Agent:
             T_local_cam = self._maybe_start_submap(T_local_cam)
             kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
             self._map(kf)
+            self.tracker.exposure = kf.exposure  # the next frames are aligned to the map as this camera saw it
             t2 = time.perf_counter()
             self._detect_loops(kf)
             self.time.mapping += t2 - t1

@@ -88,12 +88,17 @@ class RefineInfo:
         return self.final.score / max(self.start.score, 1e-300)
 
 
-def model_view(params: GaussianParams, T_local_cam: np.ndarray, camera, *, alpha_min: float) -> RGBD:
+def model_view(params: GaussianParams, T_local_cam: np.ndarray, camera, *, alpha_min: float,
+               exposure: np.ndarray | None = None) -> RGBD:
     """The submap `params` seen from T_local_cam [4, 4] (camera-to-local) through `camera`, as an RGB-D frame:
-    composited colour (uint8) and alpha-weighted depth D̂ (metres), depth 0 where alpha < alpha_min."""
+    composited colour (uint8; as a camera of `exposure` sees it, slam.dense.mapping.exposure) and alpha-weighted
+    depth D̂ (metres), depth 0 where alpha < alpha_min."""
+    from swarmsplat.slam.dense.mapping.exposure import apply
+
     with torch.no_grad():
         out = render(params, torch.as_tensor(se3.inverse(T_local_cam), dtype=torch.float32), camera)
-    color = (out.color.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        c = apply(out.color, out.alpha, exposure)
+    color = (c.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
     depth = torch.where(out.alpha >= alpha_min, out.depth, torch.zeros_like(out.depth))
     return RGBD(color, depth.cpu().numpy().astype(np.float32), camera)
 
@@ -233,6 +238,8 @@ def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: Tracking
 class Tracker:
     """Keeps the previous frame for the coarse stage and a constant-velocity fallback."""
 
+    exposure: np.ndarray | None = None  # (set per instance; the class default serves trackers pickled before it)
+
     def __init__(self, cfg: TrackingConfig, *, max_depth: float = 10.0):
         self.cfg = cfg
         self.max_depth = max_depth
@@ -253,6 +260,9 @@ class Tracker:
         self.refines_skipped = 0  # frames posed without the refinement for the deadline
         self._refine_s: collections.deque[float] = collections.deque(maxlen=20)  # s, the last refinements
         self._skipped_last = False
+        # the exposure of the keyframe the model view is rendered for (slam.dense.mapping.exposure; None: no
+        # model): frames are aligned to the map as that camera saw it, not to the map's own colours
+        self.exposure: np.ndarray | None = None
 
     def reset_frame(self, T_new_old: np.ndarray) -> None:
         """Re-express the stored previous pose after the active submap's frame changes (new submap)."""
@@ -330,15 +340,17 @@ class Tracker:
         With `debias_view` the returned pose is where that keyframe aligns to the view (its self-check below),
         so a view offset from its keyframe by B gives T_local_view = T_keyframe @ inv(B)."""
         if self._view is None or self._view[0] is not params:
-            self._view = self.build_view(params, camera, self._prev, self._prev_pose)
+            self._view = self.build_view(params, camera, self._prev, self._prev_pose, self.exposure)
         return self._view[1], self._view[2]
 
-    def build_view(self, params: GaussianParams, camera, keyframe: RGBD, T_local_kf: np.ndarray) -> tuple:
+    def build_view(self, params: GaussianParams, camera, keyframe: RGBD, T_local_kf: np.ndarray,
+                   exposure: np.ndarray | None = None) -> tuple:
         """The model view of `params` rendered through `camera` at T_local_kf [4, 4], the pose of the keyframe
         `keyframe` it was mapped from, checked (and with `debias_view` placed) by that keyframe's own alignment to
         it: (params, T_local_view, view, its ModelTarget), what `view_of` keeps. Reads only the configuration
-        (slam.run.realtime builds views on its mapping thread and hands them over with `use_view`)."""
-        view = model_view(params.detached(), T_local_kf, camera, alpha_min=self.cfg.alpha_min)
+        (slam.run.realtime builds views on its mapping thread and hands them over with `use_view`). `exposure`:
+        the keyframe's (slam.dense.mapping.exposure), so the view shows the map as that camera saw it."""
+        view = model_view(params.detached(), T_local_kf, camera, alpha_min=self.cfg.alpha_min, exposure=exposure)
         target = ModelTarget(view, refine_strides(self.cfg), max_depth=self.max_depth)
         B = self._view_bias(view, target, keyframe)
         T_view = T_local_kf.copy()

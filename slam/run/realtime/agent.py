@@ -222,7 +222,8 @@ class RealtimeAgent(Agent):
         view = None
         tc = self.cfg.tracking
         if tc.refine and tc.method == "gauss_newton" and tc.iterations > 0 and len(params):
-            view = self.tracker.build_view(params, frame.resized(tc.refine_max_width).camera, frame, kf.T_local_cam)
+            view = self.tracker.build_view(params, frame.resized(tc.refine_max_width).camera, frame, kf.T_local_cam,
+                                           kf.exposure)
         with self._lock:
             self._handover = (kf.submap_id, params, view, frame, kf.T_local_cam)
         t1 = time.perf_counter()
