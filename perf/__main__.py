@@ -32,6 +32,7 @@ SUBJECTS = {
     "placerec": ".place_recognition",
     "bags": ".bags",
     "live": ".live",
+    "live-team": ".live_team",
     "long-run": ".long_run",
     "loop-graph": ".loop_graph",
     "distributed": ".distributed",

@@ -110,8 +110,8 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     assert team["link"]["agents"]["robot_b"]["bytes_total"] > 0 and not team["link"]["lost_agents"]
     # the team server published, the way rmw_zenoh does, every agent's corrected trajectory, the merged map and the
     # loops: a ROS 2 client received every message it sent
-    sent = team["ros2"]["sent"]
-    assert viewer is None or viewer.counts() == {team["ros2"]["topics"][r]: k for r, k in sent.items()}, (viewer.counts(), sent)
+    sent = team["link"]["ros2"]["sent"]
+    assert viewer is None or viewer.counts() == {team["link"]["ros2"]["topics"][r]: k for r, k in sent.items()}, (viewer.counts(), sent)
     assert all(sent.get(f"path:{a['name']}", 0) >= 1 for a in team["agents"]) and sent["map"] >= 1
     assert viewer is None or len(viewer.last["/swarmsplat/team/robot_b/path"].poses) == by_name["robot_b"]["keyframes"]
     # the live agent's own folder: its pose journal up to its last keyframe, and its trajectory as corrected

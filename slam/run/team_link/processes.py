@@ -119,7 +119,7 @@ def serve_team(agents: int, out: str | Path, config: SlamConfig | None = None, *
             metrics = _write_estimates(team, out, wall, cpu0, run_info)
         metrics["link"] = node.link_metrics()
         if ros:
-            metrics["ros2"] = ros[0].stats()  # messages sent per topic
+            metrics["link"]["ros2"] = ros[0].stats()  # the ROS 2 messages the server sent, per topic
         _add_link(out, metrics)
         node.finished()
         queryable.undeclare()
