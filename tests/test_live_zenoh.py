@@ -155,3 +155,93 @@ def test_the_agent_command_refuses_what_it_cannot_read_live(tmp_path, capsys):
     assert "--topics: odometry cannot be read live" in capsys.readouterr().err
     assert main(["agent", "--out", str(tmp_path / "o")]) == 2
     assert "give a SOURCE" in capsys.readouterr().err
+
+
+def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
+    """`swarmsplat agent zenoh/ --out DIR` killed (SIGKILL) after a checkpoint, then started again with --resume on
+    the frames that arrive now: its results hold the frames up to the checkpoint and the new ones."""
+    import os
+    import pickle
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from rosbags.typesys import Stores, get_typestore
+
+    from swarmsplat.slam.cli import main
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.io.datasets import load_sequence
+    from swarmsplat.slam.synthetic import GeneratorConfig, generate
+
+    seq = load_sequence(generate(tmp_path / "d", GeneratorConfig.preset("tiny", agents=1, frames=14)) / "agent_0")
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    cfg = SlamConfig().override({"mapping": {"iterations": 4, "first_iterations": 8},
+                                 "map_refine": {"iterations_per_keyframe": 0}, "submaps": {"max_keyframes": 1},
+                                 "checkpoint": {"every_submaps": 1}})
+    (tmp_path / "cfg.yaml").write_text(cfg.to_yaml())
+    out = tmp_path / "live"
+    repo = Path(__file__).resolve().parents[1]
+
+    def play(port: int, frames: range, stop: threading.Event) -> None:
+        _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
+        robot = zenoh.open(conf)
+        try:
+            t_end = time.time() + 60
+            while not list(robot.info.peers_zid()) and time.time() < t_end and not stop.is_set():
+                time.sleep(0.1)
+            time.sleep(1.0)
+            for i in frames:
+                if stop.is_set():
+                    break
+                for kind, key in (("info", "camera/color/camera_info"), ("color", "camera/color/image_raw"),
+                                  ("depth", "camera/depth/image_raw")):
+                    robot.put(key, _cdr(store, seq, i, kind))
+                time.sleep(0.1)
+        finally:
+            robot.close()
+
+    port = _free_port()
+    agent = subprocess.Popen([sys.executable, "-m", "swarmsplat.slam", "agent", "zenoh/", "--out", str(out),
+                              "--listen", f"tcp/127.0.0.1:{port}", "--config", str(tmp_path / "cfg.yaml"),
+                              "--idle-timeout", "120", "--quiet"], env={**os.environ, "PYTHONPATH": str(repo)},
+                             cwd=repo, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stop = threading.Event()
+    driver = threading.Thread(target=play, args=(port, range(0, 10), stop), daemon=True)
+    driver.start()
+    try:
+        t_end = time.time() + 180
+        while not (out / "progress" / "checkpoint.pkl").is_file() and time.time() < t_end and agent.poll() is None:
+            time.sleep(0.1)
+        assert (out / "progress" / "checkpoint.pkl").is_file(), "no checkpoint was written"
+        agent.send_signal(signal.SIGKILL)  # a hard kill: nothing is written on the way out
+        agent.wait(timeout=30)
+    finally:
+        stop.set()
+        if agent.poll() is None:
+            agent.kill()
+        driver.join(timeout=10)
+    with open(out / "progress" / "checkpoint.pkl", "rb") as f:
+        kept = pickle.load(f)["next_frame"]
+    assert not (out / "metrics.json").is_file() or "complete" not in (out / "metrics.json").read_text()
+
+    port = _free_port()
+    stop = threading.Event()
+    driver = threading.Thread(target=play, args=(port, range(10, 14), stop), daemon=True)
+    driver.start()
+    try:
+        assert main(["agent", "zenoh/", "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}", "--config",
+                     str(tmp_path / "cfg.yaml"), "--frames", "4", "--idle-timeout", "60", "--camera-timeout", "60",
+                     "--resume", "--quiet"]) == 0
+    finally:
+        stop.set()
+        driver.join(timeout=10)
+    import json
+
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and m["reason"] == "max_frames"
+    assert m["frames_tracked"] == kept + 4
+    traj = np.loadtxt(out / "trajectory.txt")
+    np.testing.assert_allclose(traj[:kept, 0], seq.timestamps[:kept], atol=1e-6)  # from before the kill
+    np.testing.assert_allclose(traj[kept:, 0], seq.timestamps[10:14], atol=1e-6)  # and after it
+    assert not (out / "progress" / "checkpoint.pkl").exists()

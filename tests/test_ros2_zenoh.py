@@ -315,3 +315,5 @@ def test_the_agent_command_refuses_bad_ros_settings(tmp_path, capsys, monkeypatc
     assert "namespace '/robots/1st': expected letters, digits and underscores" in capsys.readouterr().err
     assert main(["agent", "zenoh/", "--out", out, "--map-period", "-1"]) == 2
     assert "--map-period must be >= 0, got -1.0" in capsys.readouterr().err
+    assert main(["agent", "zenoh/", "--server", "tcp/127.0.0.1:9", "--resume"]) == 2
+    assert "--resume continues a lone agent; a team member has no checkpoint" in capsys.readouterr().err

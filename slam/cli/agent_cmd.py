@@ -36,6 +36,9 @@ def register(sub) -> None:
     p.add_argument("--namespace", default="/", metavar="NS", help="the ROS node's namespace (default: /)")
     p.add_argument("--map-period", type=float, default=10.0, metavar="S",
                    help="publish the whole map every S seconds (0: at the end only; default: 10)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the agent killed in --out from its last checkpoint (live: on the frames that "
+                        "arrive now; a recording: from the frame after the checkpoint)")
     p.add_argument("--name", default="live", help="the agent's name (default: live)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
@@ -171,6 +174,9 @@ def run(args) -> int:
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device)}, preset=args.preset, sets=args.config_set)
     if args.server:
+        if args.resume:
+            raise InputError("--resume continues a lone agent; a team member has no checkpoint (its server has a "
+                             "journal)")
         return _team_member(args, source, cfg)
     for flag in ("id", "split"):
         if getattr(args, flag) is not None:
@@ -183,7 +189,8 @@ def run(args) -> int:
         from swarmsplat.slam.run.sequence import run_sequence
 
         seq = load_sequence(source, topics=topics) if topics else load_sequence(source)
-        m = run_sequence(seq, args.out, cfg, frames=args.frames or None, progress=not args.quiet)
+        m = run_sequence(seq, args.out, cfg, frames=args.frames or None, progress=not args.quiet,
+                         resume=args.resume)
         print(f"wrote {args.out} ({m['frames_tracked']} frames tracked)")
         return 0
     from swarmsplat.slam.run.live import run_live
@@ -191,7 +198,7 @@ def run(args) -> int:
     with _live_topics(args, source, topics) as (src, pub):
         m = run_live(src, args.out, cfg, publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
                      camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
-                     map_period=args.map_period, progress=not args.quiet)
+                     map_period=args.map_period, progress=not args.quiet, resume=args.resume)
     lat = m["pose_latency_ms"]
     p50 = f", pose latency p50 {lat['p50']:.1f} ms / p95 {lat['p95']:.1f} ms" if lat["count"] else ""
     print(f"{m['frames_tracked']} frames tracked ({m['reason']}){p50}; wrote {args.out}")

@@ -15,6 +15,7 @@ frames, unpaired, dropped). There is no ground truth live: `swarmsplat eval` sco
 from __future__ import annotations
 
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -68,29 +69,40 @@ class _Stop:
 @guarded("agent")
 def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, publisher=None,
              max_frames: int = 0, idle_timeout: float = 0.0, camera_timeout: float = 30.0,
-             silent_warning: float = 5.0, map_period: float = 10.0, progress: bool = True) -> dict:
+             silent_warning: float = 5.0, map_period: float = 10.0, progress: bool = True,
+             resume: bool = False) -> dict:
     """Track and map the frames of a live `source` (slam.io.live.ZenohRos2Source) until it ends; publish its pose,
     TF, path, submaps, map (every `map_period` s; 0: at the end only) and loops on `publisher` (slam.io.ros2.
-    AgentTopics, or slam.io.live.PosePublisher for plain keys) if given. Returns the metrics written to
-    out_dir/metrics.json."""
+    AgentTopics, or slam.io.live.PosePublisher for plain keys) if given. Checkpoints as `swarmsplat run` writes
+    them (config checkpoint.every_submaps); `resume`: continue the agent killed in `out_dir` from its last one, on
+    the frames that arrive now. Returns the metrics written to out_dir/metrics.json."""
     from swarmsplat.slam.dense.ply import save_ply
     from swarmsplat.slam.io.jsonio import write_json
     from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.io.trajectory import write_tum
 
+    from .checkpoint import CHECKPOINT, find_resume, save_checkpoint
     from .runtime import check_device, use_kernels
     from .sequence import JOURNAL, _write_loops_csv
 
     cfg = config or SlamConfig()
     use_kernels(cfg.kernels)
     out = output_dir(out_dir, "--out")
-    atomic_write_text(out / "config.yaml", cfg.to_yaml())
     camera = source.wait_camera(camera_timeout)
     check_device(cfg.kernels, [camera], cfg.image.max_width)  # a device that computes wrongly stops here
-    agent = Agent(camera, cfg, name=source.name)
-    journal = PoseJournal(out / JOURNAL)  # a hard kill keeps every pose up to the last keyframe
+    identity = live_identity(source.name, camera, cfg)
+    resumed = find_resume(out, identity) if resume else None
+    atomic_write_text(out / "config.yaml", cfg.to_yaml())
+    agent = resumed.agent if resumed else Agent(camera, cfg, name=source.name)
+    first = resumed.next_frame if resumed else 0  # the index of the first frame read now
+    if resume and progress:
+        print(f"[{source.name}] resuming after {first} frames" if resumed else
+              f"[{source.name}] no checkpoint in {out} yet: starting anew", file=sys.stderr)
+    # a hard kill keeps every pose up to the last keyframe
+    journal = PoseJournal(out / JOURNAL, resume=resumed.journal if resumed else None)
     frames: list[tuple] = []  # per published pose: (arrival, taken from the queue, agent's step s, handed over)
-    t0 = time.perf_counter()
+    t0 = time.perf_counter() - (resumed.wall_s if resumed else 0.0)
+    every, n_read = cfg.checkpoint.every_submaps, first
     keep(lambda status, reason: write_partial_agent(agent, out, status=status, reason=reason,
                                                     n_frames=len(agent.poses), wall_s=time.perf_counter() - t0))
     feed = AgentFeed(publisher, map_period_s=map_period) if publisher is not None else None
@@ -101,9 +113,15 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         for frame, arrival, taken in source.frames(max_frames=max_frames, idle_timeout=idle_timeout,
                                             silent_warning=silent_warning, stop=lambda: stop.requested):
             t_step = time.monotonic()
-            rec = agent.step(frame.index, frame.timestamp, frame.color, frame.depth)
+            n_submaps = len(agent.gmap.submaps)
+            rec = agent.step(first + frame.index, frame.timestamp, frame.color, frame.depth)
             step = time.monotonic() - t_step
             journal.follow(agent)
+            n_read += 1
+            finished = len(agent.gmap.submaps) - 1
+            if every and len(agent.gmap.submaps) > n_submaps and finished and finished % every == 0:
+                save_checkpoint(out, identity, agent, next_frame=n_read, journal=journal.state(),
+                                wall_s=time.perf_counter() - t0)
             if feed is not None:
                 feed.step(agent, frame.timestamp, rec)
                 if rec is not None:
@@ -112,7 +130,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
             b.update(1, f"{len(agent.gmap)} Gaussians")
         if stop.requested:
             reason = "stopped"
-        elif max_frames and len(agent.poses) + len(agent.skipped_frames()) >= max_frames:
+        elif max_frames and n_read - first >= max_frames:
             reason = "max_frames"
         elif idle_timeout:
             reason = f"no sample for {idle_timeout:g} s"
@@ -151,4 +169,13 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         "kernels": kernels_record(cfg.kernels),
     }
     write_json(out / "metrics.json", metrics)
+    (out / CHECKPOINT).unlink(missing_ok=True)  # a complete run needs none; the journal stays
     return metrics
+
+
+def live_identity(name: str, camera, cfg: SlamConfig) -> dict:
+    """What a live agent's checkpoint must share with the agent that resumes it: its name, camera and config (all
+    but the `checkpoint` section)."""
+    config = cfg.model_dump(mode="json")
+    config.pop("checkpoint", None)
+    return {"live_agent": name, "camera": {k: float(v) for k, v in camera.to_dict().items()}, "config": config}
