@@ -95,7 +95,8 @@ class AgentFeed:
 
     def _follow(self, agent, t: float, moved: int) -> None:
         state = (len(agent.keyframes), agent.loops.optimisations, moved)
-        if state != self._state and agent.keyframes:
+        changed = state != self._state and bool(agent.keyframes)
+        if changed:
             self._state = state
             self.topics.path(np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
         finished = len(agent.gmap.submaps) - 1  # all but the active one
@@ -104,6 +105,8 @@ class AgentFeed:
             part = [(s.id, s, s.T_world_local.copy(), True)]
             self.topics.cloud("submap", t, lambda part=part: self.points.world(part, self.points.submap_points))
             self._submaps_sent += 1
+        if not changed and self._loops >= 0:  # loops are accepted with a keyframe, moved by an optimisation
+            return
         n_loops = sum(1 for c in agent.loops.log if c.accepted)
         if n_loops != self._loops:
             self._loops = n_loops

@@ -46,15 +46,15 @@ class TeamFeed:
         team = node.team
         srv = team.server
         state = (srv.optimisations, tuple(len(ag.keyframes) for ag in team.agents))
-        if state != self._state:
+        if state != self._state:  # loops are decided with a keyframe, moved by an optimisation
             self._state = state
             self.topics.trajectories({ag.name: (np.array([k.timestamp for k in ag.keyframes]),
                                                  self._global(srv, a) @ ag.keyframe_world_poses())
                                       for a, ag in enumerate(team.agents) if ag.keyframes})
-        n_loops = sum(1 for r in srv.records if r.accepted)
-        if n_loops != self._loops:
-            self._loops = n_loops
-            self.topics.loops(self._stamp(team), self._loop_edges(team))
+            n_loops = sum(1 for r in srv.records if r.accepted)
+            if n_loops != self._loops:
+                self._loops = n_loops
+                self.topics.loops(self._stamp(team), self._loop_edges(team))
         if self.map_period_s > 0 and self.clock() - self._map_at >= self.map_period_s:
             self.merged_map(node)
 
