@@ -91,7 +91,7 @@ def test_bad_camera_input_is_one_line_naming_the_topic_and_valid_frames_go_on():
 
     ty = store().types
     port = _free_port()
-    src = ZenohRos2Source("", name="live", listen=[f"tcp/127.0.0.1:{port}"])
+    src = ZenohRos2Source("", name="live", listen=[f"tcp/127.0.0.1:{port}"], domain=0)
     _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
     robot = zenoh.open(conf)
     w, h = 8, 6
@@ -118,6 +118,8 @@ def test_bad_camera_input_is_one_line_naming_the_topic_and_valid_frames_go_on():
                                                                     np.full((h, w + 2, 3), 9, np.uint8))),  # size
                 (4.0, rmw("/camera/color/image_raw", image), _image(ty, 4.0, w, h, "rgb8", rgb)),  # valid
             ]
+            robot.put(keys.topic_key(7, "/camera/color/image_raw", image, type_hash(image)),  # another domain
+                      serialize(_image(ty, 0.5, w, h, "rgb8", rgb)))
             for t, ckey, cmsg in sends:
                 robot.put(ckey, serialize(cmsg))
                 dmsg = _image(ty, t, cmsg.width, h, "16UC1", np.full((h, cmsg.width), 1500, "<u2").view(np.uint8)
@@ -129,6 +131,7 @@ def test_bad_camera_input_is_one_line_naming_the_topic_and_valid_frames_go_on():
         robot.close()
         src.close()
     assert [f.timestamp for f, _, _ in frames] == [4.0]  # the valid frame, after three refused ones
+    assert src.stats.samples["color"] == 4  # the sample of domain 7 is another ROS graph's: not read
     lines = [str(c.message) for c in caught]
     assert all("\n" not in m for m in lines)
     assert any(m.startswith("/camera/color/image_raw (Zenoh key 0/camera/color/image_raw/") and

@@ -239,7 +239,8 @@ def _live_topics(args, source: str, topics: dict):
     if args.map_period < 0:
         raise InputError(f"--map-period must be >= 0, got {args.map_period}")
     domain = domain_id(args.domain_id)
-    src = ZenohRos2Source(source[len(LIVE):], topics, name=args.name, connect=args.connect, listen=args.listen)
+    src = ZenohRos2Source(source[len(LIVE):], topics, name=args.name, connect=args.connect, listen=args.listen,
+                          domain=domain)
     node = pub = None
     try:
         if args.ros_keys == "bridge" and args.publish:

@@ -97,14 +97,16 @@ class SourceStats:
 
 
 class ZenohRos2Source:
-    """RGB-D frames from live ROS 2 topics over Zenoh. `frames(...)` yields (Frame, arrival, taken) as they pair up:
+    """RGB-D frames from live ROS 2 topics over Zenoh (rmw_zenoh's keys of ROS domain `domain` only, when given;
+    bridge keys always). `frames(...)` yields (Frame, arrival, taken) as they pair up:
     arrival is the time.monotonic() at which the later of the two messages arrived, taken when the frame left the
     queue (before decoding); `camera` is known once a camera_info arrived."""
 
     def __init__(self, prefix: str = "", topics: dict[str, str] | None = None, *, name: str = "live",
                  connect: list[str] = (), listen: list[str] = (), max_diff: float = 0.02, max_queue: int = 300,
-                 session=None):
+                 session=None, domain: int | None = None):
         self.prefix = prefix.strip("/")
+        self.domain = domain  # rmw_zenoh keys of another ROS domain are another graph: not read
         self.topics = {**DEFAULT_TOPICS, **(topics or {})}
         unknown = set(self.topics) - set(DEFAULT_TOPICS)
         if unknown:
@@ -134,6 +136,9 @@ class ZenohRos2Source:
     def _on_sample(self, sample) -> None:
         key = str(sample.key_expr)
         role = role_of_key(key[len(self.prefix):] if key.startswith(self.prefix) else key, self.topics)
+        if role is not None and self.domain is not None and key.split("/", 1)[0] != str(self.domain) \
+                and parse_topic_key(key) is not None:
+            role = None
         if role is not None:
             self._raw.put((role, key, sample.payload.to_bytes(), time.monotonic()))
 
