@@ -187,10 +187,11 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
         _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
         robot = zenoh.open(conf)
         try:
-            t_end = time.time() + 60
-            while not list(robot.info.peers_zid()) and time.time() < t_end and not stop.is_set():
-                time.sleep(0.1)
-            time.sleep(1.0)
+            t_end = time.time() + 120
+            while time.time() < t_end and not stop.is_set() and not list(  # the agent's node is up: it listens
+                    robot.liveliness().get("@ros2_lv/0/*/*/*/NN/%/%/swarmsplat_live", timeout=1.0)):
+                time.sleep(0.2)
+            time.sleep(0.5)
             for i in frames:
                 if stop.is_set():
                     break
