@@ -39,6 +39,7 @@ SUBJECTS = {
     "distributed-processes": ".distributed_processes",
     "team-scale": ".team_scale",
     "wide-joins": ".wide_joins",
+    "map-quality": ".map_quality",
 }
 
 

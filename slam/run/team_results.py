@@ -111,7 +111,8 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "psnr": render["psnr"], "ssim": render["ssim"],
         "depth_l1": render["depth_l1"], "render_views": render["views"],
         # the same keyframes from their own submaps alone: the merged map's loss against it is the merge's cost
-        "psnr_submaps": render["psnr_submaps"],
+        "psnr_submaps": render["psnr_submaps"], "psnr_raw": render.get("psnr_raw"),
+        "psnr_novel_raw": render.get("psnr_novel_raw"),
         "psnr_novel": render["psnr_novel"], "ssim_novel": render["ssim_novel"], "novel_views": render["novel_views"],
         "psnr_before_refine": before.get("psnr"), "ssim_before_refine": before.get("ssim"),
         "render_resolution": render["resolution"], "input_resolution": render["input_resolution"],
