@@ -320,3 +320,41 @@ def test_the_agent_command_refuses_bad_ros_settings(tmp_path, capsys, monkeypatc
     assert "--map-period must be >= 0, got -1.0" in capsys.readouterr().err
     assert main(["agent", "zenoh/", "--server", "tcp/127.0.0.1:9", "--resume"]) == 2
     assert "--resume continues a lone agent; a team member has no checkpoint" in capsys.readouterr().err
+
+
+def test_paths_maps_and_loops_are_latched_for_a_late_subscriber():
+    """Transient local, as rmw_zenoh offers it: the last path is kept by its publisher, announced with durability
+    1 in its token, and a subscriber that comes later gets it by the cache query rmw_zenoh's subscribers make."""
+    from swarmsplat.slam.io.live import zenoh_config
+    from swarmsplat.slam.io.ros2 import AgentTopics, Ros2Node
+
+    port = _free_port()
+    _, conf = zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])
+    session = zenoh.open(conf)
+    node = Ros2Node(session, "swarmsplat_a")
+    topics = AgentTopics(node, "a")
+    late = None
+    try:
+        T = np.stack([np.eye(4)] * 3)
+        T[:, 0, 3] = [0.0, 1.0, 2.0]
+        topics.path(np.array([1.0, 2.0, 3.0]), T)
+        assert topics.flush(10)
+        _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
+        late = zenoh.open(conf)
+        t_end = time.time() + 20
+        while not list(late.info.peers_zid()) and time.time() < t_end:
+            time.sleep(0.05)
+        (token,) = [str(r.ok.key_expr) for r in late.liveliness().get("@ros2_lv/0/*/*/*/MP/**/%swarmsplat%a%path/**",
+                                                                      timeout=3.0) if r.ok is not None]
+        assert token.endswith("/:1:,1:,:,:,,")  # reliable, transient local, keep last 1
+        key = topics._pubs["path"].key
+        replies = [r.ok for r in late.get(f"{key}/@adv/pub/**?_anyke;_max=1", timeout=3.0) if r.ok is not None]
+        assert len(replies) == 1
+        msg = store().deserialize_cdr(replies[0].payload.to_bytes(), "nav_msgs/msg/Path")
+        assert [p.pose.position.x for p in msg.poses] == [0.0, 1.0, 2.0]
+    finally:
+        topics.close()
+        node.close()
+        session.close()
+        if late is not None:
+            late.close()

@@ -44,6 +44,7 @@ def zenoh_config(*, connect: list[str] = (), listen: list[str] = (), multicast: 
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "true" if multicast else "false")
+    conf.insert_json5("timestamping/enabled", "true")  # transient-local ROS 2 publishers (a cache) need it
     for key, eps in (("listen/endpoints", listen), ("connect/endpoints", connect)):
         if eps:
             conf.insert_json5(key, "[" + ",".join(f'"{e}"' for e in eps) + "]")

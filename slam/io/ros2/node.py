@@ -51,6 +51,20 @@ def check_name(kind: str, name: str) -> str:
     return name
 
 
+def _cached_publisher(session, key: str, depth: int, options: dict):
+    """A Zenoh advanced publisher keeping its last `depth` samples for late subscribers (what rmw_zenoh declares
+    for transient-local durability), or None when the session cannot (it needs timestamping, which
+    slam.io.live.zenoh_config enables)."""
+    import zenoh
+    import zenoh.ext
+
+    try:
+        return zenoh.ext.declare_advanced_publisher(session, key, cache=zenoh.ext.CacheConfig(max_samples=depth),
+                                                    publisher_detection=True, **options)
+    except zenoh.ZError:
+        return None
+
+
 class Ros2Publisher:
     """One topic's publisher. `put(msg)` serialises and sends; `put_bytes(cdr)` sends CDR bytes as they are.
     `priority` is Zenoh's (a name of zenoh.Priority: a link sends higher priorities first, so small pose messages
@@ -60,26 +74,32 @@ class Ros2Publisher:
                  priority: str = "DATA", blocking: bool = False):
         import zenoh
 
-        self.topic, self.msgtype, self.qos = topic, msgtype, qos
+        self.topic, self.msgtype = topic, msgtype
         self.type_hash = type_hash(msgtype)
         self.sequence = 0
         self._lock = threading.Lock()
         s = node.session
+        self.key = keys.topic_key(node.domain, topic, msgtype, self.type_hash) if node.form == "rmw" \
+            else keys.bridge_key(topic, node.prefix)
+        # DROP: a slow subscriber never blocks the caller (rmw_zenoh does the same for keep-last history); BLOCK for
+        # a publisher that is used from a thread of its own, where waiting costs no one
+        options = dict(congestion_control=zenoh.CongestionControl.BLOCK if blocking else zenoh.CongestionControl.DROP,
+                       reliability=zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT,
+                       priority=getattr(zenoh.Priority, priority))
+        self._pub, self.qos = None, qos
+        if qos.transient_local and node.form == "rmw":  # as rmw_zenoh: the last `depth` samples cached for late
+            self._pub = _cached_publisher(s, self.key, qos.depth, options)  # subscribers to query
+            if self._pub is None:
+                self.qos = Qos(reliable=qos.reliable, transient_local=False, depth=qos.depth)
+        if self._pub is None:
+            self._pub = s.declare_publisher(self.key, **options)
         if node.form == "rmw":
-            self.key = keys.topic_key(node.domain, topic, msgtype, self.type_hash)
             token = keys.endpoint_token(node.domain, node.zid, node.node_id, entity_id, "MP", node.namespace,
-                                        node.name, topic, msgtype, self.type_hash, qos)
+                                        node.name, topic, msgtype, self.type_hash, self.qos)
             self.gid = hashlib.sha256(token.encode()).digest()[:16]
             self._token = s.liveliness().declare_token(token)
         else:
-            self.key = keys.bridge_key(topic, node.prefix)
             self.gid, self._token = b"", None
-        # DROP: a slow subscriber never blocks the caller (rmw_zenoh does the same for keep-last history); BLOCK for
-        # a publisher that is used from a thread of its own, where waiting costs no one
-        self._pub = s.declare_publisher(
-            self.key, congestion_control=zenoh.CongestionControl.BLOCK if blocking else zenoh.CongestionControl.DROP,
-            reliability=zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT,
-            priority=getattr(zenoh.Priority, priority))
 
     def put(self, msg) -> None:
         self.put_bytes(serialize(msg))

@@ -4,13 +4,14 @@ An agent NAME (AgentTopics):
   /swarmsplat/NAME/pose     geometry_msgs/PoseStamped       every tracked frame       reliable, volatile, depth 10
   /tf                       tf2_msgs/TFMessage              every tracked frame       reliable, volatile, depth 100
                             (map -> NAME/camera)
-  /swarmsplat/NAME/path     nav_msgs/Path                   keyframes, after each     reliable, volatile, depth 1
+  /swarmsplat/NAME/path     nav_msgs/Path                   keyframes, after each     reliable, transient local, depth 1
                                                             new keyframe / optimisation
   /swarmsplat/NAME/submap   sensor_msgs/PointCloud2         each finished submap      reliable, volatile, depth 10
-  /swarmsplat/NAME/map      sensor_msgs/PointCloud2         the whole map, slowly     reliable, volatile, depth 1
-  /swarmsplat/NAME/loops    visualization_msgs/MarkerArray  accepted loops            reliable, volatile, depth 1
+  /swarmsplat/NAME/map      sensor_msgs/PointCloud2         the whole map, slowly     reliable, transient local, depth 1
+  /swarmsplat/NAME/loops    visualization_msgs/MarkerArray  accepted loops            reliable, transient local, depth 1
 The team server (TeamTopics): /swarmsplat/team/<agent>/path per agent, /swarmsplat/team/map,
-/swarmsplat/team/loops, the same types and QoS.
+/swarmsplat/team/loops, the same types and QoS (volatile where the session has no timestamping, which a
+transient-local publisher's cache needs: the team link's).
 
 The caller's thread only queues (tens of microseconds): poses and TF are built and sent, every one in order, by
 one thread; paths, clouds and markers by another, from a queue that keeps the newest of each (every finished
@@ -33,7 +34,8 @@ from . import messages as M
 from .keys import Qos
 from .types import store
 
-POSE_QOS, TF_QOS, LATEST_QOS, SUBMAP_QOS = Qos(depth=10), Qos(depth=100), Qos(depth=1), Qos(depth=10)
+POSE_QOS, TF_QOS, SUBMAP_QOS = Qos(depth=10), Qos(depth=100), Qos(depth=10)
+LATEST_QOS = Qos(depth=1, transient_local=True)  # latched, as a map server's: a late subscriber gets the last one
 TYPES = {"pose": "geometry_msgs/msg/PoseStamped", "tf": "tf2_msgs/msg/TFMessage", "path": "nav_msgs/msg/Path",
          "submap": "sensor_msgs/msg/PointCloud2", "map": "sensor_msgs/msg/PointCloud2",
          "loops": "visualization_msgs/msg/MarkerArray"}
