@@ -140,8 +140,9 @@ class ExposureConfig(_Section):
     keyframe (gain and offset per channel), fitted at each new keyframe against the map and optimised with it in
     mapping and in the final map refinement."""
 
-    enabled: bool = Field(False, description="model each keyframe's exposure and white balance; false fits the "
-                          "map's colours to every image as it is")
+    enabled: bool = Field(False, description="model each keyframe's exposure and white balance (off by default: "
+                          "its colour gauge still drifts over a long walk, darkening the map's own colours; "
+                          "docs/decisions/0011); false fits the map's colours to every image as it is")
     lr: float = Field(5e-3, gt=0, description="Adam step on a keyframe's log gains and offsets")
     regulariser: float = Field(1.0, ge=0, description="weight of the squared distance of a keyframe's exposure "
                                "from its value fitted when it was made (per step, beside eq. 3's loss)")
