@@ -19,6 +19,20 @@ class InputError(SwarmsplatError, ValueError):
     exit_code = 2
 
 
+class OutputError(SwarmsplatError, OSError):
+    """A file the run could not write once it had started: the disk is full, or the place refused the write.
+
+    The message names the file and, for a full disk, says so. What was written before stays whole (atomic writes,
+    the fsync'd pose journal), so a run's folder keeps its last checkpoint. `full`: the disk (or quota) is full.
+    """
+
+    exit_code = 1
+
+    def __init__(self, message: str, *, full: bool = False, errno: int | None = None):
+        super().__init__(message)
+        self.full, self.errno = full, errno
+
+
 class BackendError(SwarmsplatError, RuntimeError):
     """A kernel backend or device that cannot be used here (no CUDA, unknown backend, not initialised)."""
 

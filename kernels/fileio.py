@@ -1,8 +1,10 @@
 """Files shared by every layer: atomic writes (a reader never sees a half-written file, and a failed write leaves
-the previous file untouched) and text reading that refuses binary input in one line."""
+the previous file untouched; a write the disk refuses — full, read-only — is an OutputError naming the file) and
+text reading that refuses binary input in one line."""
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from contextlib import contextmanager
@@ -20,18 +22,47 @@ def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside `path`; on success it replaces `path` in one rename, on error it is removed."""
     path = Path(path)
     _check_writable_file(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
+    except OSError as e:
+        raise refused_write(path, e) from None
     os.close(fd)
     try:
         yield Path(tmp)
         os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if _refused(e):
+            raise refused_write(path, e) from None  # the file the user knows, not the temporary one
         raise
+
+
+# A write the disk refuses (as opposed to an OSError of something the caller reads while it writes).
+_FULL = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is used up"}
+_REFUSED = {*_FULL, errno.EROFS, errno.EFBIG}
+
+
+def _refused(e: BaseException) -> bool:
+    from .errors import OutputError
+
+    return isinstance(e, OSError) and not isinstance(e, OutputError) and e.errno in _REFUSED
+
+
+def refused_write(path: str | os.PathLike, e: OSError):
+    """The OutputError of a write of `path` that failed with `e`: one line naming the file and saying why ("the disk
+    is full" for ENOSPC)."""
+    from .errors import OutputError
+
+    if isinstance(e, OutputError):
+        return e
+    why = e.strerror or str(e)
+    if e.errno in _FULL:
+        return OutputError(f"cannot write {path}: {_FULL[e.errno]} ({why})", full=True, errno=e.errno)
+    return OutputError(f"cannot write {path}: {why}", errno=e.errno)
 
 
 def _check_writable_file(path: Path) -> None:
@@ -46,6 +77,8 @@ def _check_writable_file(path: Path) -> None:
     except (FileExistsError, NotADirectoryError):
         blocker = next((p for p in path.parents if p.exists() and not p.is_dir()), path.parent)
         raise InputError(f"cannot write {path}: {blocker} is a file, expected a folder") from None
+    except OSError as e:  # a full disk, a read-only place
+        raise refused_write(path, e) from None
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
@@ -73,7 +106,8 @@ def output_dir(path: str | os.PathLike, what: str = "output folder", *, create: 
             raise InputError(f"{what} {path}{where} is a file, expected a folder")
         if p.exists():
             if not create and not os.access(p, os.W_OK | os.X_OK):
-                raise InputError(f"{what} {path}: cannot write in {p} (permission denied)")
+                why = "read-only file system" if _read_only_fs(p) else "permission denied"
+                raise InputError(f"{what} {path}: cannot write in {p} ({why})")
             break
     if not create:
         return path
@@ -83,8 +117,16 @@ def output_dir(path: str | os.PathLike, what: str = "output folder", *, create: 
         os.close(fd)
         os.unlink(probe)
     except OSError as e:
-        raise InputError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
+        why = f": {_FULL[e.errno]} ({e.strerror})" if e.errno in _FULL else f" ({e.strerror or e})"
+        raise InputError(f"{what} {path}: cannot write there{why}") from None
     return path
+
+
+def _read_only_fs(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):  # AttributeError: no statvfs (Windows)
+        return False
 
 
 def output_file(path: str | os.PathLike, what: str = "output file", *, create: bool = True) -> Path:

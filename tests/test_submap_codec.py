@@ -244,13 +244,15 @@ def test_compact_storage_without_a_folder_stays_in_memory_and_float32_keeps_tens
 def test_a_full_disk_stops_with_one_line_naming_the_file(tmp_path, monkeypatch):
     import os
 
+    from swarmsplat.kernels.errors import OutputError
+
     files = SubmapFiles(tmp_path / "s")
 
     def full(*_):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(os, "fsync", full)
-    with pytest.raises(InputError, match=r"cannot write .*s/0003\.bin: No space left on device"):
+    with pytest.raises(OutputError, match=r"cannot write .*s/0003\.bin: the disk is full \(No space left on device\)"):
         files.write(3, b"abc")
     assert not (tmp_path / "s" / "0003.bin").exists()
 

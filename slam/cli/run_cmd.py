@@ -5,6 +5,8 @@ loops.csv, plots, config.yaml in DIR), or a team on a multi-agent dataset or on 
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 from swarmsplat.slam.cli import add_backend_flags
 from swarmsplat.slam.cli.config_flags import add_config_flags
 from swarmsplat.slam.cli.view_cmd import add_live_view_flags, live_view, serve_result
@@ -140,8 +142,9 @@ def run(args) -> int:
             m = run_team_processes(args.dataset, args.out, cfg, frames=args.frames, split=args.split, loaded=ds,
                                    progress=not args.quiet)
         else:
-            m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
-                         strict=args.strict, resume=args.resume)
+            with _resumable(args.out):
+                m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
+                             strict=args.strict, resume=args.resume)
         keys = ("name", "frames", "in_global_frame", "ate_rmse", "ate_rmse_no_lc", "psnr")
         summary = {
             "agents": [{k: a.get(k) for k in keys} for a in m["agents"]],
@@ -161,7 +164,23 @@ def run(args) -> int:
         m = run_realtime(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, strict=args.strict)
         print(json.dumps({**{k: m.get(k) for k in keys}, "realtime": summary(m)}, indent=1))
         return 0
-    m = run_sequence(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
-                     strict=args.strict, resume=args.resume)
+    with _resumable(args.out):
+        m = run_sequence(ds.agents[0], args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,
+                         strict=args.strict, resume=args.resume)
     print(json.dumps({k: m.get(k) for k in keys}, indent=1))
     return serve_result(live, args.out)
+
+
+@contextmanager
+def _resumable(out: str):
+    """A run stopped by a full disk: its one line says what --resume needs (the folder keeps its last checkpoint
+    and journal whole, slam.run.checkpoint)."""
+    from swarmsplat.kernels.errors import OutputError
+
+    try:
+        yield
+    except OutputError as e:
+        if not e.full:
+            raise
+        raise OutputError(f"{e}; {out} keeps the run's last checkpoint: free some space, then run the same "
+                          "command with --resume", full=True, errno=e.errno) from e

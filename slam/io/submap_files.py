@@ -16,7 +16,7 @@ import os
 from pathlib import Path
 
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.fileio import atomic_path
+from swarmsplat.kernels.fileio import atomic_path, refused_write
 
 
 class SubmapFiles:
@@ -33,7 +33,7 @@ class SubmapFiles:
         return str(self.path(key))
 
     def write(self, key: int, data: bytes) -> None:
-        """Write submap `key`'s bytes and make them durable (file and folder fsync'd); InputError naming the file
+        """Write submap `key`'s bytes and make them durable (file and folder fsync'd); OutputError naming the file
         when the disk refuses (full, read-only)."""
         path = self.path(key)
         try:
@@ -48,7 +48,7 @@ class SubmapFiles:
             finally:
                 os.close(fd)
         except OSError as e:
-            raise InputError(f"cannot write {path}: {e.strerror or e}") from None
+            raise refused_write(path, e) from None
 
     def read(self, key: int) -> bytes:
         path = self.path(key)

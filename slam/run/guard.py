@@ -28,7 +28,7 @@ import warnings
 from contextlib import contextmanager
 from typing import Callable
 
-from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.errors import InputError, OutputError
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 Save = Callable[[str, str], object]  # (status, reason) -> where the partial results went (printed) or None
@@ -116,17 +116,22 @@ def _save(guard: RunGuard, exc: BaseException, status: str, reason: str, main: b
         for s in SIGNALS:  # a signal while saving: out at once, the atomic writes leave no half file
             signal.signal(s, _hard_exit)
     what = guard.what
-    print(f"\n[{what}] {status} ({reason}); writing what was done so far", file=sys.stderr, flush=True)
+    # A file the disk refused (full, read-only): the error's own line says so, and the partial results, tried
+    # quietly, mostly meet the same disk; the folder's last checkpoint and journal are what --resume needs.
+    quiet = isinstance(exc, OutputError)
+    if not quiet:
+        print(f"\n[{what}] {status} ({reason}); writing what was done so far", file=sys.stderr, flush=True)
     try:
         where = guard.save(status, reason)
     except Exception as e:  # noqa: BLE001 - the run's own exception matters more; keep it
-        print(f"[{what}] could not write the partial results: {type(e).__name__}: {e}", file=sys.stderr)
+        if not quiet:
+            print(f"[{what}] could not write the partial results: {type(e).__name__}: {e}", file=sys.stderr)
         return
     try:
         exc._swarmsplat_saved = True
     except AttributeError:
         pass
-    if where:
+    if where and not quiet:
         print(f"[{what}] partial results (status '{status}') in {where}", file=sys.stderr, flush=True)
 
 

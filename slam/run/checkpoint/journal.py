@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from swarmsplat.kernels import se3
+from swarmsplat.kernels.fileio import refused_write
 
 from swarmsplat.slam.dense.submaps import frame_local_poses
 
@@ -32,7 +33,10 @@ class PoseJournal:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         new = resume is None or resume[1] == 0 or not self.path.is_file()
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | (os.O_TRUNC if new else 0), 0o644)
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | (os.O_TRUNC if new else 0), 0o644)
+        except OSError as e:
+            raise refused_write(self.path, e) from None
         if new:
             self.frames, self._size = 0, 0
             self._append(HEADER)
@@ -61,11 +65,21 @@ class PoseJournal:
         return len(recs)
 
     def _append(self, text: str) -> None:
+        """Append `text` (whole lines) and fsync; when the disk refuses (full, ...), cut the file back to its last
+        whole block, so it still ends at a keyframe, and raise OutputError naming it."""
         data = text.encode()
-        self._size += len(data)
-        while data:  # one write for a block of lines; a short write (a full disk, ...) goes on where it stopped
-            data = data[os.write(self._fd, data):]
-        os.fsync(self._fd)
+        size = len(data)
+        try:
+            while data:  # one write for a block of lines; a short write goes on where it stopped
+                data = data[os.write(self._fd, data):]
+            os.fsync(self._fd)
+        except OSError as e:
+            try:
+                os.ftruncate(self._fd, self._size)  # shrinking needs no space
+            except OSError:
+                pass
+            raise refused_write(self.path, e) from None
+        self._size += size
 
     def close(self) -> None:
         if self._fd >= 0:
