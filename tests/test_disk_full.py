@@ -20,7 +20,7 @@ from full_disk_run import DiskFills
 from swarmsplat.kernels.errors import OutputError
 from swarmsplat.kernels.fileio import atomic_write_text
 from swarmsplat.slam.cli import main
-from test_run_checkpoint import FRAMES, REPO, SINGLE_OUTPUTS, _assert_same_files, _config, _run
+from test_run_checkpoint import FRAMES, REPO, SINGLE_OUTPUTS, TEAM_OUTPUTS, _assert_same_files, _config, _run
 
 FULL = "the disk is full (No space left on device)"
 
@@ -57,11 +57,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_resume_finishes_it(sequence, 
     out = tmp_path / "out"
     args = ["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet"]
     # the disk fills up after the second checkpoint: at the third one, or half-way through a journal block
-    proc = subprocess.run([sys.executable, str(REPO / "tests" / "full_disk_run.py"), where, "2", *args],
-                          capture_output=True, text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
-    assert proc.returncode == 1, proc.stderr[-2000:]
-    assert _error_lines(proc.stderr) == [f"swarmsplat run: error: cannot write {out / 'progress' / name}: {FULL}"
-                                         f"{_hint(out)}"]
+    _run_on_a_disk_that_fills(where, args, out / "progress" / name)
 
     # the last checkpoint written whole is there, byte for byte; no temporary file is left anywhere
     ckpt = out / "progress" / "checkpoint.pkl"
@@ -82,6 +78,36 @@ def test_a_full_disk_stops_the_run_in_one_line_and_resume_finishes_it(sequence, 
     assert m["status"] == "complete" and m["frames_tracked"] == FRAMES
     _assert_same_files(out, reference, SINGLE_OUTPUTS)
     assert not ckpt.exists()
+
+
+def test_a_team_stopped_by_a_full_disk_resumes_to_the_uninterrupted_result(sequence, tmp_path):
+    """The in-process team: the disk fills up while its third checkpoint is written (cloud route off, as in
+    tests/test_run_checkpoint.py, so two processes give the same result bit for bit)."""
+    cfg = _config(tmp_path, server={"cloud_route": False})
+    split = ["--split", "0:22,22:45"]
+    reference = tmp_path / "whole"
+    _run(["run", str(sequence), "--out", str(reference), "--config", cfg, "--quiet", *split])
+    out = tmp_path / "out"
+    args = ["run", str(sequence), "--out", str(out), "--config", cfg, "--quiet", *split]
+    _run_on_a_disk_that_fills("checkpoint", args, out / "progress" / "checkpoint.pkl")
+    ckpt = out / "progress" / "checkpoint.pkl"
+    assert ckpt.read_bytes() == (tmp_path / "last-checkpoint.pkl").read_bytes()
+    assert not [p for p in out.rglob(".*")], "a temporary file was left behind"
+
+    _run([*args, "--resume"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and not ckpt.exists()
+    _assert_same_files(out, reference, TEAM_OUTPUTS)
+
+
+def _run_on_a_disk_that_fills(where: str, args: list[str], refused: Path) -> None:
+    """`swarmsplat ARGS` in its own process on a disk that fills up after the run's second checkpoint
+    (full_disk_run.DiskFills(where, 2)): it must end with exit 1 and one line naming `refused`."""
+    out = Path(args[args.index("--out") + 1])
+    proc = subprocess.run([sys.executable, str(REPO / "tests" / "full_disk_run.py"), where, "2", *args],
+                          capture_output=True, text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert _error_lines(proc.stderr) == [f"swarmsplat run: error: cannot write {refused}: {FULL}{_hint(out)}"]
 
 
 def test_a_failed_checkpoint_keeps_the_previous_one(tmp_path, monkeypatch):
