@@ -212,10 +212,11 @@ class Agent:
         kfs = [self.keyframes[i] for i in s.keyframe_ids]
         if iterations is None:
             iterations = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
-        mks = [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior, exposure_fixed=i == 0 or k.exposure_outlier,
-                           exposure_outlier=k.exposure_outlier) for i, k in enumerate(kfs)]
-        return self.mapper.map(self.gmap, s, mks, iterations,
-                               stop=stop)
+        # a submap's first keyframe holds its colour gauge; an outlier keeps the exposure it inherited
+        mks = [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior,
+                           exposure_fixed=i == 0 or k.exposure_outlier, exposure_outlier=k.exposure_outlier)
+               for i, k in enumerate(kfs)]
+        return self.mapper.map(self.gmap, s, mks, iterations, stop=stop)
 
     def _detect_loops(self, kf: Keyframe, information: np.ndarray | None = None) -> None:
         """Add `kf` to the loop closer and look for loops; `information`: the odometry edge's information since

@@ -226,6 +226,7 @@ class RealtimeAgent(Agent):
                                            kf.exposure)
         with self._lock:
             self._handover = (kf.submap_id, params, view, frame, kf.T_local_cam)
+            self.tracker.exposure = kf.exposure  # a view the tracker renders itself shows this camera's exposure
         t1 = time.perf_counter()
         self._detect_loops(kf, information)
         t2 = time.perf_counter()
