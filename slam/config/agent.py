@@ -149,6 +149,10 @@ class ExposureConfig(_Section):
     min_pixels: int = Field(500, ge=10, description="fit a new keyframe's exposure on at least this many pixels "
                             "where the map's render and the image agree in depth; fewer keep the previous "
                             "keyframe's")
+    revisit_radius: float = Field(2.0, ge=0, description="a submap's first keyframe is fitted against the "
+                                  "previous submap and every earlier one whose origin lies within this distance "
+                                  "(m): a revisit ties the colours back to the submaps that saw the place first "
+                                  "(0: the previous submap only)")
     max_gain: float = Field(2.5, gt=1, description="a keyframe whose fitted gain differs from its predecessor's "
                             "by more than this factor in a channel (or whose image is black or white) is an "
                             "outlier: it keeps the previous exposure and its colour is left out of the loss")

@@ -183,19 +183,28 @@ class Agent:
         prev = self.keyframes[-1].exposure
         prev = exposure.identity() if prev is None else prev
         s = self.gmap.active
-        if first_of_submap:
-            others = [m for m in self.gmap.submaps if m.id != s.id and len(m)]
-            ref = others[-1] if others else None
-            T = se3.inverse(ref.T_world_local) @ s.T_world_local @ kf.T_local_cam if ref is not None else None
-        else:
-            ref, T = s, kf.T_local_cam
         f = kf.map_rgbd
-        fitted = None
-        if ref is not None and len(ref):
+        if first_of_submap:
+            # the previous submap, and every earlier one whose first keyframe was near: a revisit ties the new
+            # submap's colours to the ones that saw the place first, as a loop closes a chain of poses
+            T_world = s.T_world_local @ kf.T_local_cam
+            others = [m for m in self.gmap.submaps if m.id != s.id and len(m)]
+            near = [m for m in others[:-1] if np.linalg.norm(m.T_world_local[:3, 3] - T_world[:3, 3])
+                    < cfg.revisit_radius]
+            refs = [(m, se3.inverse(m.T_world_local) @ T_world) for m in near + others[-1:]]
+        else:
+            refs = [(s, kf.T_local_cam)]
+        fits = []
+        for ref, T in refs:
+            if not len(ref):
+                continue
             with torch.no_grad():
                 out = render(ref.params, viewmat_from_pose(T), f.camera)
-            fitted = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
-                                  f.color.astype(np.float32) / 255.0, f.depth, min_pixels=cfg.min_pixels)
+            r = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
+                             f.color.astype(np.float32) / 255.0, f.depth, min_pixels=cfg.min_pixels)
+            if r is not None:
+                fits.append(r)
+        fitted = exposure.combine(fits)
         mean = float(f.color.mean()) / 255.0
         if fitted is None:
             kf.exposure_outlier = not 0.03 < mean < 0.97

@@ -108,6 +108,17 @@ def fit(rendered: np.ndarray, alpha: np.ndarray, rendered_depth: np.ndarray, ima
     return Fit(e, int(keep.sum()), before, after)
 
 
+def combine(fits: list[Fit]) -> Fit | None:
+    """One exposure from fits of the same image against several parts of the map: their pixel-weighted mean
+    (log gains and offsets alike); None when there is none."""
+    if not fits:
+        return None
+    w = np.array([f.pixels for f in fits], dtype=np.float64)
+    e = (np.stack([f.exposure for f in fits]) * w[:, None]).sum(axis=0) / w.sum()
+    return Fit(e, int(w.sum()), float(np.average([f.rmse_before for f in fits], weights=w)),
+               float(np.average([f.rmse_after for f in fits], weights=w)))
+
+
 def is_outlier(e: np.ndarray, previous: np.ndarray, max_gain: float) -> bool:
     """True when exposure e is further than a factor max_gain from `previous` in any channel's gain, or its
     offset moves by more than a third of the range: no camera's auto exposure makes that step between two
