@@ -176,3 +176,11 @@ def test_a_black_keyframe_is_an_outlier_and_leaves_the_map_alone(warp_cpu):
         return psnr(c.permute(2, 0, 1), target)
 
     assert score(dark) > score(clean) - 1.5  # the black frame did not paint the map black
+
+
+def test_fits_against_several_submaps_combine_by_their_pixels():
+    a = exposure.Fit(np.array([0.0, 0, 0, 0, 0, 0]), 300, 0.2, 0.1)
+    b = exposure.Fit(np.array([0.4, 0.4, 0.4, 0, 0, 0]), 100, 0.3, 0.1)
+    c = exposure.combine([a, b])
+    assert np.allclose(c.exposure[:3], 0.1) and c.pixels == 400
+    assert exposure.combine([]) is None and exposure.combine([b]).exposure[0] == pytest.approx(0.4)
