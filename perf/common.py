@@ -260,3 +260,15 @@ def tree_env(tree: str, scratch: str) -> dict:
     layout = "namespace" if os.path.exists(os.path.join(tree, "setup.py")) else "folders"
     return dict(os.environ, PYTHONPATH=os.pathsep.join([ns, tree]), SWARMSPLAT_TREE_LAYOUT=layout)
 
+
+def shared_data(name: str, subject: str):
+    """../shared/data/NAME (or $SWARMSPLAT_SHARED_DATA/NAME) as a Path; a missing one ends `python -m perf
+    SUBJECT` with one line saying where it looked."""
+    import os
+    from pathlib import Path
+
+    root = Path(os.environ.get("SWARMSPLAT_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+    p = root / name
+    if not p.exists():
+        raise SystemExit(f"perf {subject}: {p} not found (set SWARMSPLAT_SHARED_DATA to ../shared/data)")
+    return p

@@ -25,13 +25,9 @@ ON, OFF = {"exposure": {"enabled": True}}, {"exposure": {"enabled": False}}
 
 
 def _data(name: str) -> Path:
-    import os
+    from .common import shared_data
 
-    root = Path(os.environ.get("SWARMSPLAT_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-    p = root / name
-    if not p.exists():
-        raise SystemExit(f"perf map-quality: {p} not found (set SWARMSPLAT_SHARED_DATA to ../shared/data)")
-    return p
+    return shared_data(name, "map-quality")
 
 
 def _r(x, k=2):

@@ -27,13 +27,9 @@ OFF = {"loop_closure": {"cloud_route": False}, "server": {"cloud_route": False}}
 
 
 def _data(name: str) -> Path:
-    import os
+    from .common import shared_data
 
-    root = Path(os.environ.get("SWARMSPLAT_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-    p = root / name
-    if not p.exists():
-        raise SystemExit(f"perf wide-joins: {p} not found (set SWARMSPLAT_SHARED_DATA to ../shared/data)")
-    return p
+    return shared_data(name, "wide-joins")
 
 
 def _loop_s_per_keyframe(m: dict) -> float:
