@@ -18,6 +18,10 @@ def test_demo_tiny_end_to_end(tmp_path):
         assert a["frames_tracked"] == 10
         assert a["ate_rmse"] is not None and a["ate_rmse_no_lc"] is not None
     assert m["psnr"] is not None and m["render_views"] > 0
+    # own submaps as mapping left them (scored before the refinement's overlap cull thins each submap): a real fit,
+    # not far below the merged map
+    assert m["psnr_submaps"] > m["psnr"] - 3 and all(a["psnr_submaps"] is not None for a in m["agents"]), \
+        (m["psnr_submaps"], m["psnr"])
     for f in ("report.md", "loops.csv", "map.ply", "pose_graph_optimized.g2o", "trajectory.png", "renders.png"):
         assert (res / f).is_file(), f
     report = (res / "report.md").read_text()

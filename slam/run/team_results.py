@@ -96,6 +96,9 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
             "component": names[srv.slots[a].component], "in_global_frame": srv.slots[a].component == 0,
             **traj["agents"][a], **render["agents"][a],
             "psnr_before_refine": before["agents"][a]["psnr"] if before else None,
+            # own submaps as mapping left them: the refinement's overlap cull leaves each submap its owned
+            # surfaces only, so they are scored before it when it runs
+            "psnr_submaps": (before or render)["agents"][a].get("psnr_submaps"),
             "exposure": exposure_record(ag.keyframes),
             "time_s": {"tracking": t.tracking, "mapping": t.mapping},
         })
@@ -111,7 +114,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
         "psnr": render["psnr"], "ssim": render["ssim"],
         "depth_l1": render["depth_l1"], "render_views": render["views"],
         # the same keyframes from their own submaps alone: the merged map's loss against it is the merge's cost
-        "psnr_submaps": render["psnr_submaps"], "psnr_raw": render.get("psnr_raw"),
+        "psnr_submaps": (before or render).get("psnr_submaps"), "psnr_raw": render.get("psnr_raw"),
         "psnr_novel_raw": render.get("psnr_novel_raw"),
         "psnr_novel": render["psnr_novel"], "ssim_novel": render["ssim_novel"], "novel_views": render["novel_views"],
         "psnr_before_refine": before.get("psnr"), "ssim_before_refine": before.get("ssim"),
