@@ -1,7 +1,8 @@
 """Typed settings of the synthetic generator, with named presets.
 
 `GeneratorConfig.preset("tiny")` is what the tests use (2 agents, 10 frames, 160x120, a few seconds);
-`"default"` is the demo dataset (3 agents, 120 frames, 320x240). Every field is written into `dataset.yaml`
+`"default"` is the demo dataset (3 agents, 120 frames, 320x240); `"twin"` two copies of one room in two
+buildings, seen by different agents (the repeated-structure negative). Every field is written into `dataset.yaml`
 under `generator:`, so a dataset records exactly how it was made.
 """
 
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
 from swarmsplat.kernels.errors import InputError
 
@@ -28,6 +29,20 @@ class WorldConfig(_Strict):
     room_size_m: tuple[float, float] = (3.6, 4.8)  # range of each room's width and depth
     height_m: tuple[float, float] = (2.6, 3.0)  # range of the ceiling height (one per world)
     furniture_per_room: tuple[int, int] = (4, 7)
+    # A second copy of the building stands beside the first, out of sight of it (slam.synthetic.world): "room"
+    # repeats room A only (geometry, furniture and textures; the other rooms are furnished and painted anew),
+    # "building" repeats every room. Agent k walks slot k // 2's path in copy k % 2, so agents 0 and 1 see the
+    # two copies of room A from the same places. "none": one building.
+    twin: Literal["none", "room", "building"] = "none"
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # Without a twin the field is left out, so datasets written before it existed still match their settings
+        # (slam.run.demo reuses a dataset whose dataset.yaml records identical generator settings).
+        out = handler(self)
+        if self.twin == "none":
+            out.pop("twin", None)
+        return out
 
     @model_validator(mode="after")
     def _check(self):
@@ -137,4 +152,7 @@ PRESETS: dict[str, dict] = {
     # Longer sequences with all six agents, for benchmarks on bigger machines.
     "large": dict(name="synthetic_large", agents=6, frames=400, width=640, height=480,
                   world=WorldConfig(rooms_x=3, rooms_y=2), motion=MotionConfig(loop_turns=2.0)),
+    # Twin rooms: the default building and a copy of it whose room A is the same room (WorldConfig.twin);
+    # agents 0 and 2 in copy 1, 1 and 3 in copy 2. Agents of different copies must not join (decision 0012).
+    "twin": dict(name="synthetic_twin", agents=4, frames=120, width=320, height=240, world=WorldConfig(twin="room")),
 }

@@ -29,7 +29,8 @@ def plot_world(world: World, poses: list[np.ndarray], path: str | os.PathLike, *
     fig, ax = plt.subplots(figsize=(7, 7 * _aspect(world)), dpi=110)
     for r in world.rooms:
         ax.add_patch(Rectangle(r.lo, r.hi[0] - r.lo[0], r.hi[1] - r.lo[1], color="#f3f1ea", zorder=0))
-        ax.text((r.lo[0] + r.hi[0]) / 2, r.hi[1] - 0.35, f"room {'ABCDEFGHIJKLMNOP'[r.index]}", ha="center",
+        name = "ABCDEFGHIJKLMNOP"[r.iy * world.config.rooms_x + r.ix] + "'" * r.copy  # A' repeats A (twin)
+        ax.text((r.lo[0] + r.hi[0]) / 2, r.hi[1] - 0.35, f"room {name}", ha="center",
                 va="top", fontsize=9, color="#555", zorder=6)
     mt = world.materials
     for b in sorted(world.boxes, key=lambda b: b.hi[2]):

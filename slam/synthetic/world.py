@@ -4,11 +4,19 @@ World frame: z up, floor at z = 0, metres. Every solid is an axis-aligned box (w
 cabinets, tables, crates, columns), which keeps surface texturing exact (see texture.py) and meshing trivial.
 Rooms differ in size, furniture and materials; the opening between room A (grid cell 0, 0) and its first
 neighbour B is wide (1.8-2.4 m) so the agents placed around it (trajectories.py) see across it.
+
+A twin world (`WorldConfig.twin`) is that building plus a second copy of it standing `TWIN_GAP_M` beyond its
++x wall. Copy 1 is exactly the world of the same seed without a twin; in copy 2 room A (or, with "building", every
+room) has the same geometry, furniture and textures: its faces look up the texture at the copy-1 point they
+repeat, so the two copies are indistinguishable from inside. Closed outer walls keep every camera from seeing
+the other copy. Agent k walks slot k // 2's path in copy k % 2: agents 0 and 1 take the same path through the
+two copies, agents 0 and 3 stand to each other as slots 0 and 1 of one building (a pair that shares views), but
+in different copies.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -19,6 +27,7 @@ from .texture import (PATTERNS, MaterialTable, TextureField, lambert, material_t
 from .trajectories import LoopSpec, plan_loops
 
 WALL_T = 0.12  # wall thickness, metres
+TWIN_GAP_M = 3.0  # between the two copies of a twin world, outer wall to outer wall
 _FURNITURE_CLEARANCE = 0.55  # metres between any furniture and any agent path
 
 
@@ -29,6 +38,7 @@ class Room:
     iy: int
     lo: tuple[float, float]  # x, y of the wall centre lines, metres
     hi: tuple[float, float]
+    copy: int = 0  # 1: the second copy of a twin world
 
 
 @dataclass(frozen=True)
@@ -66,6 +76,8 @@ class World:
     tri_material: np.ndarray = field(repr=False)  # [T] int64 material id per triangle
     tri_normal: np.ndarray = field(repr=False)  # [T, 3] float32 outward unit normal per triangle
     tri_axis: np.ndarray = field(repr=False)  # [T] int64 world axis of that normal (0 x, 1 y, 2 z)
+    # [T, 3] float metres: a triangle's texture is that of the point this far back (twin copies; None: zero).
+    tri_texture_shift: np.ndarray | None = field(default=None, repr=False)
 
     # Per-triangle shading constants, derived from the above in __post_init__.
     tri_surface_axes: np.ndarray = field(init=False, repr=False)  # [T, 2] int64 world axes spanning the face
@@ -76,6 +88,9 @@ class World:
         # Walls: (horizontal axis, z); floors and ceilings: (x, y).
         self.tri_surface_axes = np.stack([np.where(self.tri_axis == 0, 1, 0), np.where(self.tri_axis == 2, 1, 2)], 1)
         self.tri_surface_offset = surface_offset(self.materials, self.tri_material, self.tri_axis)
+        if self.tri_texture_shift is not None:  # a copy's face reads the texture where its original stands
+            rows = np.arange(len(self.tri_axis))[:, None]
+            self.tri_surface_offset -= self.tri_texture_shift[rows, self.tri_surface_axes].astype(np.float32)
         self.tri_light = lambert(self.tri_normal)
 
     @cached_property
@@ -147,14 +162,56 @@ def generate_world(seed: int, config: WorldConfig | None = None) -> World:
 
     path_xy = np.concatenate([lp.xy(np.linspace(0, 2 * np.pi, 180, endpoint=False)) for lp in loops])
     furn_rng = np.random.default_rng([seed, 3])
-    for r in rooms:
-        boxes += _furnish(r, openings, path_xy, height, config, furn_rng, mats)
+    furniture = [_furnish(r, openings, path_xy, height, config, furn_rng, mats) for r in rooms]
+    boxes += [b for fb in furniture for b in fb]
+    shift = np.zeros((len(boxes), 3))
+    if config.twin != "none":
+        rooms, openings, boxes, loops, room_mats, shift = _twin(
+            seed, config, height, rooms, openings, boxes, furniture, loops, room_mats, mats, path_xy, xs[-1])
 
     vertices, triangles, tri_box, tri_face = _mesh(boxes)
     tri_material = _face_materials(boxes, rooms, room_mats, outside, vertices, triangles, tri_box, tri_face)
     return World(seed=seed, config=config, height=height, rooms=rooms, openings=openings, boxes=boxes,
                  loops=loops, materials=material_table(mats), vertices=vertices, triangles=triangles,
-                 tri_material=tri_material, tri_normal=_FACE_NORMALS[tri_face].astype(np.float32), tri_axis=tri_face // 2)
+                 tri_material=tri_material, tri_normal=_FACE_NORMALS[tri_face].astype(np.float32), tri_axis=tri_face // 2,
+                 tri_texture_shift=shift[tri_box] if shift.any() else None)
+
+
+def _twin(seed, config, height, rooms, openings, boxes, furniture, loops, room_mats, mats, path_xy, width):
+    """The second copy of a twin world, `TWIN_GAP_M` beyond copy 1's +x wall (see the module docstring).
+
+    Returns rooms, openings and boxes of both copies, the agents' loops (agent k: slot k // 2 in copy k % 2),
+    the rooms' materials and each box's texture shift [B, 3] (copy 2's boxes: the translation, so they look like
+    the copy-1 box they repeat). Appends copy 2's new materials to `mats`.
+    """
+    d = width + WALL_T + TWIN_GAP_M
+    n = len(rooms)
+    move = lambda b: Box((b.lo[0] + d, *b.lo[1:]), (b.hi[0] + d, *b.hi[1:]), b.kind, b.material)  # noqa: E731
+    rooms2 = [Room(r.index + n, r.ix, r.iy, (r.lo[0] + d, r.lo[1]), (r.hi[0] + d, r.hi[1]), copy=1) for r in rooms]
+    openings2 = [Opening((op.rooms[0] + n, op.rooms[1] + n), op.axis, op.coord + d * (op.axis == 0),
+                         op.centre + d * (op.axis == 1), op.width, op.top) for op in openings]
+    n_furniture = sum(len(fb) for fb in furniture)
+    boxes2 = [move(b) for b in boxes[: len(boxes) - n_furniture]]  # walls, floors, ceilings
+    room_mats2 = list(room_mats)
+    same = {r.index for r in rooms} if config.twin == "building" else {openings[0].rooms[0]}  # room A
+    rng = np.random.default_rng([seed, 4])
+    wall_kinds = ["stripes", "blotches", "noise", "tiles"]
+    floor_kinds = ["planks", "tiles", "noise", "blotches"]
+    for r, fb in zip(rooms, furniture):
+        if r.index in same:
+            boxes2 += [move(b) for b in fb]
+            continue
+        base = len(mats)  # another paint and other furniture, in the shape of the same room
+        mats += [random_material(rng, wall_kinds[int(rng.integers(0, 4))]),
+                 random_material(rng, floor_kinds[int(rng.integers(0, 4))]), random_material(rng, "noise")]
+        room_mats2[r.index] = (base, base + 1, base + 2)
+        boxes2 += [move(b) for b in _furnish(r, openings, path_xy, height, config, rng, mats)]
+    shift = np.zeros((len(boxes) + len(boxes2), 3))
+    shift[len(boxes):, 0] = d
+    twins = [replace(loops[k // 2], agent=k, room=loops[k // 2].room + n * (k % 2),
+                     centre=(loops[k // 2].centre[0] + d * (k % 2), loops[k // 2].centre[1]))
+             for k in range(MAX_AGENTS)]
+    return rooms + rooms2, openings + openings2, boxes + boxes2, twins, room_mats + room_mats2, shift
 
 
 def _walls(rooms, nx, ny, xs, ys, height, rng) -> tuple[list[Opening], list[Box]]:
