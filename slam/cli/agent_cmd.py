@@ -38,7 +38,8 @@ def register(sub) -> None:
                    help="publish the whole map every S seconds (0: at the end only; default: 10)")
     p.add_argument("--resume", action="store_true",
                    help="continue the agent killed in --out from its last checkpoint (live: on the frames that "
-                        "arrive now; a recording: from the frame after the checkpoint)")
+                        "arrive now; a recording: from the frame after the checkpoint; a team member on a "
+                        "recording: from the round after it, joining its server again)")
     p.add_argument("--name", default="live", help="the agent's name (default: live)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
@@ -149,7 +150,7 @@ def _team_member(args, source: str, cfg) -> int:
     if k is None:  # one sequence and no --id: the server gives this agent its index by name
         k = _ask_index(args, name, cfg)
     m = run_team_agent(seq, k, cfg, name=name, connect=args.server + args.connect, listen=args.listen, run=args.run,
-                       frames=args.frames or None, progress=not args.quiet, out=args.out)
+                       frames=args.frames or None, progress=not args.quiet, out=args.out, resume=args.resume)
     print(f"{name}: {m['bytes']['sent_total'] / 1e6:.2f} MB sent, {m['resent']} resent, {m['dropped_images']} "
           f"keyframe images dropped" + ("" if m["acknowledged"] else "; NOT all acknowledged by the server"))
     return 0 if m["acknowledged"] else 1
@@ -174,9 +175,12 @@ def run(args) -> int:
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device)}, preset=args.preset, sets=args.config_set)
     if args.server:
-        if args.resume:
-            raise InputError("--resume continues a lone agent; a team member has no checkpoint (its server has a "
-                             "journal)")
+        if args.resume and source.startswith(LIVE):
+            raise InputError("--resume continues a lone agent; a team member has no checkpoint on live topics "
+                             "(the frames after one would be gone, and its server holds what was made of them); on "
+                             "a recording it resumes")
+        if args.resume and not args.out:
+            raise InputError("--resume continues the team agent whose checkpoint is in --out: give --out")
         return _team_member(args, source, cfg)
     for flag in ("id", "split"):
         if getattr(args, flag) is not None:

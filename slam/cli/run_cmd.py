@@ -48,7 +48,8 @@ def register(sub) -> None:
                         "link's bytes (metrics.json link, report.md)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out that was killed or interrupted, from its last checkpoint "
-                        "(progress/checkpoint.pkl; one agent, or a team in one process; the dataset, --split and "
+                        "(progress/checkpoint.pkl; one agent or a team in one process; with --processes the "
+                        "server's journal and each agent's checkpoint in link/<agent>/; the dataset, --split and "
                         "config must be the run's own)")
     p.add_argument("--realtime", action="store_true",
                    help="real-time mode (one agent): frames arrive at the sensor's rate, each pose is emitted as its "
@@ -130,9 +131,6 @@ def run(args) -> int:
     if len(ds) > 1:
         if cfg.runtime.realtime:
             raise InputError(f"--realtime runs one agent, but {args.dataset} holds {len(ds)} agents' sequences")
-        if args.resume and args.processes:
-            raise InputError("--resume continues a run in one process; with --processes a restarted `swarmsplat "
-                             "server` replays its journal instead (docs/team-link.md)")
         # A multi-agent dataset runs as a team: inter-agent loops, one global pose graph, merged map.
         from swarmsplat.slam.run.team import run_team
 
@@ -140,7 +138,7 @@ def run(args) -> int:
             from swarmsplat.slam.run.team_link.processes import run_team_processes
 
             m = run_team_processes(args.dataset, args.out, cfg, frames=args.frames, split=args.split, loaded=ds,
-                                   progress=not args.quiet)
+                                   progress=not args.quiet, resume=args.resume)
         else:
             with _resumable(args.out):
                 m = run_team(ds, args.out, cfg, frames=args.frames, progress=not args.quiet, observer=live,

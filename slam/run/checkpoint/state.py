@@ -1,4 +1,5 @@
-"""Checkpoints of a run (one agent, or an in-process team), and what `swarmsplat run ... --resume` continues from.
+"""Checkpoints of a run (one agent, an in-process team, or one agent process of a team: slam.run.team_link.member),
+and what `--resume` continues from.
 
 progress/checkpoint.pkl holds two pickles one after the other: a small header (format, the run's identity: the
 dataset and the config; the next frame (one agent) or round (a team) to read; the journals' state; the seconds
@@ -27,7 +28,7 @@ CHECKPOINT = Path("progress") / "checkpoint.pkl"
 class Resumed:
     """What `load_checkpoint` gives back: the agent (or the team) and where its run stood."""
 
-    agent: object  # slam.dense.agent.Agent, or slam.run.team.Team for a team run
+    agent: object  # slam.dense.agent.Agent, slam.run.team.Team for a team run, a team agent process's AgentNode
     next_frame: int  # the first input frame (team: round) not yet read
     journal: tuple  # PoseJournal.state() at the checkpoint; a team: one per agent
     wall_s: float  # seconds of run time before the checkpoint
@@ -66,7 +67,8 @@ def save_checkpoint(out: Path, identity: dict, agent, *, next_frame: int, journa
     """Write out/progress/checkpoint.pkl atomically (fsync'd, then renamed over the previous one). `agent`: the
     Agent, or a team (anything with `.agents`); `journal`: its PoseJournal.state(), a team's one per agent."""
     path = Path(out) / CHECKPOINT
-    agents = getattr(agent, "agents", [agent])
+    # a team's agents; a team agent process's node (slam.run.team_link.member) holds its Agent as .agent
+    agents = agent.agents if hasattr(agent, "agents") else [getattr(agent, "agent", agent)]
     header = {"format": FORMAT, "identity": identity, "next_frame": int(next_frame),
               "journal": [list(j) for j in journal] if hasattr(agent, "agents") else list(journal),
               "wall_s": float(wall_s), "keyframes": sum(len(a.keyframes) for a in agents),

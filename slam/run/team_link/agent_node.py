@@ -7,6 +7,7 @@ images are dropped first (their poses and edges never are).
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections import OrderedDict
@@ -119,6 +120,16 @@ class Outbox:
     def stats(self) -> dict:
         return {"resent": self.resent, "dropped_images": len(self.dropped_images), "queued": len(self.items)}
 
+    def __getstate__(self) -> dict:  # a checkpoint keeps the queue, not the transport
+        return {**self.__dict__, "tx": None}
+
+    def reattach(self, tx, first_mid: int) -> None:
+        """After a resume: send on `tx`, number new messages from `first_mid` on (ids the killed process may have
+        used after the checkpoint, for other content, stay unused) and send what waits at the next `resend`."""
+        self.tx, self.mid = tx, max(self.mid, int(first_mid))
+        for item in self.items.values():
+            item[1] = float("-inf")
+
 
 def _image_nbytes(m: L.KeyframeImage) -> int:
     return int(m.small_color.nbytes + m.small_depth.nbytes + m.map_color.nbytes + m.map_depth.nbytes)
@@ -142,6 +153,16 @@ class AgentNode:
         self._sent_skips = 0
         self._sent_submaps = 0
         self.journal = None  # slam.run.checkpoint.PoseJournal of an agent given an output folder
+        self.parent = None  # pid of the process that started this one and must outlive it (run --processes)
+
+    def __getstate__(self) -> dict:  # what a checkpoint keeps (slam.run.team_link.member): no transport, no file
+        return {**self.__dict__, "tx": None, "journal": None, "parent": None, "welcomed": False,
+                "finished_by_server": False}
+
+    def reattach(self, tx, journal, first_mid: int) -> None:
+        """A node loaded from a checkpoint, on a new transport and its resumed journal (Outbox.reattach)."""
+        self.tx, self.journal = tx, journal
+        self.outbox.reattach(tx, first_mid)
 
     # ---- the link ----------------------------------------------------------------------------------------------
 
@@ -171,6 +192,8 @@ class AgentNode:
 
     def service(self) -> None:
         """Read what the server sent (welcome, acknowledgements, corrections, the end) and send again what waited."""
+        if self.parent is not None and os.getppid() != self.parent:  # its run was killed: a resumed one takes over
+            raise SwarmsplatError(f"{self.name}: the run that started this agent process has ended")
         for h, msg in self.tx.poll():
             if h.sender != L.SERVER:
                 continue

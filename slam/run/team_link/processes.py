@@ -225,13 +225,15 @@ def _add_link(out: Path, metrics: dict) -> None:
 def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: str | None = None,
                    connect: list[str] | None = None, listen: list[str] | None = None, run: str = "team",
                    frames: int | None = None, stride: int | None = None, progress: bool = True,
-                   strict: bool = False, out: str | Path | None = None) -> dict:
+                   strict: bool = False, out: str | Path | None = None, resume: bool = False) -> dict:
     """Agent `index` of a team (node index + 1) on sequence `seq`, sending to the server at `connect`: join, track
     and map every stride-th frame, send keyframes / submaps / poses, then wait for the server to acknowledge
-    everything (link.finish_timeout_s). out: also write this agent's pose journal as it goes (progress/poses.tum)
-    and its own view (trajectory as corrected, link.json). Returns the agent's link figures."""
+    everything (link.finish_timeout_s). out: also write this agent's pose journal as it goes (progress/poses.tum),
+    its checkpoints (progress/checkpoint.pkl, config checkpoint) and its own view (trajectory as corrected,
+    link.json); resume: continue the agent killed in `out` from its last checkpoint (slam.run.team_link.member).
+    Returns the agent's link figures."""
     from swarmsplat.slam.run.runtime import use_kernels
-    from .agent_node import AgentNode
+    from .member import MemberCheckpoints, member_identity
 
     cfg = config or SlamConfig()
     connect = check_member(index, connect, listen)
@@ -239,25 +241,59 @@ def run_team_agent(seq, index: int, config: SlamConfig | None = None, *, name: s
     cap = frames if frames is not None else cfg.max_frames
     n = len(seq) if not cap else min(len(seq), int(cap))
     rounds = -(-n // stride)
+    if resume and out is None:
+        raise InputError("--resume continues the agent whose checkpoint is in --out: give --out")
     use_kernels(cfg.kernels)
+    ckpt = MemberCheckpoints(output_dir(out, "--out"), member_identity(seq, cfg, n, index, stride), cfg) \
+        if out is not None else None
+    try:
+        resumed = ckpt.open(resume) if ckpt is not None else None
+        return _member_rounds(seq, index, cfg, ckpt, resumed, name=name or seq.name, connect=connect, listen=listen,
+                              run=run, rounds=rounds, stride=stride, progress=progress, strict=strict, out=out)
+    finally:
+        if ckpt is not None:
+            ckpt.close()
+
+
+def _member_rounds(seq, index: int, cfg: SlamConfig, ckpt, resumed, *, name: str, connect, listen, run: str,
+                   rounds: int, stride: int, progress: bool, strict: bool, out) -> dict:
+    """run_team_agent's work once its folder is taken: join, the rounds, the end."""
+    from .agent_node import AgentNode
+
     tx = _transport(index + 1, [L.SERVER, index + 1], listen=list(listen or []), connect=connect, run=run)
-    name = name or seq.name
     say = (lambda *a, **k: print(*a, **k)) if progress else (lambda *a, **k: None)
     try:
-        node = AgentNode(seq.camera, cfg, name, tx)
-        node.journal = agent_journal(out)
+        make = lambda: AgentNode(seq.camera, cfg, name, tx)  # noqa: E731
+        node, start = ckpt.start(resumed, make, tx, say=lambda t: say(t, file=sys.stderr)) if ckpt else (make(), 0)
+        node.parent = _parent()
         node.join(rounds, cfg.link.connect_timeout_s, say=say)
         t0, last = time.monotonic(), time.monotonic()
-        for i in range(rounds):
+        for i in range(start, rounds):
+            n_sm = len(node.agent.gmap.submaps)
             node.step_round(seq, i, stride, strict)
+            if ckpt is not None:
+                ckpt.after_round(node, i, n_sm)
             if progress and time.monotonic() - last > 10:
                 last = time.monotonic()
                 say(f"[{name}] round {i + 1}/{rounds}  keyframes {len(node.agent.keyframes)}  "
                     f"queued {len(node.outbox.items)}  {time.monotonic() - t0:.0f}s", file=sys.stderr)
+        if ckpt is not None and start < rounds:  # every round done: a kill while waiting for the server resumes here
+            ckpt.save(node, rounds)
         figures = finish_agent(node, rounds, tx, name, out, say)
+        if ckpt is not None and figures["acknowledged"]:
+            ckpt.done()
     finally:
         tx.close()
     return figures
+
+
+PARENT_ENV = "SWARMSPLAT_TEAM_PARENT"  # set by run_team_processes: its agents stop when it is gone
+
+
+def _parent() -> int | None:
+    """The pid of the `run --processes` that started this agent process (None: started on its own)."""
+    v = os.environ.get(PARENT_ENV, "")
+    return int(v) if v.isdigit() else None
 
 
 def finish_agent(node, rounds: int, tx, name: str, out, say) -> dict:
@@ -288,10 +324,16 @@ def finish_agent(node, rounds: int, tx, name: str, out, say) -> dict:
 @guarded("team")
 def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig | None = None, *,
                        frames: int | None = None, split: str | None = None, loaded=None, progress: bool = True,
-                       timeout: float | None = None) -> dict:
+                       timeout: float | None = None, resume: bool = False) -> dict:
     """`swarmsplat run DATASET --processes`: one `swarmsplat agent --server` process per sequence of `dataset` (a
     multi-agent dataset, or one sequence cut by `split` ranges), served by this process on localhost. Writes the
-    in-process team's outputs, plus metrics.json "link". loaded: the dataset as already loaded (and split)."""
+    in-process team's outputs, plus metrics.json "link"; each agent keeps its checkpoints in link/<agent>/.
+    loaded: the dataset as already loaded (and split). resume: continue the killed run in `out`: the server
+    replays its journal (link/journal.bin), each agent resumes from its checkpoint, an agent the server had
+    acknowledged entirely is not started again."""
+    from swarmsplat.slam.run.checkpoint import has_checkpoint, team_identity
+    from .member import agent_folder, member_complete, team_resume
+
     cfg = config or SlamConfig()
     if loaded is not None:
         ds = loaded
@@ -304,35 +346,44 @@ def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig 
     if len(ds.agents) < 2:
         raise InputError(f"--processes runs a team, but {dataset} holds one sequence (cut it with --split)")
     out = output_dir(out, "--out")
-    (out / "link").mkdir(exist_ok=True)
-    (out / "link" / "journal.bin").unlink(missing_ok=True)  # a new run: an earlier run's journal is not replayed
+    caps = [len(s) if not (frames or cfg.max_frames) else min(len(s), int(frames or cfg.max_frames))
+            for s in ds.agents]
+    team_resume(out, team_identity(ds, cfg, caps, cfg.team.stride), resume=resume)
+    if not resume:
+        (out / "link" / "journal.bin").unlink(missing_ok=True)  # a new run: an earlier run's journal is not replayed
     cfg_path = out / "link" / "config.yaml"
     atomic_write_text(cfg_path, cfg.to_yaml())
     port = _free_port(cfg.link.port_base)
     endpoint = f"tcp/127.0.0.1:{port}"
     run = f"t{os.getpid()}"
+    folders = [agent_folder(out, s.name) for s in ds.agents]
+    again = [resume and (has_checkpoint(d) or (d / "config.yaml").is_file()) for d in folders]
     cmd = lambda k, s: [sys.executable, "-m", "swarmsplat.slam", "agent", str(dataset), "--name", s.name,  # noqa: E731
                         "--server", endpoint, "--id", str(k), "--config", str(cfg_path), "--run", run, "--quiet",
+                        "--out", str(folders[k]), *(["--resume"] if again[k] else []),
                         *(["--split", split] if split else []), *(["--frames", str(frames)] if frames else [])]
-    logs = [open(out / "link" / f"{s.name}.log", "w") for s in ds.agents]
-    procs = [subprocess.Popen(cmd(k, s), stdout=logs[k], stderr=subprocess.STDOUT, start_new_session=True)
-             for k, s in enumerate(ds.agents)]
+    # an agent whose messages the server acknowledged entirely (its journal has them) is not started again
+    start = [k for k in range(len(ds.agents)) if not (resume and member_complete(folders[k]))]
+    logs = {k: open(out / "link" / f"{ds.agents[k].name}.log", "a" if resume else "w") for k in start}
+    env = {**os.environ, PARENT_ENV: str(os.getpid())}
+    procs = {k: subprocess.Popen(cmd(k, ds.agents[k]), stdout=logs[k], stderr=subprocess.STDOUT,
+                                 start_new_session=True, env=env) for k in start}
     try:
         m = serve_team(len(ds.agents), out, cfg, dataset=ds, listen=[endpoint], run=run, progress=progress,
                        timeout=timeout)
-        for k, p in enumerate(procs):
+        for p in procs.values():
             try:
                 p.wait(timeout=max(30.0, cfg.link.finish_timeout_s))
             except subprocess.TimeoutExpired:
                 pass
     finally:
-        for p in procs:
+        for p in procs.values():
             if p.poll() is None:
                 p.kill()
-        for f in logs:
+        for f in logs.values():
             f.close()
-    failed = [f"{s.name} (exit {p.returncode}, see link/{s.name}.log)" for s, p in zip(ds.agents, procs)
-              if p.returncode not in (0, None)]
+    failed = [f"{ds.agents[k].name} (exit {p.returncode}, see link/{ds.agents[k].name}.log)"
+              for k, p in procs.items() if p.returncode not in (0, None)]
     if failed:
         raise SwarmsplatError("agent processes failed: " + ", ".join(failed))
     return m

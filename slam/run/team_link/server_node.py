@@ -70,6 +70,7 @@ class Peer:
     lost: bool = False
     ack: list = field(default_factory=list)  # message ids to acknowledge
     duplicates: int = 0  # messages received again (resent, or duplicated on the way)
+    repeats: int = 0  # keyframes and submaps received again under new ids (from an agent resumed from a checkpoint)
     unique_bytes: dict = field(default_factory=dict)  # message kind -> bytes of the first copies
 
     def ended(self, frames: int = 0) -> bool:
@@ -152,13 +153,18 @@ class ServerNode:
         if journal and self._journal is not None:
             self._journal.write(struct.pack("<I", len(data)) + data)
             self._journal.flush()
+        # kept by keyframe id, submap id and frame index: an agent resumed from its checkpoint makes again what its
+        # killed process may have sent, under new message ids (slam.run.team_link.member); the first copy stays
         if isinstance(msg, L.KeyframeMeta):
+            p.repeats += msg.id in p.meta
             p.meta.setdefault(msg.id, msg)
         elif isinstance(msg, L.KeyframeImage):
+            p.repeats += msg.id < p.processed or msg.id in p.images
             if msg.id >= p.processed:
                 p.images.setdefault(msg.id, msg)
         elif isinstance(msg, L.SubmapData):
-            p.submaps[msg.id] = msg
+            p.repeats += msg.id in p.submaps
+            p.submaps.setdefault(msg.id, msg)
         elif isinstance(msg, L.Frames):
             self._frames(a, msg)
         elif isinstance(msg, L.Done):
@@ -353,6 +359,7 @@ class ServerNode:
                 "image_bytes_per_keyframe": once.get("KeyframeImage", 0) / n_kf if n_kf else None,
                 "bytes_per_submap": once.get("SubmapData", 0) / n_sm if n_sm else None,
                 "bytes_from_agent_first_copies": dict(once), "duplicates_received": p.duplicates,
+                "repeats_received": p.repeats,
                 "input_size": list(p.camera[4:6]) if p.camera else None, "raw_keyframe_bytes": raw_kf,
                 "raw_rgbd_bytes": raw, "fraction_of_raw": both / raw if raw else None,
                 "raw_rgbd_640x480_bytes": n_kf * REFERENCE_KEYFRAME_BYTES,
