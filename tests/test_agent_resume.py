@@ -81,20 +81,32 @@ def _checkpoint_header(path: Path) -> dict | None:
         return None
 
 
-def _journaled_keyframes(journal: Path, agent: int) -> set[int]:
-    """The keyframe ids of `agent` whose KeyframeMeta the server has journaled (link/journal.bin)."""
-    from swarmsplat.slam.run.team_link import messages as L
+class _JournalWatch:
+    """The keyframe ids of agent `agent` whose KeyframeMeta the server has journaled (link/journal.bin), read as
+    the file grows (only the new records, only KeyframeMeta decoded)."""
 
-    data, off, ids = journal.read_bytes() if journal.is_file() else b"", 0, set()
-    while off + 4 <= len(data):
-        size = int.from_bytes(data[off:off + 4], "little")
-        if off + 4 + size > len(data):
-            break
-        h, msg = L.LINK.decode(data[off + 4: off + 4 + size])
-        if h.sender == agent + 1 and isinstance(msg, L.KeyframeMeta):
-            ids.add(msg.id)
-        off += 4 + size
-    return ids
+    def __init__(self, journal: Path, agent: int):
+        self.path, self.agent, self.off, self.ids = journal, agent, 0, set()
+
+    def newest(self) -> int:
+        from swarmsplat.slam.run.team_link import messages as L
+
+        if self.path.is_file():
+            with open(self.path, "rb") as f:
+                f.seek(self.off)
+                data = f.read()
+            off = 0
+            while off + 4 <= len(data):
+                size = int.from_bytes(data[off:off + 4], "little")
+                if off + 4 + size > len(data):
+                    break
+                record = data[off + 4: off + 4 + size]
+                h = L.LINK.peek_header(record)
+                if h.sender == self.agent + 1 and h.type_id == L.KeyframeMeta.TYPE:
+                    self.ids.add(L.LINK.decode(record)[1].id)
+                off += 4 + size
+            self.off += off
+        return max(self.ids, default=-1)
 
 
 def _assert_whole_result(out: Path, whole: Path, m_whole: dict) -> dict:
@@ -132,19 +144,20 @@ def test_an_agent_killed_mid_run_resumes_and_the_server_takes_it_back(team, tmp_
     srv = subprocess.Popen(server, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
     procs = [subprocess.Popen(agent(k), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
              for k in (0, 1)]
+    watch = _JournalWatch(out / "link" / "journal.bin", 1)
     try:
         t_end = time.time() + 60
         while True:  # the server holds a keyframe of agent 1 newer than its checkpoint
             assert time.time() < t_end and procs[1].poll() is None, "agent 1 ended before it could be killed"
             header = _checkpoint_header(ckpt)
-            if header and max(_journaled_keyframes(out / "link" / "journal.bin", 1), default=-1) >= header["keyframes"]:
+            if header and watch.newest() >= header["keyframes"]:
                 break
-            time.sleep(0.05)
+            time.sleep(0.02)
         procs[1].send_signal(signal.SIGKILL)
         assert procs[1].wait(10) == -signal.SIGKILL
         header = _checkpoint_header(ckpt)
         assert 0 < header["next_frame"] < 14, "killed mid-run"
-        ahead = max(_journaled_keyframes(out / "link" / "journal.bin", 1)) >= header["keyframes"]
+        ahead = watch.newest() >= header["keyframes"]
         procs[1] = subprocess.Popen(agent(1) + ["--resume"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                     text=True, cwd=REPO)
         _, err = srv.communicate(timeout=120)
@@ -320,3 +333,38 @@ def test_a_resumed_agent_numbers_its_messages_past_the_killed_ones_and_the_serve
     p = server.peers[0]
     assert sorted(p.meta) == [0, 1] and p.repeats == 1 and p.duplicates == 2
     assert [r.frame_index for r in team.agents[0].poses] == [0, 1, 2, 3]  # frame 3 is new, 0-2 kept once
+
+
+def test_a_server_killed_twice_replays_every_whole_record(tmp_path):
+    """A kill while a record is appended leaves it cut; the restarted server drops it from the journal before it
+    appends, so a server restarted again still replays every acknowledged message."""
+    import numpy as np
+
+    from swarmsplat.kernels.camera import PinholeCamera
+    from swarmsplat.slam.dense.team.mirror import AgentMirror
+    from swarmsplat.slam.run.team import Team
+    from swarmsplat.slam.run.team_link import messages as L
+    from swarmsplat.slam.run.team_link.server_node import ServerNode
+
+    cfg, cam = SlamConfig(), PinholeCamera(100.0, 100.0, 40.0, 30.0, 80, 60)
+    journal = tmp_path / "link" / "journal.bin"
+    frames = lambda mid, idx: L.Frames(mid=mid, rounds_done=idx + 1, keyframes=0, frame_index=np.array([idx]),  # noqa: E731
+                                       timestamp=np.array([0.1 * idx]), submap_id=np.zeros(1, np.int64),
+                                       T_local_cam=np.eye(4)[None])
+    server = lambda: ServerNode(Team([cam], ["a"], cfg, agent_class=AgentMirror), _Wire(), journal=journal,  # noqa: E731
+                                say=lambda *a: None)
+    first = server()
+    for i in range(2):
+        first.handle(0, frames(i + 1, i))
+        first.poll()
+    first._journal.close()
+    record = L.LINK.encode(frames(3, 2), 1, 0)
+    with open(journal, "ab") as f:  # killed half-way through the third record (not acknowledged)
+        f.write(len(record).to_bytes(4, "little") + record[: len(record) // 2])
+    second = server()
+    assert second.replayed == 2
+    second.handle(0, frames(3, 2))  # resent by the agent
+    second.poll()
+    second._journal.close()
+    third = server()
+    assert third.replayed == 3 and [r.frame_index for r in third.team.agents[0].poses] == [0, 1, 2]

@@ -10,8 +10,9 @@ as in one process, however the agents' processes interleave. An agent on live to
 keyframes go to the server as they arrive and the recorded agents' rounds allow.
 
 Faults. Messages are kept by id (a duplicate or a late copy changes nothing) and acknowledged; every new message
-is appended to `link/journal.bin` in the output folder before it is acknowledged, so a server restarted on the
-same folder replays the journal, is back in the state it had, and continues with the agents' resent messages.
+is appended to `link/journal.bin` in the output folder, and fsync'd, before it is acknowledged, so a server
+restarted on the same folder replays the journal, is back in the state it had, and continues with the agents'
+resent messages (a record a kill cut short is dropped from the file: it was not acknowledged).
 An agent silent for link.agent_timeout_s is reported lost and the others go on without it.
 """
 
@@ -108,18 +109,25 @@ class ServerNode:
         if journal is not None:
             journal.parent.mkdir(parents=True, exist_ok=True)
             if journal.is_file():
-                self.replayed = self._replay(journal)
+                self.replayed, whole = self._replay(journal)
+                with open(journal, "r+b") as f:  # new records follow the last whole one, not a cut one
+                    f.truncate(whole)
             self._journal = open(journal, "ab")
 
     # ---- messages -------------------------------------------------------------------------------------------
 
-    def _replay(self, path: Path) -> int:
+    def _replay(self, path: Path) -> tuple[int, int]:
+        """Handle every whole record of the journal again; returns (records, bytes they take)."""
         data, off, n = path.read_bytes(), 0, 0
         while off + 4 <= len(data):
             (size,) = struct.unpack_from("<I", data, off)
             if off + 4 + size > len(data):
-                break  # a record cut by a kill: the agent resends it
-            h, msg = L.LINK.decode(data[off + 4: off + 4 + size])
+                break  # a record cut by a kill: it was not acknowledged, the agent resends it
+            try:
+                h, msg = L.LINK.decode(data[off + 4: off + 4 + size])
+            except MessageError as e:
+                self.say(f"[server] {path}: a damaged record at byte {off} ({e}); replayed up to it")
+                break
             self.handle(h.sender - 1, msg, journal=False)
             off += 4 + size
             n += 1
@@ -127,7 +135,7 @@ class ServerNode:
             p.ack = []
         if n:
             self.say(f"[server] replayed {n} messages from {path}")
-        return n
+        return n, off
 
     def handle(self, a: int, msg: L.Message, *, journal: bool = True) -> None:
         """One agent message (a: agent index). Idempotent by message id."""
@@ -201,6 +209,8 @@ class ServerNode:
         got = self.tx.poll()
         for h, msg in got:
             self.handle(h.sender - 1, msg)
+        if any(p.ack for p in self.peers):  # on disk before acknowledged: an agent forgets what is acknowledged
+            fsync_journal(self)
         for a, p in enumerate(self.peers):
             if p.ack:
                 self.tx.send(a + 1, L.Ack(mids=np.array(sorted(set(p.ack)), np.int64)))
