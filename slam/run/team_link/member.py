@@ -22,8 +22,7 @@ from swarmsplat.kernels.errors import InputError
 from swarmsplat.kernels.fileio import atomic_write_text
 
 from swarmsplat.slam.run.checkpoint import CHECKPOINT, PoseJournal, find_resume, run_identity, save_checkpoint
-
-JOURNAL = Path("progress") / "poses.tum"
+from swarmsplat.slam.run.sequence import JOURNAL
 EPOCH = Path("progress") / "link_epoch"
 MID_RANGE = 1 << 32  # message ids of one process life
 
@@ -40,6 +39,12 @@ def member_complete(out: Path) -> bool:
         return bool(json.loads((Path(out) / "link.json").read_text()).get("acknowledged"))
     except (OSError, ValueError, AttributeError):
         return False
+
+
+def forget_member(out: Path) -> None:
+    """Remove what says where an earlier team agent in `out` stood (checkpoint, restarts, link.json)."""
+    for name in (CHECKPOINT, EPOCH, Path("link.json")):
+        (Path(out) / name).unlink(missing_ok=True)
 
 
 def agent_folder(out: Path, name: str) -> Path:
@@ -115,9 +120,8 @@ class MemberCheckpoints:
             node.journal = PoseJournal(self.out / JOURNAL)
             if self.resume:  # killed before its first checkpoint: from the first round, under new message ids
                 node.outbox.reattach(tx, self._next_epoch())
-            else:  # a new run in this folder: an earlier run's checkpoint is not resumed
-                (self.out / EPOCH).unlink(missing_ok=True)
-                (self.out / CHECKPOINT).unlink(missing_ok=True)
+            else:  # a new run in this folder: an earlier run's checkpoint and end are not this one's
+                forget_member(self.out)
             start = 0
         if self.resume and say is not None:
             say(f"[{node.name}] resuming at round {start}" if resumed else

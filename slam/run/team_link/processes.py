@@ -332,7 +332,7 @@ def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig 
     replays its journal (link/journal.bin), each agent resumes from its checkpoint, an agent the server had
     acknowledged entirely is not started again."""
     from swarmsplat.slam.run.checkpoint import has_checkpoint, team_identity
-    from .member import agent_folder, member_complete, team_resume
+    from .member import agent_folder, forget_member, member_complete, team_resume
 
     cfg = config or SlamConfig()
     if loaded is not None:
@@ -357,6 +357,9 @@ def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig 
     endpoint = f"tcp/127.0.0.1:{port}"
     run = f"t{os.getpid()}"
     folders = [agent_folder(out, s.name) for s in ds.agents]
+    if not resume:  # a new run: what an earlier run's agents left is not resumed
+        for d in folders:
+            forget_member(d)
     again = [resume and (has_checkpoint(d) or (d / "config.yaml").is_file()) for d in folders]
     cmd = lambda k, s: [sys.executable, "-m", "swarmsplat.slam", "agent", str(dataset), "--name", s.name,  # noqa: E731
                         "--server", endpoint, "--id", str(k), "--config", str(cfg_path), "--run", run, "--quiet",
