@@ -105,6 +105,26 @@ def test_cloud_route_budget_per_keyframe(unjoined):
     assert not srv.cloud_allowed(1, q)
 
 
+def test_cloud_route_between_joined_agents_is_a_fallback(unjoined, monkeypatch):
+    """Between agents in one frame the route runs only while no loop of the query keyframe was accepted; between
+    agents in two frames it stays the way to join them."""
+    team, _ = unjoined
+    srv = team.server
+    monkeypatch.setattr(team.agents[1].cfg.loop_closure, "cloud_route", True)
+    monkeypatch.setattr(srv, "records", list(srv.records))
+    monkeypatch.setattr(srv, "cloud_tries", {})
+    q = team.agents[1].keyframes[2]
+    assert srv.cloud_allowed(1, q, same=True)
+    rec = _record(team, 1, q, 0, team.agents[0].keyframes[0])
+    srv.records.append(rec)
+    assert srv.cloud_allowed(1, q, same=True)  # being checked, not accepted
+    rec.accepted = True
+    assert not srv.cloud_allowed(1, q, same=True)
+    assert srv.cloud_allowed(1, q, same=False)
+    srv.records.append(_record(team, 1, team.agents[1].keyframes[3], 0, team.agents[0].keyframes[0]))
+    assert srv.cloud_allowed(1, q, same=True)  # a later keyframe's records: q's are no longer the newest
+
+
 @pytest.mark.slow
 def test_two_real_recordings_of_different_places_never_join(tmp_path):
     """Redwood's living room (its own layout, named by dataset.yaml) and the HoloLens office: every candidate

@@ -16,6 +16,11 @@ I_j = Ad(T)ᵀ I_target Ad(T) for T = T_target_source. Each edge's standard devi
 
 A keyframe-to-keyframe tracking edge chains several frame-to-frame steps; `OdometryChain` adds their covariances
 (each moved into the newest frame with the adjoint), as a chain of independent relative measurements does.
+
+A loop registered between two *windows* of keyframes fused into clouds (the cloud route) is only as consistent as
+the poses that fused them: `window_covariance` is the tracking chain's covariance from a window's centre to its
+members, averaged over them, and a cloud loop's covariance adds both windows' to the registration's (its ICP
+cannot see that part: the clouds it aligns already carry it).
 """
 
 from __future__ import annotations
@@ -77,6 +82,26 @@ def information(cov: np.ndarray, model: InformationModel) -> np.ndarray:
     cov = _clamp(np.asarray(cov, dtype=np.float64), model)
     out = np.linalg.inv(cov)
     return 0.5 * (out + out.T)
+
+
+def window_covariance(step_cov: dict[int, np.ndarray], center: int, members) -> np.ndarray:
+    """Mean over `members` (keyframe ids) of the tracking chain's covariance between keyframe `center` and each:
+    the sum of the steps' covariances `step_cov[k]` (edge k -> k+1) in between. Steps are summed without moving
+    them between frames (windows span a few keyframes, whose relative rotations are small); a step without a
+    covariance counts as zero."""
+    out = np.zeros((6, 6))
+    members = list(members)
+    for m in members:
+        for k in range(min(center, m), max(center, m)):
+            c = step_cov.get(k)
+            if c is not None:
+                out = out + c
+    return out / max(len(members), 1)
+
+
+def step_covariances(odometry) -> dict[int, np.ndarray]:
+    """{i: covariance} of an agent's tracking edges i -> i + 1 (slam.dense.loops.loop_closure.Edge, `info`)."""
+    return {e.i: np.linalg.inv(e.info) for e in odometry if e.j == e.i + 1}
 
 
 @dataclass

@@ -17,7 +17,8 @@ from swarmsplat.kernels.errors import InputError
 from . import loop_check
 from swarmsplat.slam.config import LoopClosureConfig
 from .incremental import IncrementalGraph
-from .edge_information import InformationModel, fixed_information, information, registration_covariance
+from .edge_information import (InformationModel, fixed_information, information, registration_covariance,
+                               step_covariances, window_covariance)
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianMap
 from swarmsplat.slam.dense.rgbd_registration import register_loop
@@ -187,7 +188,14 @@ class LoopCloser:
         return out
 
     def verify(self, c: LoopCandidate, keyframes: list[Keyframe], gmap: GaussianMap) -> LoopCandidate:
-        """Register query (source) to match (target) from the tracked guess (eq. 6), then apply the gates."""
+        """Register query (source) to match (target) from the tracked guess (eq. 6), then apply the gates; a
+        candidate that fails them takes the cloud route when the config allows (`detect` defers it instead)."""
+        return self._verify_image(c, keyframes, gmap, cloud=True)[0]
+
+    def _verify_image(self, c: LoopCandidate, keyframes: list[Keyframe], gmap: GaussianMap, *, cloud: bool
+                      ) -> tuple[LoopCandidate, bool, np.ndarray]:
+        """`verify` -> (the candidate, whether keyframe registration failed the fitness / RMSE gates, the tracked
+        guess T_init); with `cloud` a gate failure goes on to the cloud route (budget permitting)."""
         cfg = self.cfg
         q, j = keyframes[c.query_kf], keyframes[c.match_kf]
         T_init = se3.project_rigid(se3.inverse(world_pose(gmap, j)) @ world_pose(gmap, q))  # eq. 6: T_j^-1 T_q
@@ -198,14 +206,14 @@ class LoopCloser:
                 c.reason = f"overlap {c.overlap:.2f} < descriptor_min_overlap {cfg.descriptor_min_overlap} at the " \
                            f"tracked poses"
                 self.log.append(c)
-                return c
+                return c, False, T_init
         r = register_loop(q.small, j.small, T_init, max_distance=cfg.icp_max_distance, min_fitness=cfg.fitness_min,
                           max_rmse=cfg.rmse_max, max_depth=self.max_depth, global_fallback=cfg.global_fallback)
         c.fitness, c.inlier_rmse = r.fitness, r.inlier_rmse
         c.correction_m = float(np.linalg.norm((se3.inverse(T_init) @ r.T_target_source)[:3, 3]))
         gates = r.fitness <= cfg.fitness_min or r.inlier_rmse >= cfg.rmse_max or not r.success
-        if gates and cfg.cloud_route and self.cloud_tries.get(q.id, 0) < cfg.cloud_per_keyframe:
-            return self._verify_cloud(c, q, j, keyframes, gmap, T_init)
+        if gates and cloud and cfg.cloud_route and self.cloud_tries.get(q.id, 0) < cfg.cloud_per_keyframe:
+            return self._verify_cloud(c, q, j, keyframes, gmap, T_init), False, T_init
         if r.fitness <= cfg.fitness_min:
             c.reason = f"fitness {r.fitness:.3f} <= tau_f {cfg.fitness_min}"
         elif r.inlier_rmse >= cfg.rmse_max:
@@ -219,10 +227,10 @@ class LoopCloser:
             c.reason = "accepted"
             self.loops.append(Edge(j.id, q.id, se3.project_rigid(r.T_target_source), self.loop_information(r), c))
         self.log.append(c)
-        return c
+        return c, gates, T_init
 
     def _verify_cloud(self, c: LoopCandidate, q: Keyframe, j: Keyframe, keyframes: list[Keyframe],
-                      gmap: GaussianMap, T_init: np.ndarray) -> LoopCandidate:
+                      gmap: GaussianMap, T_init: np.ndarray, *, logged: bool = False) -> LoopCandidate:
         """The cloud route (slam.dense.loops.local_clouds): ICP between the two keyframes' windows from the tracked
         guess (the match window takes only keyframes older than the query window's, so the two share none), the
         cloud gates, the correction gate, then the render check of the match window's submaps from the result
@@ -263,10 +271,16 @@ class LoopCloser:
                 c.accepted, c.reason = True, "accepted [cloud route]"
                 info = fixed_information(cfg.odometry_sigma_rot, cfg.odometry_sigma_trans)
                 if cfg.information != "fixed":
-                    info = information(registration_covariance(out.information, out.n_correspondences,
-                                                               out.inlier_rmse, T, self.model), self.model)
+                    cov = registration_covariance(out.information, out.n_correspondences, out.inlier_rmse, T,
+                                                  self.model)
+                    steps = step_covariances(self.odometry)
+                    j_window = window_keyframes(keyframes, j, cfg.cloud_window, below=lo)
+                    cov = cov + window_covariance(steps, q.id, [k.id for k in q_window]) + \
+                        window_covariance(steps, j.id, [k.id for k in j_window])
+                    info = information(cov, self.model)
                 self.loops.append(Edge(j.id, q.id, T, info, c))
-        self.log.append(c)
+        if not logged:
+            self.log.append(c)
         return c
 
     def loop_information(self, r) -> np.ndarray:
@@ -277,9 +291,17 @@ class LoopCloser:
         return information(cov, self.model)
 
     def detect(self, kf: Keyframe, keyframes: list[Keyframe], gmap: GaussianMap) -> list[LoopCandidate]:
-        """Candidates for `kf`, each verified; returns the accepted ones."""
-        return [c for c in (self.verify(c, keyframes, gmap) for c in self.candidates(kf, keyframes, gmap))
-                if c.accepted]
+        """Candidates for `kf`, each verified; returns the accepted ones. The cloud route is the keyframe's
+        fallback: only when keyframe registration accepted none of its candidates do those that failed its gates
+        take the route (best first, at most cloud_per_keyframe) — where images already close the revisit, the
+        coarser cloud loops would only add time and millimetres."""
+        done = [self._verify_image(c, keyframes, gmap, cloud=False) for c in self.candidates(kf, keyframes, gmap)]
+        if self.cfg.cloud_route and not any(c.accepted for c, _, _ in done):
+            for c, gates, T_init in done:
+                if gates and self.cloud_tries.get(kf.id, 0) < self.cfg.cloud_per_keyframe:
+                    q, j = keyframes[c.query_kf], keyframes[c.match_kf]
+                    self._verify_cloud(c, q, j, keyframes, gmap, T_init, logged=True)
+        return [c for c, _, _ in done if c.accepted]
 
     # ---- optimisation ------------------------------------------------------------------------------------
 

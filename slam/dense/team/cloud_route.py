@@ -48,10 +48,24 @@ class CloudRoute:
     def cloud_allowed(self, a: int, q: Keyframe, same: bool = False) -> bool:
         """Whether the cloud route may still run for agent a's keyframe q (loop_closure.cloud_per_keyframe):
         between agents in two frames under server.cloud_route, between agents already in one frame (ICP from their
-        current relative pose, as within one agent) under loop_closure.cloud_route."""
+        current relative pose, as within one agent) under loop_closure.cloud_route, and then only while no loop of
+        q has been accepted."""
         lc = self.slots[a].agent.cfg.loop_closure
         on = lc.cloud_route if same else self.cfg.cloud_route
+        if same and on and self.closed_already(a, q):  # a fallback, as within one agent (LoopCloser.detect)
+            return False
         return on and self.cloud_tries.get((a, q.id), 0) < lc.cloud_per_keyframe
+
+    def closed_already(self, a: int, q: Keyframe) -> bool:
+        """Whether a loop of agent a's keyframe q was accepted while it was being checked (its records are the
+        newest): then the cloud route between agents in one frame adds nothing the images did not."""
+        name = self.slots[a].agent.name
+        for r in reversed(self.records):
+            if r.query_agent != name or r.query_kf != q.id:
+                return False
+            if r.accepted:
+                return True
+        return False
 
     def render_score(self, b: int, m: Keyframe, T_m_q: np.ndarray, q: Keyframe, rec: LoopRecord) -> str:
         """Render agent b's submaps around keyframe m from q's hypothesised pose (m's camera @ T_m_q), score
@@ -61,6 +75,21 @@ class CloudRoute:
         s = score_loop(ag.gmap, ag.keyframes, m, T_m_q, q.small, lc.cloud_window)
         record_scores(rec, s)
         return render_gate(lc).verdict(s)
+
+    def _cloud_information(self, out, T: np.ndarray, a: int, q: Keyframe, b: int, m: Keyframe) -> np.ndarray:
+        """A cloud loop's information: the registration's covariance plus both windows' tracking spread
+        (slam.dense.loops.edge_information.window_covariance), as within one agent."""
+        from swarmsplat.slam.dense.loops.edge_information import (information, registration_covariance,
+                                                                step_covariances, window_covariance)
+        from swarmsplat.slam.dense.loops.local_clouds import window_keyframes
+
+        sa, sb = self.slots[a].agent, self.slots[b].agent
+        model, r = sa.loops.model, sa.cfg.loop_closure.cloud_window
+        cov = registration_covariance(out.information, out.n_correspondences, out.inlier_rmse, T, model)
+        for ag, kf in ((sa, q), (sb, m)):
+            members = [k.id for k in window_keyframes(ag.keyframes, kf, r)]
+            cov = cov + window_covariance(step_covariances(ag.loops.odometry), kf.id, members)
+        return information(cov, model)
 
     def verify_cloud(self, rec: LoopRecord, a: int, q: Keyframe, b: int, m: Keyframe, image_reason: str,
                      init: np.ndarray | None = None):
@@ -93,11 +122,7 @@ class CloudRoute:
             return rec.reject("render", f"cloud route: {why}")
         info = None
         if sa.cfg.loop_closure.information == "registration":
-            from swarmsplat.slam.dense.loops.edge_information import information, registration_covariance
-
-            model = sa.loops.model
-            info = information(registration_covariance(out.information, out.n_correspondences, out.inlier_rmse, T,
-                                                       model), model)
+            info = self._cloud_information(out, T, a, q, b, m)
         loop = InterLoop(b, m.id, a, q.id, T, rec, info)
         if init is None:
             return self._join_or_wait(loop, f"cloud/{out.method}")
