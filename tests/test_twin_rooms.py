@@ -1,8 +1,8 @@
 """Twin rooms: a generated world built twice (slam.synthetic.world, `WorldConfig.twin`), and a team whose agents saw
 different copies of one room. The copies render alike (the generator's part); the team server joins the two
 agents of one copy at their true pose and must leave the agent of the other copy apart, although its views of
-the twin room are the same images. Measured (decision 0012): in this world the server still joins the other
-copy's agent, at the copy offset — the negative is a strict xfail until the render check refuses it."""
+the twin room are the same images. What refuses the copy offset is the render check's free-space gate
+(`render_max_violate`, decision 0012): with the earlier 0.15 the other copy's agent joined at the copy offset."""
 
 from __future__ import annotations
 
@@ -111,9 +111,6 @@ def test_agents_in_one_copy_join_at_their_true_pose(twin_team):
 
 
 @pytest.mark.skipif(not kiss_matcher_available(), reason="kiss-matcher wheel not installed (x86-64 only)")
-@pytest.mark.xfail(strict=True, reason="known false join (decision 0012): two cloud-route loops at the copy offset "
-                   "pass every render gate (depth agrees 0.67-0.69, in front 0.10-0.11, photometric 0.111 after "
-                   "gain and offset) and agree with each other, so agent 3 joins agent 2")
 def test_agent_in_the_other_copy_stays_apart(twin_team):
     """Agent 3 sees room A' as agent 2 sees room A: the clouds of the two copies do align (at the copy offset),
     so candidates between the copies reach the render check; none is accepted, none waits for a second loop,

@@ -271,12 +271,13 @@ class LoopClosureConfig(_Section):
     descriptor_min_overlap: float = Field(0.1, ge=0, le=1, description="without global_fallback, a descriptor "
                                           "candidate is registered only when the tracked poses make this fraction "
                                           "of the query's depth pixels land in the match view (0 = always)")
-    cloud_route: bool = Field(False, description="within one agent and between agents already in one frame: when "
-                              "keyframe ICP from the current pose fails the gates, register the two keyframes' local "
-                              "maps (a window of keyframes each, fused with depth; slam.dense.loops.local_clouds) by "
-                              "ICP from the same start, and accept the loop only if a render of the matched submaps "
-                              "from the result agrees with the query's view (wide revisits; costs time and mm of "
-                              "accuracy where keyframe ICP already closes the loops)")
+    cloud_route: bool = Field(True, description="within one agent and between agents already in one frame: when "
+                              "keyframe ICP from the current pose accepted none of a keyframe's candidates, register "
+                              "the keyframes' local maps (a window of keyframes each, fused with depth; "
+                              "slam.dense.loops.local_clouds) by ICP from the same start for the candidates that "
+                              "failed its gates, and accept a loop only if a render of the matched submaps from the "
+                              "result agrees with the query's view; its information adds both windows' tracking "
+                              "spread (wide revisits, which keyframe ICP cannot close)")
     cloud_window: int = Field(6, ge=0, description="cloud route: keyframes within this many keyframe ids of the "
                               "candidate's, on each side, make its local map")
     cloud_voxel: float = Field(0.08, gt=0, description="cloud route: voxel grid (m); normals within 2.5 voxels, FPFH "
@@ -291,7 +292,7 @@ class LoopClosureConfig(_Section):
                                         "of the query's valid depth pixels ...")
     render_min_agree: float = Field(0.5, ge=0, le=1, description="... agrees in depth (5 cm + 3 %) on at least this "
                                     "fraction of them ...")
-    render_max_violate: float = Field(0.15, ge=0, le=1, description="... lies in front of the observed surface (by "
+    render_max_violate: float = Field(0.06, ge=0, le=1, description="... lies in front of the observed surface (by "
                                       "10 cm + 5 %) on at most this fraction ...")
     render_max_photometric: float = Field(0.12, gt=0, description="... and differs in colour, after a gain and offset "
                                           "per channel, by at most this mean absolute error (0-1 scale)")

@@ -244,7 +244,8 @@ def _trajectory_metrics(seq, stamps: np.ndarray, T_est: np.ndarray, out: Path | 
 
 def _write_loops_csv(path: Path, rows: list[dict]) -> None:
     cols = ["query_kf", "match_kf", "query_frame", "match_frame", "similarity", "accepted", "reason", "fitness",
-            "inlier_rmse", "correction_m", "source", "overlap"]
+            "inlier_rmse", "correction_m", "source", "overlap", "route", "render_covisible", "render_agree",
+            "render_violate", "render_photometric"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols)
     w.writeheader()
