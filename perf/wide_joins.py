@@ -47,7 +47,7 @@ def _team(case: str, ds, out: Path, overrides: dict | None = None, **kw) -> dict
     m = run_team(ds, out, cfg, progress=False, **kw)
     wall = time.perf_counter() - t0
     cloud = m["inter_verify"]["cloud_route"]
-    return {"case": case, "cloud_route": bool(cfg.server.cloud_route),
+    return {"case": case, "cloud_route": bool(cfg.server.cloud_route and cfg.loop_closure.cloud_route),
             "joined": bool(m["all_agents_joined"]), "joins": m["joins"]["made"],
             "ate_team_cm": None if m["ate_rmse_team"] is None else round(100 * m["ate_rmse_team"], 2),
             "ate_agents_cm": [None if a["ate_rmse"] is None else round(100 * a["ate_rmse"], 2) for a in m["agents"]],
@@ -65,11 +65,12 @@ def _one(case: str, path: Path, out: Path) -> dict:
     from swarmsplat.slam.config import SlamConfig
     from swarmsplat.slam.run.sequence import run_sequence
 
+    cfg = SlamConfig()
     t0 = time.perf_counter()
-    m = run_sequence(path, out, SlamConfig(), progress=False)
+    m = run_sequence(path, out, cfg, progress=False)
     wall = time.perf_counter() - t0
     n = m["loop_candidates"]
-    return {"case": case, "cloud_route": True, "ate_cm": round(100 * m["ate_rmse"], 2),
+    return {"case": case, "cloud_route": bool(cfg.loop_closure.cloud_route), "ate_cm": round(100 * m["ate_rmse"], 2),
             "ate_no_lc_cm": round(100 * m["ate_rmse_no_lc"], 2),
             "psnr_merged": None if m.get("psnr_merged") is None else round(m["psnr_merged"], 2),
             "psnr_submaps": None if m.get("psnr") is None else round(m["psnr"], 2),
@@ -124,8 +125,8 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
             "intra_candidates", "loops_accepted", "loop_candidates", "accepted_fraction", "loop_s_per_keyframe",
             "loop_s_ratio_to_off", "keyframes", "wall_s"]
     return {"rows": rows, "columns": cols,
-            "notes": ["every case with the default config (cloud_route on) unless cloud_route says false (the peer: "
-                      "loop_closure.cloud_route and server.cloud_route off); loop_s_per_keyframe: the server's "
+            "notes": ["every case with the default config unless cloud_route says false (the peer: "
+                      "loop_closure.cloud_route and server.cloud_route off; true: both on); loop_s_per_keyframe: the server's "
                       "(team) or the agent's (one) loop-closure seconds over the keyframes, wall clock, so a loaded "
                       "machine inflates it — compare the ratio in one run",
                       "HoloLens poses are the device's own tracking (a few mm to cm), not motion capture"]}
