@@ -3,15 +3,21 @@
 kernels/_warp/raster.py composites one pixel at a time: a Gaussian-pixel pair costs ~26 ns forward and ~36 ns
 backward there, because Warp's CPU code generator emits scalar code with strided array indexing that LLVM cannot
 vectorise. These kernels do the same work per 16x16 tile, with the same rules and the same outputs, but keep the
-tile's per-pixel state in local arrays and composite a Gaussian over the rows of its ellipse, in the whole 8-pixel
-groups its x extent reaches, with branch-free code (masks instead of branches, a polynomial exp), which the CPU
-compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction too) turns into 8-lane AVX2
-(or 4-lane SSE / NEON) instructions. Lanes outside the ellipse fail the per-pixel test like any other pixel.
-The forward walks an ellipse two rows per step: a group's chain (exp, alpha, transmittance) is long and the two
-rows' chains are independent, so the core overlaps them (forward 8.6 -> 8.1 ms at 320x240 / 60k in a mapping
-iteration; the same outputs bit for bit). The backward stays one row per step: paired rows were 5-7 % slower
-there (its ten per-lane sums and the second row's state do not fit the registers) and changed the gradients'
-rounding.
+tile's per-pixel state in local arrays laid out in 4x4-pixel blocks of 16 lanes and composite a Gaussian over the
+blocks its ellipse's bounding box reaches, with branch-free code (masks instead of branches, a polynomial exp),
+which the CPU compiler (Warp builds CPU modules with -O3 -march=native; here with FMA contraction and a preference
+for 512-bit vectors) turns into one 16-lane AVX-512 instruction per step (two 8-lane AVX2, four SSE / NEON ones
+elsewhere). Lanes outside the ellipse fail the per-pixel test like any other pixel.
+Why 4x4 blocks: the mapping scenes' Gaussians are a few pixels across; at 320x240 with 60k of them an entry's
+ellipse reaches 3.95 blocks of 4x4 on average against 7.83 groups of 8 pixels of one row (the layout before) and
+5.85 rows of 16, so a 16-lane step wastes the fewest lanes in this shape. On one mapping step's inputs at
+320x240 / 60k, one thread, thread CPU time, both layouts interleaved in one process (Intel Xeon, AVX-512):
+forward 15.6 -> 11.7 ms with the same outputs bit for bit (every pixel sees the same arithmetic), backward
+22.2 -> 18.0 ms (the per-entry sums are a tree over 16 lanes now, so the gradients' rounding differs, ~1e-7
+relative).
+The backward's per-entry lane sums run as whole-vector adds in registers (16 -> 8 -> 4 lanes, then 2 + 2): a
+loop over the halves compiled to masked loads of just-stored data, which the store buffer cannot forward (3.5 ms
+of a 22 ms backward went there).
 The per-tile set-up and write-out loops read and write the images row by row through plain pointers (an image
 gradient is contiguous or a broadcast scalar, which reads from a row of its value), so they vectorise too (at
 160x120 with 1k Gaussians, scalar, they cost ~0.1 of the compositing's ~0.48 ms).
@@ -34,12 +40,16 @@ import warp as wp
 
 CPU_ONLY = True  # perf/gpu_codegen.py does not build this module for CUDA
 
-# Warp's default CPU flags plus -ffp-contract=fast: multiply-adds fuse to FMA (the polynomial and the accumulators)
+# Warp's default CPU flags plus -ffp-contract=fast (multiply-adds fuse to FMA: the polynomial and the accumulators)
+# and 512-bit vectors where the CPU has them (LLVM prefers 256 bits on AVX-512 CPUs; the 16-lane loops want 512)
 wp.set_module_options({"enable_backward": False, "max_unroll": 0, "cpu_compiler_flags": (
-    "-march=native -ffp-contract=fast -mllvm=-inline-threshold=9000 -mllvm=-inline-cold-callsite-threshold=3000"
-    " -mllvm=-slp-recursion-max-depth=4")})
+    "-march=native -mprefer-vector-width=512 -ffp-contract=fast -mllvm=-inline-threshold=9000"
+    " -mllvm=-inline-cold-callsite-threshold=3000 -mllvm=-slp-recursion-max-depth=4")})
 
 _COMMON = r"""
+    typedef float f16v __attribute__((vector_size(64)));
+    typedef float f8v __attribute__((vector_size(32)));
+    typedef float f4v __attribute__((vector_size(16)));
     const int TS = 16;
     const int PREFETCH = 8;  // entries ahead whose projected row is fetched into cache (random-access misses)
     const float ALPHA_MIN = 1.0f / 255.0f;
@@ -88,27 +98,54 @@ _COMMON = r"""
         rlo = (int)a;
         rhi = (int)b;
     };
-    // lanes [jlo, jhi) of the tile row, whole 8-lane groups, that the ellipse's x extent can reach
-    auto lanes_of = [&](float mx, float cc, float det_q, float lgm, int& jlo, int& jhi) {
+    // columns [clo, chi] of the tile (clo > chi: none) that the ellipse's x extent can reach
+    auto cols_of = [&](float mx, float cc, float det_q, float lgm, int& clo, int& chi) {
         float ex = sqrtf(2.0f * lgm * cc / det_q);
         float a = ceilf(mx - ex) - (float)x0, b = floorf(mx + ex) - (float)x0;
         a = a < 0.0f ? 0.0f : (a > (float)nw ? (float)nw : a);
         b = b < -1.0f ? -1.0f : (b > (float)(nw - 1) ? (float)(nw - 1) : b);
-        jlo = ((int)a) & ~7;
-        jhi = b < a ? jlo : (((int)b) | 7) + 1;
+        clo = (int)a;
+        chi = b < a ? clo - 1 : (int)b;
+    };
+    // the tile's per-pixel state is kept in 4x4-pixel blocks of 16 lanes (block row, block column, row, column)
+    auto BI = [](int r, int c) -> int { return ((r >> 2) << 6) | ((c >> 2) << 4) | ((r & 3) << 2) | (c & 3); };
+    // per lane of block row br: dy, and the terms -0.5 c dy^2 and b dy of the power
+    auto block_row = [&](int br, float my, float cb, float cc, float* dyl, float* cdy, float* bdy) {
+        for (int l = 0; l < 16; ++l) {
+            const float dy = (float)(y0 + 4 * br + (l >> 2)) - my;
+            dyl[l] = dy;
+            cdy[l] = -0.5f * cc * dy * dy;
+            bdy[l] = cb * dy;
+        }
+    };
+    // body(base, fx0, bc, dyl, cdy, bdy) for every 4x4 block of the tile that the bounding box of an ellipse
+    // (mean mx, my, conic a, b, c, det_q = a c - b^2, threshold lo) reaches: base = the block's first lane, bc its
+    // column, fx0 = x0 - mx, and block_row's per-lane terms of its row
+    auto for_blocks = [&](float mx, float my, float ca, float cb, float cc, float det_q, float lo, auto&& body) {
+        const float lgm = -1.01f * lo + 0.01f;
+        int rlo, rhi, clo, chi;
+        rows_of(my, ca, det_q, lgm, rlo, rhi);
+        cols_of(mx, cc, det_q, lgm, clo, chi);
+        const float fx0 = (float)x0 - mx;
+        for (int br = (rlo - y0) >> 2; rlo <= rhi && br <= (rhi - y0) >> 2; ++br) {
+            alignas(64) float dyl[16], cdy[16], bdy[16];
+            block_row(br, my, cb, cc, dyl, cdy, bdy);
+            for (int bc = clo >> 2; bc <= chi >> 2; ++bc) body((br << 6) | (bc << 4), fx0, bc, dyl, cdy, bdy);
+        }
     };
 """
 
 _FORWARD = _COMMON + r"""
-    alignas(32) float T[256];
-    alignas(32) float CR[256];
-    alignas(32) float CG[256];
-    alignas(32) float CB[256];
-    alignas(32) float DD[256];
-    alignas(32) int LAST[256];
+    alignas(64) float T[256];
+    alignas(64) float CR[256];
+    alignas(64) float CG[256];
+    alignas(64) float CB[256];
+    alignas(64) float DD[256];
+    alignas(64) int LAST[256];
     for (int i = 0; i < 256; ++i) {
         // lanes outside the image start with T = 0: they never composite and are never written
-        T[i] = ((i & 15) < nw && (i >> 4) < nh) ? 1.0f : 0.0f;
+        const int r = ((i >> 6) << 2) | ((i >> 2) & 3), c = (((i >> 4) & 3) << 2) | (i & 3);
+        T[i] = (c < nw && r < nh) ? 1.0f : 0.0f;
         CR[i] = 0.0f; CG[i] = 0.0f; CB[i] = 0.0f; DD[i] = 0.0f; LAST[i] = 0;
     }
     const int npix = nw * nh;
@@ -116,8 +153,8 @@ _FORWARD = _COMMON + r"""
     int* hits_p = (int*)hits.data;
     const size_t hs = hits.strides[0] / sizeof(int);
     for (int e = s0; e < s1; ++e) {
-        alignas(32) int cntv[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-        alignas(32) int finv[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+        alignas(64) int cntv[16] = {0};
+        alignas(64) int finv[16] = {0};
         const int g = I1(entries, e);
         if (e + PREFETCH < s1) {  // entries are in depth order: their rows are scattered over the whole array
             const int gn = I1(entries, e + PREFETCH);
@@ -131,25 +168,19 @@ _FORWARD = _COMMON + r"""
         if (done < npix && lo < 0.0f && det_q > 0.0f) {
             const float mx = P(g, 0), my = P(g, 1), op = P(g, 5);
             const float cr = P(g, 6), cg = P(g, 7), cbl = P(g, 8), z = P(g, 9);
-            const float lgm = -1.01f * lo + 0.01f;
             const int k1 = e - s0 + 1;
-            int rlo, rhi, jlo, jhi;
-            rows_of(my, ca, det_q, lgm, rlo, rhi);
-            lanes_of(mx, cc, det_q, lgm, jlo, jhi);
-            const float fx0 = (float)x0 - mx;
-            // one 8-lane group of tile row r (py = y0 + r); cdy, bdy: the row's dy terms
-            auto group = [&](int r, float cdy, float bdy, int h) {
-                float* Tr = T + r * TS;
-                float* CRr = CR + r * TS;
-                float* CGr = CG + r * TS;
-                float* CBr = CB + r * TS;
-                float* DDr = DD + r * TS;
-                int* Lr = LAST + r * TS;
-                for (int l = 0; l < 8; ++l) {
-                    const int j = h + l;
-                    const float Tj = Tr[j];
-                    const float dx = fx0 + (float)j;
-                    const float power = -0.5f * ca * dx * dx + cdy - bdy * dx;
+            for_blocks(mx, my, ca, cb, cc, det_q, lo, [&](int base, float fx0, int bc, const float* dyl,
+                                                      const float* cdy, const float* bdy) {
+                float* __restrict__ Tb = T + base;
+                float* __restrict__ CRb = CR + base;
+                float* __restrict__ CGb = CG + base;
+                float* __restrict__ CBb = CB + base;
+                float* __restrict__ DDb = DD + base;
+                int* __restrict__ Lb = LAST + base;
+                for (int l = 0; l < 16; ++l) {
+                    const float Tj = Tb[l];
+                    const float dx = fx0 + (float)(4 * bc + (l & 3));
+                    const float power = -0.5f * ca * dx * dx + cdy[l] - bdy[l] * dx;
                     float a = op * fexp(power);
                     a = a < 0.99f ? a : 0.99f;
                     const bool valid = (Tj > 0.0f) & (power <= 0.0f) & (power >= lo) & (a >= ALPHA_MIN);
@@ -157,43 +188,24 @@ _FORWARD = _COMMON + r"""
                     const bool stop = valid & (tT < 1e-4f);
                     const bool comp = valid & !stop;
                     const float w = comp ? a * Tj : 0.0f;
-                    CRr[j] += w * cr;
-                    CGr[j] += w * cg;
-                    CBr[j] += w * cbl;
-                    DDr[j] += w * z;
-                    Tr[j] = stop ? -Tj : (comp ? tT : Tj);
-                    Lr[j] = comp ? k1 : Lr[j];
+                    CRb[l] += w * cr;
+                    CGb[l] += w * cg;
+                    CBb[l] += w * cbl;
+                    DDb[l] += w * z;
+                    Tb[l] = stop ? -Tj : (comp ? tT : Tj);
+                    Lb[l] = comp ? k1 : Lb[l];
                     cntv[l] += comp ? 1 : 0;
                     finv[l] += stop ? 1 : 0;
                 }
-            };
-            // two rows at a time: their pixels are distinct, so the two groups' dependency chains (exp, alpha,
-            // transmittance) are independent and the core overlaps them
-            int py = rlo;
-            for (; py < rhi; py += 2) {
-                const float dy0 = (float)py - my, dy1 = (float)(py + 1) - my;
-                const float cdy0 = -0.5f * cc * dy0 * dy0, cdy1 = -0.5f * cc * dy1 * dy1;
-                const float bdy0 = cb * dy0, bdy1 = cb * dy1;
-                for (int h = jlo; h < jhi; h += 8) {
-                    group(py - y0, cdy0, bdy0, h);
-                    group(py + 1 - y0, cdy1, bdy1, h);
-                }
-            }
-            if (py == rhi) {
-                const float dy = (float)py - my;
-                const float cdy = -0.5f * cc * dy * dy;
-                const float bdy = cb * dy;
-                for (int h = jlo; h < jhi; h += 8) group(py - y0, cdy, bdy, h);
-            }
+            });
         }
         int count = 0, fin = 0;
-        for (int l = 0; l < 8; ++l) { count += cntv[l]; fin += finv[l]; }
+        for (int l = 0; l < 16; ++l) { count += cntv[l]; fin += finv[l]; }
         done += fin;
         hits_p[(size_t)e * hs] = count;
     }
     const float bg0 = F1(bg, 0), bg1 = F1(bg, 1), bg2 = F1(bg, 2);
     for (int r = 0; r < nh; ++r) {
-        // per row: plain pointers the compiler may vectorise through (the outputs are distinct, contiguous arrays)
         const int q0 = (y0 + r) * width + x0;
         float* __restrict__ col = (float*)color.data + 3 * q0;
         float* __restrict__ dep = (float*)depth.data + q0;
@@ -201,43 +213,37 @@ _FORWARD = _COMMON + r"""
         float* __restrict__ alp = (float*)alpha.data + q0;
         float* __restrict__ tfi = (float*)t_final.data + q0;
         int* __restrict__ lst = (int*)last.data + q0;
-        const float* __restrict__ Tr = T + r * TS;
-        const float* __restrict__ CRr = CR + r * TS;
-        const float* __restrict__ CGr = CG + r * TS;
-        const float* __restrict__ CBr = CB + r * TS;
-        const float* __restrict__ DDr = DD + r * TS;
-        const int* __restrict__ Lr = LAST + r * TS;
         for (int j = 0; j < nw; ++j) {
-            const float Tv = fabsf(Tr[j]);
+            const int i = BI(r, j);
+            const float Tv = fabsf(T[i]);
             const float a = 1.0f - Tv;
             tfi[j] = Tv;
             alp[j] = a;
-            col[3 * j + 0] = CRr[j] + Tv * bg0;
-            col[3 * j + 1] = CGr[j] + Tv * bg1;
-            col[3 * j + 2] = CBr[j] + Tv * bg2;
-            dep[j] = DDr[j];
-            dno[j] = a > 1e-6f ? DDr[j] / (a > 1e-6f ? a : 1.0f) : 0.0f;
-            lst[j] = Lr[j];
+            col[3 * j + 0] = CR[i] + Tv * bg0;
+            col[3 * j + 1] = CG[i] + Tv * bg1;
+            col[3 * j + 2] = CB[i] + Tv * bg2;
+            dep[j] = DD[i];
+            dno[j] = a > 1e-6f ? DD[i] / (a > 1e-6f ? a : 1.0f) : 0.0f;
+            lst[j] = LAST[i];
         }
     }
 """
 
 _BACKWARD = _COMMON + r"""
-    alignas(32) float TR[256];
-    alignas(32) float BH[256];
-    alignas(32) float GR[256];
-    alignas(32) float GG[256];
-    alignas(32) float GB[256];
-    alignas(32) float GD[256];
-    alignas(32) int LAST[256];
+    alignas(64) float TR[256];
+    alignas(64) float BH[256];
+    alignas(64) float GR[256];
+    alignas(64) float GG[256];
+    alignas(64) float GB[256];
+    alignas(64) float GD[256];
+    alignas(64) int LAST[256];
     const float bg0 = F1(bg, 0), bg1 = F1(bg, 1), bg2 = F1(bg, 2);
     int n_live = 0;
     for (int i = 0; i < 256; ++i) {
         TR[i] = 1.0f; BH[i] = 0.0f; GR[i] = 0.0f; GG[i] = 0.0f; GB[i] = 0.0f; GD[i] = 0.0f; LAST[i] = 0;
     }
     // per-pixel inputs, row by row through plain pointers: an image gradient is either contiguous or a broadcast
-    // scalar (stride 0, e.g. from a sum); a broadcast one reads from a row of its value, so every row loop has unit
-    // strides and the compiler vectorises it
+    // scalar (stride 0, e.g. from a sum); a broadcast one reads from a row of its value
     alignas(64) float cst[4][48];
     auto rowp = [&](const wp::array_t<float>& a, int q0, int comp, int slot) -> const float* {
         if (a.strides[0] == 0) {
@@ -256,15 +262,9 @@ _BACKWARD = _COMMON + r"""
         const float* __restrict__ gal = rowp(g_alpha, q0, 1, 1);
         const float* __restrict__ gdn = rowp(g_dnorm, q0, 1, 2);
         const float* __restrict__ gco = rowp(g_color, q0, 3, 3);
-        float* __restrict__ GRr = GR + r * TS;
-        float* __restrict__ GGr = GG + r * TS;
-        float* __restrict__ GBr = GB + r * TS;
-        float* __restrict__ GDr = GD + r * TS;
-        float* __restrict__ TRr = TR + r * TS;
-        float* __restrict__ BHr = BH + r * TS;
-        int* __restrict__ Lr = LAST + r * TS;
         int nl = 0;
         for (int j = 0; j < nw; ++j) {
+            const int i = BI(r, j);
             const float TN = tf[j];
             const float a_px = 1.0f - TN;
             const bool ok = a_px > 1e-6f;
@@ -272,11 +272,11 @@ _BACKWARD = _COMMON + r"""
             const float gd = gdp[j] + gn;
             const float ga = gal[j] - gn * dn[j];
             const float gr = gco[3 * j + 0], gg = gco[3 * j + 1], gb = gco[3 * j + 2];
-            GRr[j] = gr; GGr[j] = gg; GBr[j] = gb; GDr[j] = gd;
-            TRr[j] = TN;
-            BHr[j] = (gr * bg0 + gg * bg1 + gb * bg2 - ga) * TN;
+            GR[i] = gr; GG[i] = gg; GB[i] = gb; GD[i] = gd;
+            TR[i] = TN;
+            BH[i] = (gr * bg0 + gg * bg1 + gb * bg2 - ga) * TN;
             const int l = ls[j];
-            Lr[j] = l;
+            LAST[i] = l;
             nl = l > nl ? l : nl;
         }
         n_live = nl > n_live ? nl : n_live;
@@ -299,37 +299,35 @@ _BACKWARD = _COMMON + r"""
         const float cr = P(g, 6), cg = P(g, 7), cbl = P(g, 8), z = P(g, 9);
         const float lo = F1(pthr, g);
         const float det_q = ca * cc - cb * cb;
-        alignas(32) float v[10][8];
+        alignas(64) float v[10][16];
         for (int m = 0; m < 10; ++m)
-            for (int j = 0; j < 8; ++j) v[m][j] = 0.0f;
+            for (int j = 0; j < 16; ++j) v[m][j] = 0.0f;
         if (lo < 0.0f && det_q > 0.0f) {
-            const float lgm = -1.01f * lo + 0.01f;
-            int rlo, rhi, jlo, jhi;
-            rows_of(my, ca, det_q, lgm, rlo, rhi);
-            lanes_of(mx, cc, det_q, lgm, jlo, jhi);
-            const float fx0 = (float)x0 - mx;
-            for (int py = rlo; py <= rhi; ++py) {
-                const float dy = (float)py - my;
-                const float cdy = -0.5f * cc * dy * dy;
-                const float bdy = cb * dy;
-                const int row = (py - y0) * TS;
-                for (int h = jlo; h < jhi; h += 8)
-                for (int l = 0; l < 8; ++l) {
-                    const int i = row + h + l;
-                    const float dx = fx0 + (float)(h + l);
-                    const float power = -0.5f * ca * dx * dx + cdy - bdy * dx;
+            for_blocks(mx, my, ca, cb, cc, det_q, lo, [&](int base, float fx0, int bc, const float* dyl,
+                                                      const float* cdy, const float* bdy) {
+                float* __restrict__ TRb = TR + base;
+                float* __restrict__ BHb = BH + base;
+                const float* __restrict__ GRb = GR + base;
+                const float* __restrict__ GGb = GG + base;
+                const float* __restrict__ GBb = GB + base;
+                const float* __restrict__ GDb = GD + base;
+                const int* __restrict__ Lb = LAST + base;
+                for (int l = 0; l < 16; ++l) {
+                    const float dx = fx0 + (float)(4 * bc + (l & 3));
+                    const float dy = dyl[l];
+                    const float power = -0.5f * ca * dx * dx + cdy[l] - bdy[l] * dx;
                     const float G = fexp(power);
                     const float raw = op * G;
                     const float a = raw < 0.99f ? raw : 0.99f;
-                    const bool m = (k < LAST[i]) & (power <= 0.0f) & (power >= lo) & (a >= ALPHA_MIN);
+                    const bool m = (k < Lb[l]) & (power <= 0.0f) & (power >= lo) & (a >= ALPHA_MIN);
                     const float inv_1ma = 1.0f / (1.0f - a);
-                    const float Tn = TR[i] * inv_1ma;
-                    TR[i] = m ? Tn : TR[i];
+                    const float Tn = TRb[l] * inv_1ma;
+                    TRb[l] = m ? Tn : TRb[l];
                     const float w = m ? a * Tn : 0.0f;
-                    const float gr = GR[i], gg = GG[i], gb = GB[i], gd = GD[i];
+                    const float gr = GRb[l], gg = GGb[l], gb = GBb[l], gd = GDb[l];
                     const float front = gr * cr + gg * cg + gb * cbl + gd * z;
-                    const float bh = BH[i];
-                    BH[i] = bh + w * front;
+                    const float bh = BHb[l];
+                    BHb[l] = bh + w * front;
                     const float g_a = (m & (raw < 0.99f)) ? Tn * front - bh * inv_1ma : 0.0f;
                     v[6][l] += w * gr;
                     v[7][l] += w * gg;
@@ -344,13 +342,17 @@ _BACKWARD = _COMMON + r"""
                     v[3][l] += gx * dy;
                     v[4][l] += gy * dy;
                 }
-            }
+            });
         }
+        // the lanes' sums as a tree of whole-vector adds (16 -> 8 -> 4 lanes, then 2 + 2), in registers
         float sum[10];
         for (int m = 0; m < 10; ++m) {
-            float s = 0.0f;
-            for (int j = 0; j < 8; ++j) s += v[m][j];
-            sum[m] = s;
+            f16v x;
+            __builtin_memcpy(&x, v[m], sizeof(x));
+            const f8v h = __builtin_shufflevector(x, x, 0, 1, 2, 3, 4, 5, 6, 7)
+                        + __builtin_shufflevector(x, x, 8, 9, 10, 11, 12, 13, 14, 15);
+            const f4v q = __builtin_shufflevector(h, h, 0, 1, 2, 3) + __builtin_shufflevector(h, h, 4, 5, 6, 7);
+            sum[m] = (q[0] + q[2]) + (q[1] + q[3]);
         }
         // d power / d (mx, my, a, b, c) from the moments sum g_p dx, g_p dy, g_p dx^2, g_p dx dy, g_p dy^2
         GE(e, 0) = ca * sum[0] + cb * sum[1];
