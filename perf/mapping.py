@@ -8,6 +8,15 @@ parametrisation. "ours" is `slam.dense.mapping.mapper.Mapper.optimise`, the mapp
 the time difference between a long and a short run, divided by the extra iterations, so Adam's and the targets'
 set-up are not counted); the peer is the same step written with torch's default Adam and the eq.-3 loss from
 slam.dense.render.rgbd_loss, as the mapper did before. The split (render / loss / backward / Adam) is timed on ours.
+Rows: Warp, Warp's scalar kernels (the CUDA ones on the CPU, `warp-scalar`) and Taichi on the same scene.
+
+Roofline row: the machine's vector arithmetic rate, measured in the same run (perf/roofline.py's `simd_gflops`:
+16-lane FMA chains on both cores, before and after the backends; the higher of the two), against the
+iteration's counted arithmetic: the Gaussian-pixel pairs one render composites (mean over the keyframes, the map
+as the mapper starts it) times the compositing's flops per pair forward and backward (perf.raster's
+FLOPS_PER_PAIR_FWD + _BWD). Lanes evaluated but not composited, the projection, binning, loss and Adam are not
+counted, so achieved_gflops and roofline_fraction are lower bounds; the roofline row's iteration_ms is the time
+the counted arithmetic needs at 100 % of the measured rate.
 
 Torch runs with the pipeline's intra-op thread count (`slam.config.KernelsConfig.torch_threads`, default 1, which
 `slam.run.sequence` sets): with torch's default (one thread per core) every 60k-element torch operation of the step (the
@@ -151,6 +160,22 @@ def _split_ms(submap, keyframes, cfg, iterations: int) -> dict:
     return {k: statistics.median(v[1:]) for k, v in stages.items()}
 
 
+def _pairs_per_render(submap, keyframes) -> float:
+    """Mean Gaussian-pixel pairs one render of a keyframe composites (kernels.rasterize's n_touched), the map as
+    the mapper starts it, on the active backend."""
+    from swarmsplat.kernels import rasterize
+    from swarmsplat.slam.dense.param_ops import activate
+    from swarmsplat.slam.dense.render import viewmat_from_pose
+
+    p = submap.params
+    with torch.no_grad():
+        a = activate(p)
+        pairs = [int(rasterize(p.means, p.quats, a.scales, a.opacities, a.colors, viewmat_from_pose(k.T_local_cam),
+                               torch.as_tensor(k.rgbd.camera.K, dtype=torch.float32), WIDTH, HEIGHT).n_touched.sum())
+                 for k in keyframes]
+    return statistics.mean(pairs)
+
+
 def run_with_pipeline_threads(fn, **kwargs) -> dict:
     """A subject's run(**kwargs) under pipeline_torch_threads, with a note saying the thread count."""
     with pipeline_torch_threads() as threads:
@@ -166,6 +191,8 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
 
 def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     from .common import SCALAR_PEER, use_backend, with_scalar_peer
+    from .raster import FLOPS_PER_PAIR_BWD, FLOPS_PER_PAIR_FWD
+    from .roofline import fma_gflops, simd_gflops
 
     if device != "cpu":
         from swarmsplat.kernels.errors import BackendError
@@ -177,6 +204,10 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     notes = [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
     submap, keyframes, cfg = _setup(n, WIDTH, HEIGHT)
     backends = with_scalar_peer(backends, device)
+    use_backend(backends[0], device)
+    pairs = _pairs_per_render(submap, keyframes)
+    gflop = pairs * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD) / 1e9
+    peak, scalar = _probe(backends, device, fma_gflops, simd_gflops)
     for name in backends:
         use_backend(name, device)
         _optimise_s(submap, keyframes, cfg, 2)  # warm-up: compiles / loads the kernels
@@ -203,6 +234,19 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
         "peer: the same step with torch.optim.Adam defaults and slam.dense.render.rgbd_loss, keyframes in turn, same "
         "process and scene",
     ]
+    peak2, scalar2 = _probe(backends, device, fma_gflops, simd_gflops)
+    peak = max(peak, peak2)
+    for row in rows:
+        row["gflop_per_iteration"] = gflop
+        row["achieved_gflops"] = gflop / (row["iteration_ms"] / 1e3)
+        row["roofline_fraction"] = row["achieved_gflops"] / peak
+    rows.append({"backend": "roofline", "image": f"{WIDTH}x{HEIGHT}", "N": n, "iteration_ms": 1e3 * gflop / peak,
+                 "gflop_per_iteration": gflop, "achieved_gflops": peak, "roofline_fraction": 1.0})
+    notes.append(f"roofline: {peak:.1f} GFLOP/s measured on the CPU's vector units in this run (16-lane float32 FMA "
+                 f"chains, both cores; scalar FMA chains: {max(scalar, scalar2):.1f} GFLOP/s); counted arithmetic "
+                 f"{pairs / 1e6:.2f} M composited pairs per render x {FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD} flops "
+                 f"= {gflop:.3f} GFLOP per iteration (a lower bound: see the module docstring); its iteration_ms is "
+                 "that arithmetic at 100 % of the measured rate")
     scalar = {r["N"]: r for r in rows if r["backend"] == SCALAR_PEER}
     for row in rows:
         if row["backend"] == "warp" and row["N"] in scalar:
@@ -212,5 +256,18 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
                      "kernels (the CUDA ones, scalar code on the CPU, the loss included); "
                      "vs_scalar = its iteration_ms / warp's, same run and scene")
     columns = ["backend", "image", "N", "iteration_ms", "iteration_cpu_ms", "render_ms", "loss_ms", "backward_ms",
-               "adam_ms", "peer_iteration_ms", "speedup", "vs_scalar"]
+               "adam_ms", "peer_iteration_ms", "speedup", "vs_scalar", "gflop_per_iteration", "achieved_gflops",
+               "roofline_fraction"]
     return {"rows": rows, "columns": columns, "notes": notes}
+
+
+def _probe(backends: list[str], device: str, fma_gflops, simd_gflops) -> tuple[float, float]:
+    """(vector GFLOP/s, scalar GFLOP/s) of the machine now: the vector probe needs Warp (a Taichi-only install
+    reports its scalar probe for both)."""
+    from .common import use_backend
+
+    base = use_backend(backends[0], device)
+    scalar = fma_gflops(base, device)
+    if base != "warp":
+        return scalar, scalar
+    return simd_gflops(), scalar

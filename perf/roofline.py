@@ -4,9 +4,16 @@ Each work item runs CHAINS independent chains x <- x * a + b for ITERS steps in 
 the rate is the backend's attainable float32 FMA throughput on this CPU (both cores: Warp's launch is cut over
 the cores by kernels/_warp/launch.py, Taichi parallelises the loop itself). Flops count 2 per FMA. The result is
 written to an output so the loop cannot be dropped.
+
+`fma_gflops` is the scalar roofline (one work item per thread, as the scalar kernels: neither backend's CPU code
+generator vectorises across work items). `simd_gflops` is the machine's vector roofline: the same chains as
+16-lane float32 vectors in a Warp native snippet compiled for the host (-march=native, 512-bit vectors where the
+CPU has them: the flags of kernels/_warp/raster_cpu.py), i.e. what the CPU's vector units issue; the vector
+compositing kernels are measured against it.
 """
 
 
+import statistics
 import time
 
 import torch
@@ -72,6 +79,37 @@ def _taichi_kernel():
     return fma_loop
 
 
+_SIMD = r"""
+    typedef float v16 __attribute__((vector_size(64)));
+    v16 x[8];
+    for (int c = 0; c < 8; ++c)
+        for (int l = 0; l < 16; ++l) x[c][l] = (float)(i * 16 + l) * 1e-9f + 0.1f * (float)c;
+    for (int k = 0; k < iters; ++k)
+        for (int c = 0; c < 8; ++c) x[c] = x[c] * a + b;
+    v16 s = ((x[0] + x[1]) + (x[2] + x[3])) + ((x[4] + x[5]) + (x[6] + x[7]));
+    float t = 0.0f;
+    for (int l = 0; l < 16; ++l) t += s[l];
+    return t;
+"""
+SIMD_LANES = 16
+
+
+def _warp_simd_kernel():
+    import warp as wp
+
+    @wp.func_native(_SIMD)
+    def _chains(a: float, b: float, iters: int, i: int) -> float:
+        ...
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False, "cpu_compiler_flags": (
+        "-march=native -mprefer-vector-width=512 -ffp-contract=fast")})
+    def fma_simd(a: float, b: float, iters: int, offset: int, out: wp.array(dtype=float)):
+        i = wp.tid() + offset
+        out[i] = _chains(a, b, iters, i)
+
+    return fma_simd
+
+
 _KERNELS: dict = {}
 
 
@@ -98,6 +136,11 @@ def fma_gflops(backend: str, device: str = "cpu", repeat: int = 5) -> float:
         def go():
             k(0.999, 1e-4, ITERS, out)
             ti.sync()
+    return 2.0 * CHAINS * ITERS * ITEMS / _median_s(go, repeat) / 1e9
+
+
+def _median_s(go, repeat: int) -> float:
+    """Median wall seconds of go() over `repeat` calls after two untimed ones (compilation, first touch)."""
     go()
     go()
     times = []
@@ -105,5 +148,24 @@ def fma_gflops(backend: str, device: str = "cpu", repeat: int = 5) -> float:
         t0 = time.perf_counter()
         go()
         times.append(time.perf_counter() - t0)
-    times.sort()
-    return 2.0 * CHAINS * ITERS * ITEMS / times[len(times) // 2] / 1e9
+    return statistics.median(times)
+
+
+def simd_gflops(repeat: int = 5) -> float:
+    """Median attainable GFLOP/s of the 16-lane FMA chains on the CPU's vector units, both cores (Warp CPU; call
+    kernels.use("warp", "cpu") first)."""
+    import warp as wp
+
+    from swarmsplat.kernels._warp.launch import launch
+
+    items = ITEMS // SIMD_LANES
+    out = torch.zeros(items, dtype=torch.float32)
+    if "simd" not in _KERNELS:
+        _KERNELS["simd"] = _warp_simd_kernel()
+    k = _KERNELS["simd"]
+    arr = wp.from_torch(out, requires_grad=False)
+
+    def go():
+        launch(k, items, [0.999, 1e-4, ITERS, 0, arr], 3, "cpu", work=1 << 20)
+
+    return 2.0 * CHAINS * SIMD_LANES * ITERS * items / _median_s(go, repeat) / 1e9
