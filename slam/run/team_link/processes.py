@@ -331,7 +331,7 @@ def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig 
     loaded: the dataset as already loaded (and split). resume: continue the killed run in `out`: the server
     replays its journal (link/journal.bin), each agent resumes from its checkpoint, an agent the server had
     acknowledged entirely is not started again."""
-    from swarmsplat.slam.run.checkpoint import has_checkpoint, team_identity
+    from swarmsplat.slam.run.checkpoint import CHECKPOINT, has_checkpoint, team_identity
     from .member import agent_folder, forget_member, member_complete, team_resume
 
     cfg = config or SlamConfig()
@@ -367,6 +367,8 @@ def run_team_processes(dataset: str | Path, out: str | Path, config: SlamConfig 
                         *(["--split", split] if split else []), *(["--frames", str(frames)] if frames else [])]
     # an agent whose messages the server acknowledged entirely (its journal has them) is not started again
     start = [k for k in range(len(ds.agents)) if not (resume and member_complete(folders[k]))]
+    for k in set(range(len(ds.agents))) - set(start):  # killed between its end and removing its checkpoint
+        (folders[k] / CHECKPOINT).unlink(missing_ok=True)
     logs = {k: open(out / "link" / f"{ds.agents[k].name}.log", "a" if resume else "w") for k in start}
     env = {**os.environ, PARENT_ENV: str(os.getpid())}
     procs = {k: subprocess.Popen(cmd(k, ds.agents[k]), stdout=logs[k], stderr=subprocess.STDOUT,
