@@ -269,10 +269,25 @@ def _vector(device: str):
 
 
 def _staging(tile_start):
-    """Per-entry scratch of the vector kernels (CPU tensors): packed tile rows and the staged projected rows, one
+    """Per-entry scratch of the vector backward (CPU tensors): packed tile rows and the staged projected rows, one
     per tile entry in use (the entry buffer itself is larger: its capacity)."""
     n = max(int(tile_start[-1]), 1)
     return (torch.empty((n,), dtype=torch.int32), torch.empty((n, 11), dtype=torch.float32))
+
+
+_LANE_XY: list = []
+
+
+def _block_staging(tile_start, n_tiles: int):
+    """Scratch of the vector forward (CPU tensors): the staged projected rows, the 4x4 blocks' entry lists (room
+    for every entry in each of its tile's 16 blocks), the lists' lengths, and the lanes' offsets in a block."""
+    from .raster_cpu import BLOCKS, LANE_XY
+
+    if not _LANE_XY:
+        _LANE_XY.append(torch.tensor(LANE_XY, dtype=torch.int32))
+    n = max(int(tile_start[-1]), 1)
+    return (torch.empty((n, 11), dtype=torch.float32), torch.empty((BLOCKS * n,), dtype=torch.int32),
+            torch.empty((BLOCKS * n_tiles,), dtype=torch.int32), _LANE_XY[0])
 
 
 def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, depth, dnorm, alpha, t_final, last,
@@ -282,7 +297,8 @@ def render_forward(proj, pthr, tile_start, entries, bg, width, height, color, de
     cpu = _vector(device)
     if cpu is not None:
         cpu.forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth,
-                     dnorm, alpha, t_final, last, hits, *_staging(tile_start), bool(count_hits))
+                     dnorm, alpha, t_final, last, hits, *_block_staging(tile_start, tiles_x * tiles_y),
+                     bool(count_hits))
         return
     _forward(proj, pthr, tile_start, entries, bg, width, height, tiles_x, tiles_x * tiles_y, color, depth, dnorm,
              alpha, t_final, last, hits)
