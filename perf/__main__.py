@@ -3,7 +3,8 @@
 Runs one benchmark subject (or `all`), prints a Markdown table and writes JSON with the machine's description.
 Runs unchanged on a GPU machine with `--device cuda` (vulkan: Taichi only). `python -m perf device-check` runs
 the suite's device cases and a quick benchmark of every subject on one device (perf/device_check.py);
-`python -m perf realtime` replays a real sequence in real-time mode (perf/realtime.py).
+`python -m perf realtime` replays a real sequence in real-time mode (perf/realtime.py); `python -m perf soak
+--minutes M` runs a team of agent processes under random faults (perf/soak.py).
 """
 
 from __future__ import annotations
@@ -69,6 +70,10 @@ def main(argv: list[str] | None = None, *, prog: str = "python -m perf",
         from .fuzz import main as fuzz
 
         return fuzz(argv[1:])
+    if argv[:1] == ["soak"]:  # its own flags: minutes, seed, fault kinds (perf/soak.py)
+        from .soak import main as soak
+
+        return soak(argv[1:])
     if argv[:1] == ["team-link"]:  # its own flags and result files (perf/team_link.py)
         from .team_link import main as team_link
 

@@ -1,0 +1,85 @@
+"""The soak harness (perf/soak.py) on a short run: a team of 3 agent processes and a server over Zenoh under an agent
+killed and resumed, the server killed and restarted and the link cut, against the same seed without faults; every
+invariant holds (every tracked frame's pose on disk, ATE within 10 %, PSNR within 0.5 dB, memory flat), and each
+check fails on outputs that break it. Skipped without eclipse-zenoh."""
+
+from __future__ import annotations
+
+import copy
+import shutil
+
+import pytest
+
+from perf import soak as S
+from swarmsplat.slam.flocc.swarm.zenoh_transport import zenoh_available
+
+
+def test_the_schedule_comes_from_the_seed_and_has_every_kind():
+    a = S.draw_schedule(7, 5.0, frames=375)
+    assert a == S.draw_schedule(7, 5.0, frames=375) and a != S.draw_schedule(8, 5.0, frames=375)
+    assert sorted(f["kind"] for f in a) == sorted(S.KINDS)
+    assert [f["at_s"] for f in a] == sorted(f["at_s"] for f in a)
+    for f in a:
+        lo, hi = (0.08, 0.35) if f["kind"] in S.ON_AGENT else (0.1, 0.8)
+        assert lo * 300 <= f["at_s"] <= hi * 300
+        if f["kind"] == "link_cut":
+            assert 5 <= f["seconds"] <= 60
+    assert len(S.draw_schedule(7, 60.0, frames=4500)) == 30
+    short = S.draw_schedule(7, 1.5, ("agent_kill", "link_cut"), faults=2)
+    assert sorted(f["kind"] for f in short) == ["agent_kill", "link_cut"]
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    if not zenoh_available():
+        pytest.skip("eclipse-zenoh is not installed")
+    scratch = tmp_path_factory.mktemp("soak")
+    return scratch, S.soak(1.25, 3, scratch, kinds=("agent_kill", "server_kill", "link_cut"), faults=3,
+                           say=lambda s: None)
+
+
+@pytest.mark.slow
+def test_a_short_soak_keeps_every_invariant(report):
+    scratch, r = report
+    applied = [f for f in r["faults"] if f.get("applied")]
+    assert {f["kind"] for f in applied} == {"agent_kill", "server_kill", "link_cut"}, r["faults"]
+    failed = {k: v["detail"] for k, v in r["checks"].items() if not v["ok"]}
+    assert not failed, failed
+    cut = next(f for f in applied if f["kind"] == "link_cut")
+    assert cut["connections_reaching_server_during_cut"] == 0 and cut["reconnects_refused"] > 0
+    assert cut["first_message_after_restore_s"] is not None
+    kill = next(f for f in applied if f["kind"] == "server_kill")
+    assert "replayed" in kill["team_did"]
+    assert r["soak"]["replayed_messages"] > 0 and r["soak"]["frames_tracked"] == r["reference"]["frames_tracked"]
+
+
+@pytest.mark.slow
+def test_the_checks_fail_on_outputs_that_break_them(report, tmp_path):
+    scratch, r = report
+    data, server, agents = scratch / "data_soak", tmp_path / "server", [scratch / "soak" / f"agent_{k}" for k in
+                                                                       range(S.AGENTS)]
+    shutil.copytree(scratch / "soak" / "server", server)
+    m = S._metrics(server)
+    assert all(row["ok"] for row in S.check_poses(data, server, agents, m))
+    traj = server / "trajectories" / "agent_1.txt"
+    lines = traj.read_text().splitlines()
+    traj.write_text("\n".join(lines[:5] + lines[6:]) + "\n")  # one tracked frame's pose gone
+    rows = S.check_poses(data, server, agents, m)
+    assert [row["server_missing"] for row in rows] == [0, 1, 0] and not rows[1]["ok"]
+    traj.write_text("\n".join(lines + lines[-1:]) + "\n")  # a frame twice
+    assert S.check_poses(data, server, agents, m)[1]["server_twice"] == 1
+
+    ref = S._metrics(scratch / "reference" / "server")
+    worse = copy.deepcopy(m)
+    worse["ate_rmse_team"] = 1.15 * ref["ate_rmse_team"]
+    worse["psnr"] = ref["psnr"] - 0.6
+    checks = S.result_checks(worse, ref, rows, [], [])
+    assert not any(checks[k]["ok"] for k in ("ate_within_10pct", "psnr_within_0.5dB", "poses_on_disk",
+                                             "memory_flat"))
+
+    class Life:  # a process whose memory grows by a fifth after the warm-up
+        role, pid, start, end = "agent_0", 1, 0.0, 100.0
+
+    samples = [{"t": float(t), "rss_mb": {"1": 500.0 + (100.0 if t > 80 else 0.0)}} for t in range(0, 100, 2)]
+    leak = S.check_memory([Life()], samples, 100.0)
+    assert leak and leak[0]["growth_pct"] == 20.0 and not leak[0]["ok"]
