@@ -607,14 +607,18 @@ def what_the_team_did(f: dict, team: TeamRun, metrics: dict) -> str:
                 f"{f['checkpoint_round']}); restarted with --resume: " + ("; ".join(got[:1]) or "no resume line"))
     if kind == "server_kill":
         got = _near(lines("server"), t, t1 + 120, "replayed", "is back")
-        return (f"the agents kept tracking; restarted server: " + "; ".join(got[:2])
-                + f"; first new message {f['first_new_message_after_s']} s after the restart")
+        first = f["first_new_message_after_s"]
+        return ("the agents kept tracking; restarted server: " + "; ".join(got[:2]) + (
+            f"; first new message {first} s after the restart" if first is not None else
+            "; no new agent message after the restart (the agents had sent everything)"))
     if kind == "link_cut":
         got = _near(lines("server"), t, t1 + 60, "nothing heard", "is back")
         return (f"{f['reconnects_refused']} reconnects refused during the cut, "
                 f"{f['connections_reaching_server_during_cut']} connections reached the server, its journal grew "
-                f"{f['journal_growth_during_cut_after_2s']} bytes after the first 2 s; first message "
-                f"{f['first_message_after_restore_s']} s after the link was back" + "".join("; " + g for g in got))
+                f"{f['journal_growth_during_cut_after_2s']} bytes after the first 2 s; "
+                + (f"first message {f['first_message_after_restore_s']} s after the link was back"
+                   if f["first_message_after_restore_s"] is not None else "no agent message after the link was back "
+                   "(the agents had sent everything)") + "".join("; " + g for g in got))
     if kind == "disk_full":
         if not f["agent_stopped"]:
             return f"{role} wrote nothing while the disk was full ({f['hold_s']} s)"
