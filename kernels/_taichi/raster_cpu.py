@@ -23,7 +23,9 @@ kernels are ordinary Taichi code in the one shape its LLVM pipeline vectorises (
   against 3.27 row pairs); Taichi cannot keep an entry's sums in registers across its blocks the way the Warp
   snippet does, as the blocks are the outer loop here. Blocks of 4 rows x 8 columns (2.63 per entry, two vectors)
   were 5 % faster (48.5 against 50.9 ms), too little for a second staging scheme; entry-outer with the blocks'
-  state in ndarrays of 16-lane vectors, as the Warp snippet, was 2.4x slower (their loads stay scalar).
+  state in ndarrays of 16-lane vectors, as the Warp snippet, was 2.4x slower (their loads stay scalar), and with
+  the 16 blocks' state as values of a static block index (`ti.static` unrolled) LLVM was still compiling after
+  10 minutes and 7 GB.
 - exp is the Warp snippet's polynomial (Cody-Waite, Cephes' coefficients), with the exponent rounded by an
   integer conversion (x <= 0): with `ti.floor` there the forward was 1.5x slower (same harness; not pinned down).
 - Taichi compiles for the host CPU (AVX-512 zmm code here; `ti.init(print_kernel_asm=True)` shows it), but the
