@@ -521,6 +521,9 @@ def run_team(data: Path, cfg: Path, root: Path, schedule: list[dict], *, timeout
     finally:
         team.close()
         team.wall = team.now()
+        (root / "logs").mkdir(exist_ok=True)
+        for li in team.lives:  # each process life's output, timed from the start
+            (root / "logs" / f"{li.role}-{li.pid}.log").write_text("".join(f"{t} {ln}\n" for t, ln in li.lines))
     return team, log
 
 
@@ -632,10 +635,10 @@ def what_the_team_did(f: dict, team: TeamRun, metrics: dict) -> str:
     if kind == "clock_jump":
         k = f["agent"]
         when = next((s["t"] for s in team.samples if s["frames"][k] > f["frame"]), None)
-        stamps = _tum_stamps(team.server_dir / "trajectories" / f"{role}.txt")
-        late = sum(s >= f["jump_s"] for s in stamps)
+        stamps = set(_tum_stamps(team.server_dir / "trajectories" / f"{role}.txt"))
+        late = len(stamps & {round(t, 3) for t in _stamps(team.data / role)[f["frame"]:]})
         return (f"{role} journaled frame {f['frame']} (the jump) by {when} s; the team's trajectory holds "
-                f"{late} poses after the jump, {len(stamps) - late} before")
+                f"{late} poses from the jump on, {len(stamps) - late} before")
     return json.dumps({k: v for k, v in f.items() if k not in ("kind",)})
 
 

@@ -83,3 +83,43 @@ def test_the_checks_fail_on_outputs_that_break_them(report, tmp_path):
     samples = [{"t": float(t), "rss_mb": {"1": 500.0 + (100.0 if t > 80 else 0.0)}} for t in range(0, 100, 2)]
     leak = S.check_memory([Life()], samples, 100.0)
     assert leak and leak[0]["growth_pct"] == 20.0 and not leak[0]["ok"]
+
+
+def test_an_agent_that_sent_everything_is_not_lost_while_the_server_catches_up():
+    """Found by the soak: on long sequences the agents finish, are acknowledged and end long before the server has
+    handed their keyframes over; their silence past link.agent_timeout_s is no loss (a lost agent changes the
+    keyframes' order and ends the run without evaluation). An agent silent before it sent everything still is."""
+    import numpy as np
+
+    from swarmsplat.kernels.camera import PinholeCamera
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.dense.team.mirror import AgentMirror
+    from swarmsplat.slam.run.team import Team
+    from swarmsplat.slam.run.team_link import messages as L
+    from swarmsplat.slam.run.team_link.agent_node import config_digest
+    from swarmsplat.slam.run.team_link.server_node import ServerNode
+
+    class Wire:
+        def send(self, dest, msg):
+            pass
+
+        def poll(self):
+            return []
+
+    cfg, cam, now = SlamConfig(), PinholeCamera(100.0, 100.0, 40.0, 30.0, 80, 60), [0.0]
+    server = ServerNode(Team([cam, cam], ["a", "b"], cfg, agent_class=AgentMirror), Wire(), say=lambda *a: None,
+                        clock=lambda: now[0])
+    for a, name in enumerate("ab"):
+        server.handle(a, L.Join(mid=1, name=name, camera=[100.0, 100.0, 40.0, 30.0, 80, 60],
+                                config=config_digest(cfg), rounds=4))
+    server.handle(0, L.KeyframeMeta(mid=2, id=0, frame_index=1, timestamp=0.1, round=1, T_local_cam=np.eye(4)[None],
+                                    odom_T=np.zeros((0, 4, 4)), odom_info=np.zeros((0, 6, 6)),
+                                    submap_start=np.zeros((0, 4, 4))))
+    server.handle(0, L.Frames(mid=3, rounds_done=4, keyframes=1, dropped=[0], frame_index=np.arange(4),
+                              timestamp=0.1 * np.arange(4), submap_id=np.zeros(4, np.int64),
+                              T_local_cam=np.repeat(np.eye(4)[None], 4, 0)))
+    server.handle(0, L.Done(mid=4, rounds=4, keyframes=1, submaps=0, frames=4))
+    assert server.next_keyframe() is None  # a's keyframe of round 1 waits for b's round 1
+    now[0] = cfg.link.agent_timeout_s + 1
+    server.poll()
+    assert [p.lost for p in server.peers] == [False, True]

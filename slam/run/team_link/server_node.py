@@ -81,6 +81,14 @@ class Peer:
         return self.lost or (d is not None and self.processed >= d.keyframes and len(self.submaps) >= d.submaps
                              and frames >= d.frames)
 
+    def sent_all(self, frames: int = 0) -> bool:
+        """Done, and every keyframe (with its images, or dropped), submap and frame pose it announces is here,
+        handed over or waiting its turn: the agent has nothing left to send, so its silence is no loss."""
+        d = self.done
+        return d is not None and len(self.submaps) >= d.submaps and frames >= d.frames and all(
+            k < self.processed or (k in self.meta and (k in self.images or k in self.dropped))
+            for k in range(d.keyframes))
+
     def update_frontier(self) -> None:
         have = self.processed
         while have in self.meta:
@@ -217,7 +225,9 @@ class ServerNode:
                 p.ack = []
         now = self.clock()
         for a, p in enumerate(self.peers):
-            if not self._ended(a) and not p.lost and now - p.last_heard > self.cfg.link.agent_timeout_s:
+            # an agent that sent everything and ended is silent while the server works through its keyframes
+            if not self._ended(a) and not p.lost and now - p.last_heard > self.cfg.link.agent_timeout_s \
+                    and not p.sent_all(len(self.team.agents[a].poses)):
                 p.lost = True
                 self.say(f"[server] {p.name}: nothing heard for {now - p.last_heard:.0f} s "
                          f"(link.agent_timeout_s): reported lost; the others go on without it")
