@@ -798,6 +798,10 @@ def main(argv: list[str] | None = None) -> int:
     kinds = tuple(k for k in args.kinds.split(",") if k)
     if not kinds or set(kinds) - set(KINDS):
         p.error(f"--kinds: choose from {', '.join(KINDS)}")
+    # a soak stopped with Ctrl-C or SIGTERM (even when started in the background) still ends its processes and
+    # unmounts its tmpfs
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     info = machine_info()  # before the run: the load it started under
     with tempfile.TemporaryDirectory(prefix="swarmsplat-soak-") as tmp:
         scratch = Path(args.scratch or tmp)
