@@ -76,8 +76,8 @@ def draw_schedule(seed: int, minutes: float, kinds=KINDS, faults: int | None = N
     rng.shuffle(picks)
     picks = (picks + [rng.choice(kinds) for _ in range(max(0, n - len(picks)))])[:n]
     # the agents run ahead of the server, which works at the pace of the slowest agent and verifies every loop:
-    # faults on an agent's process or frames come while the agents are mid-run (8-35 %), the others at 10-80 %
-    times = [round(rng.uniform(0.08, 0.35) * span if k in ON_AGENT else rng.uniform(0.1, 0.8) * span, 1)
+    # faults on an agent's process or frames come while the agents are mid-run (5-30 %), the others at 10-80 %
+    times = [round(rng.uniform(0.05, 0.3) * span if k in ON_AGENT else rng.uniform(0.1, 0.8) * span, 1)
              for k in picks]
     out = []
     for kind, t in sorted(zip(picks, times), key=lambda x: x[1]):
@@ -454,18 +454,23 @@ def _stamps(seq: Path) -> list[float]:
 
 
 def corrupt_frame(team: TeamRun, f: dict) -> dict:
-    seq = team.data / f"agent_{f['agent']}"
-    done = _journal_frames(team.agent_dirs[f["agent"]] / "progress" / "poses.tum")
-    n = len(_stamps(seq))
-    frame = done + CONFIG["keyframes"]["every"] + f["ahead"]  # the journal lags the agent by up to a keyframe
-    if frame >= n:
-        return {"applied": False, "why": f"agent_{f['agent']} was at frame {done} of {n}"}
+    """An image ahead of the drawn agent, or of the next agent that has frames left (the log's "agent")."""
+    for k in [(f["agent"] + i) % AGENTS for i in range(AGENTS)]:
+        seq = team.data / f"agent_{k}"
+        done = _journal_frames(team.agent_dirs[k] / "progress" / "poses.tum")
+        n = len(_stamps(seq))
+        frame = done + CONFIG["keyframes"]["every"] + f["ahead"]  # the journal lags the agent by up to a keyframe
+        if frame < n:
+            break
+    else:
+        return {"applied": False, "why": f"every agent was within {f['ahead']} frames of its end"}
     path = seq / f["image"] / f"{frame:06d}.png"
     data = path.read_bytes()
     tmp = path.with_suffix(".tmp")
     tmp.write_bytes(data[: len(data) // 2])
     os.replace(tmp, path)
-    return {"applied": True, "frame": frame, "file": str(path.relative_to(team.data)), "agent_at_frame": done}
+    return {"applied": True, "agent": k, "frame": frame, "file": str(path.relative_to(team.data)),
+            "agent_at_frame": done}
 
 
 def plant_clock_jump(seq: Path, frame: int, jump_s: float) -> None:
@@ -597,6 +602,13 @@ def _near(lines, t0, t1, *words) -> list[str]:
     return [f"{t} s {ln.strip()}" for t, ln in lines if t0 <= t <= t1 and any(w in ln for w in words)]
 
 
+def _resumed(team: TeamRun, pid) -> str:
+    """What the process life `pid` (a restarted agent) said of where it resumed."""
+    li = next((x for x in team.lives if x.pid == pid), None)
+    got = _near(li.lines, 0, 1e9, "resuming at round", "no checkpoint") if li else []
+    return got[0] if got else f"it ended before saying where it resumed (exit {li.rc if li else None})"
+
+
 def what_the_team_did(f: dict, team: TeamRun, metrics: dict) -> str:
     """From the processes' logs, journals and the final metrics: the team's answer to fault `f`."""
     if not f.get("applied"):
@@ -605,9 +617,8 @@ def what_the_team_did(f: dict, team: TeamRun, metrics: dict) -> str:
     lines = lambda role: [x for li in team.lives if li.role == role for x in li.lines]  # noqa: E731
     kind, role = f["kind"], f"agent_{f.get('agent')}"
     if kind == "agent_kill":
-        got = _near(lines(role), t, t1 + 120, "resuming at round", "no checkpoint")
         return (f"killed at journal frame {f['journal_frames_at_kill']} (checkpoint: next round "
-                f"{f['checkpoint_round']}); restarted with --resume: " + ("; ".join(got[:1]) or "no resume line"))
+                f"{f['checkpoint_round']}); restarted with --resume: " + _resumed(team, f["restarted_pid"]))
     if kind == "server_kill":
         got = _near(lines("server"), t, t1 + 120, "replayed", "is back")
         first = f["first_new_message_after_s"]
@@ -625,9 +636,8 @@ def what_the_team_did(f: dict, team: TeamRun, metrics: dict) -> str:
     if kind == "disk_full":
         if not f["agent_stopped"]:
             return f"{role} wrote nothing while the disk was full ({f['hold_s']} s)"
-        got = _near(lines(role), t, t1 + 120, "resuming at round", "no checkpoint")
         return (f"{role} stopped after {f['stopped_after_s']} s, exit {f['exit']}: {f['its_last_line']!r}; "
-                f"space freed, restarted with --resume: " + ("; ".join(got[:1]) or "no resume line"))
+                f"space freed, restarted with --resume: " + _resumed(team, f["restarted_pid"]))
     if kind == "corrupt_frame":
         agent = next((a for a in metrics.get("agents", []) if a["name"] == role), {})
         hit = [s for s in agent.get("skipped_frames", []) if int(s["frame"]) == f["frame"]]

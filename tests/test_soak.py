@@ -20,7 +20,7 @@ def test_the_schedule_comes_from_the_seed_and_has_every_kind():
     assert sorted(f["kind"] for f in a) == sorted(S.KINDS)
     assert [f["at_s"] for f in a] == sorted(f["at_s"] for f in a)
     for f in a:
-        lo, hi = (0.08, 0.35) if f["kind"] in S.ON_AGENT else (0.1, 0.8)
+        lo, hi = (0.05, 0.3) if f["kind"] in S.ON_AGENT else (0.1, 0.8)
         assert lo * 300 <= f["at_s"] <= hi * 300
         if f["kind"] == "link_cut":
             assert 5 <= f["seconds"] <= 60
