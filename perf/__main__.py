@@ -40,6 +40,7 @@ SUBJECTS = {
     "distributed-processes": ".distributed_processes",
     "team-scale": ".team_scale",
     "wide-joins": ".wide_joins",
+    "wide-joins-hololens": ".wide_joins_hololens",
     "map-quality": ".map_quality",
 }
 

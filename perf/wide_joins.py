@@ -92,7 +92,8 @@ def _with_peer(rows: list, case: str, make_ds, out: Path, base: dict | None = No
     on["loop_s_ratio_to_off"] = round(on["loop_s_per_keyframe"] / max(peer["loop_s_per_keyframe"], 1e-9), 2)
 
 
-def run(*, backends: list[str], device: str, quick: bool) -> dict:
+def run(*, backends: list[str], device: str, quick: bool, hololens_only: bool = False) -> dict:
+    """Every case (`quick`: the Redwood and two-places cases; `hololens_only`: the two HoloLens cases)."""
     from swarmsplat import kernels
     from swarmsplat.slam.io.datasets import load_dataset, load_sequence
     from swarmsplat.slam.io.datasets.split import split_sequence
@@ -105,6 +106,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
             holo = load_sequence(_data("hololens_office_85_378"))
             rows.append(_team("hololens-split", split_sequence(holo, [(0, 132), (152, None)]), tmp / "hs"))
             rows.append(_one("hololens-one", _data("hololens_office_85_378"), tmp / "h1"))
+        if hololens_only:
+            return _result(rows)
+        if not quick:
             from swarmsplat.slam.run.demo import demo_config, ensure_dataset
 
             demo = demo_config("default")
@@ -120,6 +124,10 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
         (root / "dataset.yaml").write_text("name: two places\nkind: rgbd\nagents: [living, office]\n")
         rows.append(_team("different-places", load_dataset(root), tmp / "two", limits=[160, 160], stride=2,
                           render_views=2))
+    return _result(rows)
+
+
+def _result(rows: list) -> dict:
     cols = ["case", "cloud_route", "joined", "joins", "ate_team_cm", "ate_agents_cm", "ate_agents_no_lc_cm",
             "ate_cm", "ate_no_lc_cm", "psnr_merged", "psnr_submaps", "inter_accepted", "inter_candidates", "intra_accepted",
             "intra_candidates", "loops_accepted", "loop_candidates", "accepted_fraction", "loop_s_per_keyframe",

@@ -90,3 +90,19 @@ def test_a_revisit_nothing_closes_takes_the_route_within_its_budget(revisit, mon
     assert accepted == [] and len(clouds) == 1 and clouds[0][1] is True  # budget 1; already logged
     assert len(closer.log) == 2 and len({id(c) for c in closer.log}) == 2  # each candidate logged once
     assert sorted(c.route for c in closer.log) == ["cloud", "image"]
+
+
+def test_a_join_takes_the_stricter_free_space_gate():
+    """A pose found without a start (a join) may align a repeated place: its render check allows less of the map in
+    front of the observed surface than a loop from the tracked pose does (decision 0012)."""
+    from swarmsplat.slam.dense.loops.render_check import RenderScore
+    from swarmsplat.slam.dense.team.cloud_route import render_gate
+
+    cfg = SlamConfig()
+    lc, join = cfg.loop_closure, cfg.server.join_max_violate
+    assert join < lc.render_max_violate
+    assert render_gate(lc).max_violate == lc.render_max_violate and render_gate(lc, join).max_violate == join
+    s = RenderScore(pixels=1000, covisible=0.6, agree=0.7, violate=(join + lc.render_max_violate) / 2,
+                    photometric=0.05)
+    assert render_gate(lc).verdict(s) == "" and "in front" in render_gate(lc, join).verdict(s)
+    assert render_gate(lc, 0.5).max_violate == lc.render_max_violate  # never looser than the loop gate

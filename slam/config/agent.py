@@ -292,8 +292,9 @@ class LoopClosureConfig(_Section):
                                         "of the query's valid depth pixels ...")
     render_min_agree: float = Field(0.5, ge=0, le=1, description="... agrees in depth (5 cm + 3 %) on at least this "
                                     "fraction of them ...")
-    render_max_violate: float = Field(0.06, ge=0, le=1, description="... lies in front of the observed surface (by "
-                                      "10 cm + 5 %) on at most this fraction ...")
+    render_max_violate: float = Field(0.15, ge=0, le=1, description="... lies in front of the observed surface (by "
+                                      "10 cm + 5 %) on at most this fraction (a loop that joins two agents' frames: "
+                                      "server.join_max_violate, if stricter) ...")
     render_max_photometric: float = Field(0.12, gt=0, description="... and differs in colour, after a gain and offset "
                                           "per channel, by at most this mean absolute error (0-1 scale)")
     solver: Literal["incremental", "batch"] = Field(

@@ -44,6 +44,11 @@ class ServerConfig(BaseModel):
         "cloud", description="verification by rendering (slam.dense.loops.render_check) of loops between agents "
                              "not yet in one frame: 'cloud' checks those from the cloud route, 'all' every one, 'off' "
                              "none (loop_closure's render_* gates)")
+    join_max_violate: float = Field(0.06, ge=0, le=1, description="render check of a loop between agents not yet in "
+                                    "one frame (a pose found without a start, which may align a repeated place): "
+                                    "at most this fraction of the query's covered depth may lie in front of the "
+                                    "observed surface (the stricter of this and loop_closure.render_max_violate, "
+                                    "which loops from a tracked pose use)")
     same_frame_fallback: bool = Field(False, description="FPFH + RANSAC restart also for agents already in one "
                                       "frame when the start from their relative pose fails")
     tau_sim: float | None = Field(None, ge=-1, le=1, description="inter-agent cosine similarity gate; null = "

@@ -37,9 +37,11 @@ def gate_failure(r, lc) -> tuple[str, str] | None:
     return None
 
 
-def render_gate(lc) -> RenderGate:
-    """The render check's gate from loop_closure section `lc`."""
-    return RenderGate(lc.render_min_covisible, lc.render_min_agree, lc.render_max_violate, lc.render_max_photometric)
+def render_gate(lc, join_max_violate: float | None = None) -> RenderGate:
+    """The render check's gate from loop_closure section `lc`; a loop that would join two frames takes the
+    stricter free-space share `join_max_violate` (server.join_max_violate) when given."""
+    violate = lc.render_max_violate if join_max_violate is None else min(lc.render_max_violate, join_max_violate)
+    return RenderGate(lc.render_min_covisible, lc.render_min_agree, violate, lc.render_max_photometric)
 
 
 class CloudRoute:
@@ -67,14 +69,16 @@ class CloudRoute:
                 return True
         return False
 
-    def render_score(self, b: int, m: Keyframe, T_m_q: np.ndarray, q: Keyframe, rec: LoopRecord) -> str:
+    def render_score(self, b: int, m: Keyframe, T_m_q: np.ndarray, q: Keyframe, rec: LoopRecord, *,
+                     join: bool = True) -> str:
         """Render agent b's submaps around keyframe m from q's hypothesised pose (m's camera @ T_m_q), score
-        against q's loop-closure copy, record the scores on `rec`; '' when the gate passes, else the reason."""
+        against q's loop-closure copy, record the scores on `rec`; '' when the gate passes, else the reason.
+        `join`: the loop would join two frames (server.join_max_violate applies)."""
         ag = self.slots[b].agent
         lc = ag.cfg.loop_closure
         s = score_loop(ag.gmap, ag.keyframes, m, T_m_q, q.small, lc.cloud_window)
         record_scores(rec, s)
-        return render_gate(lc).verdict(s)
+        return render_gate(lc, self.cfg.join_max_violate if join else None).verdict(s)
 
     def _cloud_information(self, out, T: np.ndarray, a: int, q: Keyframe, b: int, m: Keyframe) -> np.ndarray:
         """A cloud loop's information: the registration's covariance plus both windows' tracking spread
@@ -117,7 +121,7 @@ class CloudRoute:
             code = "rmse" if "RMSE" in out.reason else "fitness"
             return rec.reject(code, f"cloud route: {out.reason} (image route: {image_reason})")
         T = se3.project_rigid(out.T_match_query)
-        why = self.render_score(b, m, T, q, rec)
+        why = self.render_score(b, m, T, q, rec, join=init is None)
         if why:
             return rec.reject("render", f"cloud route: {why}")
         info = None
