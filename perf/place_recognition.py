@@ -49,7 +49,7 @@ def revisit_truth(poses_q: np.ndarray, poses_db: np.ndarray) -> np.ndarray:
 def overlap_truth(frames: list, poses: np.ndarray) -> np.ndarray:
     """[N, N] view overlap (slam.dense.loops.loop_closure.view_overlap) of frame i's depth pixels in frame j."""
     from swarmsplat.kernels import se3
-    from swarmsplat.slam.dense.loops.loop_closure import view_overlap
+    from swarmsplat.slam.dense.loops.view_overlap import view_overlap
 
     n = len(frames)
     out = np.eye(n)

@@ -13,7 +13,8 @@ from swarmsplat.slam.dense.loops.edge_information import (
     InformationModel, OdometryChain, information, registration_covariance)
 from swarmsplat.slam.dense.frames import make_rgbd
 from swarmsplat.slam.dense.gaussian_map import GaussianMap
-from swarmsplat.slam.dense.loops.loop_closure import Edge, LoopCandidate, LoopCloser, view_overlap
+from swarmsplat.slam.dense.loops.loop_closure import Edge, LoopCandidate, LoopCloser
+from swarmsplat.slam.dense.loops.view_overlap import view_overlap
 from swarmsplat.slam.dense.submaps import Keyframe, world_pose
 
 import slam_scene

@@ -144,7 +144,7 @@ class Server(JoinRules, CloudRoute):
         """Once agents share a frame, their poses propose candidates too (as intra-agent ones, eq. 6): keyframes
         of the other agents of a's component near kf's pose, by view overlap; loop_closure.pose_top_k of them,
         skipping those the descriptor already proposed."""
-        from swarmsplat.slam.dense.loops.loop_closure import keyframe_poses, nearest_by_overlap
+        from swarmsplat.slam.dense.loops.view_overlap import keyframe_poses, nearest_by_overlap
 
         lc = self.slots[a].agent.cfg.loop_closure
         if lc.candidates == "descriptor" or lc.pose_top_k == 0:
