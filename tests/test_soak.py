@@ -1,7 +1,7 @@
 """The soak harness (perf/soak.py) on a short run: a team of 3 agent processes and a server over Zenoh under an agent
 killed and resumed, the server killed and restarted and the link cut, against the same seed without faults; every
-invariant holds (every tracked frame's pose on disk, ATE within 10 %, PSNR within 0.5 dB, memory flat), and each
-check fails on outputs that break it. Skipped without eclipse-zenoh."""
+invariant holds (every tracked frame's pose on disk, ATE within 10 %, PSNR within 0.5 dB, memory flat where a
+process lived long enough to tell), and each check fails on outputs that break it. Skipped without eclipse-zenoh."""
 
 from __future__ import annotations
 
@@ -18,13 +18,14 @@ def test_the_schedule_comes_from_the_seed_and_has_every_kind():
     a = S.draw_schedule(7, 5.0, frames=375)
     assert a == S.draw_schedule(7, 5.0, frames=375) and a != S.draw_schedule(8, 5.0, frames=375)
     assert sorted(f["kind"] for f in a) == sorted(S.KINDS)
-    assert [f["at_s"] for f in a] == sorted(f["at_s"] for f in a)
+    assert [f["at"] for f in a] == sorted(f["at"] for f in a)
     for f in a:
-        lo, hi = (0.05, 0.3) if f["kind"] in S.ON_AGENT else (0.1, 0.8)
-        assert lo * 300 <= f["at_s"] <= hi * 300
+        lo, hi = (0.1, 0.7) if f["kind"] in S.ON_AGENT else (0.1, 0.9)
+        assert lo <= f["at"] <= hi
         if f["kind"] == "link_cut":
             assert 5 <= f["seconds"] <= 60
     assert len(S.draw_schedule(7, 60.0, frames=4500)) == 30
+    assert [f["at_s"] for f in S.timed(a, 40.0)] == [round(40.0 * f["at"], 1) for f in a]  # on this machine
     short = S.draw_schedule(7, 1.5, ("agent_kill", "link_cut"), faults=2)
     assert sorted(f["kind"] for f in short) == ["agent_kill", "link_cut"]
 
@@ -43,7 +44,9 @@ def test_a_short_soak_keeps_every_invariant(report):
     scratch, r = report
     applied = [f for f in r["faults"] if f.get("applied")]
     assert {f["kind"] for f in applied} == {"agent_kill", "server_kill", "link_cut"}, r["faults"]
-    failed = {k: v["detail"] for k, v in r["checks"].items() if not v["ok"]}
+    failed = {k: v["detail"] for k, v in r["checks"].items() if v["ok"] is not True}
+    if r["memory"] == []:  # every process of this short soak ended within warm-up + 20 s (a fast machine)
+        assert failed.pop("memory_flat").startswith("not evaluated"), r["lives"]
     assert not failed, failed
     cut = next(f for f in applied if f["kind"] == "link_cut")
     assert cut["connections_reaching_server_during_cut"] == 0 and cut["reconnects_refused"] > 0
@@ -74,8 +77,9 @@ def test_the_checks_fail_on_outputs_that_break_them(report, tmp_path):
     worse["ate_rmse_team"] = 1.15 * ref["ate_rmse_team"]
     worse["psnr"] = ref["psnr"] - 0.6
     checks = S.result_checks(worse, ref, rows, [], [])
-    assert not any(checks[k]["ok"] for k in ("ate_within_10pct", "psnr_within_0.5dB", "poses_on_disk",
-                                             "memory_flat"))
+    assert not any(checks[k]["ok"] for k in ("ate_within_10pct", "psnr_within_0.5dB", "poses_on_disk"))
+    assert checks["memory_flat"]["ok"] is False  # a long soak must have a process life to measure
+    assert S.result_checks(m, ref, rows, [], [], memory_required=False)["memory_flat"]["ok"] is None
 
     class Life:  # a process whose memory grows by a fifth after the warm-up
         role, pid, start, end = "agent_0", 1, 0.0, 100.0
@@ -83,6 +87,9 @@ def test_the_checks_fail_on_outputs_that_break_them(report, tmp_path):
     samples = [{"t": float(t), "rss_mb": {"1": 500.0 + (100.0 if t > 80 else 0.0)}} for t in range(0, 100, 2)]
     leak = S.check_memory([Life()], samples, 100.0)
     assert leak and leak[0]["growth_pct"] == 20.0 and not leak[0]["ok"]
+    assert S.result_checks(m, ref, rows, leak, [], memory_required=False)["memory_flat"]["ok"] is False
+    flat = [{"t": float(t), "rss_mb": {"1": 500.0 + (20.0 if t > 80 else 0.0)}} for t in range(0, 100, 2)]
+    assert S.result_checks(m, ref, rows, S.check_memory([Life()], flat, 100.0), [])["memory_flat"]["ok"] is True
 
 
 def test_an_agent_that_sent_everything_is_not_lost_while_the_server_catches_up():
