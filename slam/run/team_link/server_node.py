@@ -4,7 +4,8 @@ the same Server as the in-process team on them.
 Order. The in-process team hands the server agent a's keyframe of round r right after agent a's step of round r,
 agents in index order. The node keeps that order whatever the link does: keyframe (r, a) is handed over once every
 other agent b has reported all its keyframes of the rounds before it (b < a: rounds <= r; b > a: rounds < r), or
-has finished, or is lost. So the server sees the same keyframes in the same order and makes the same decisions
+has finished, or is lost, and every earlier keyframe in that order has been handed over (one whose images have not
+arrived yet holds back the later ones, though its agent has reported later rounds). So the server sees the same keyframes in the same order and makes the same decisions
 as in one process, however the agents' processes interleave. An agent on live topics joins without a frame count
 (Join rounds 0): nobody waits for it (its rounds are its frames, which come at the camera's pace), and its
 keyframes go to the server as they arrive and the recorded agents' rounds allow.
@@ -243,12 +244,18 @@ class ServerNode:
         best = None
         for a, p in enumerate(self.peers):
             m = p.meta.get(p.processed)
-            if m is not None and (m.id in p.images or m.id in p.dropped) and (best is None or
-                                                                             (m.round, a) < best[0]):
-                best = ((m.round, a), a, m)
-        if best is None:
+            if m is None:
+                continue
+            ready = m.id in p.images or m.id in p.dropped
+            if not ready and p.lost:  # its images will not come: the others do not wait for them
+                continue
+            if best is None or (m.round, a) < best[0]:
+                best = ((m.round, a), a, m, ready)
+        # The first keyframe in the in-process order goes first: one whose images are still on their way (resent
+        # after a server restart, say) holds back every later one, though its agent has reported later rounds.
+        if best is None or not best[3]:
             return None
-        (r, a), _, m = best
+        (r, a), _, m, _ = best
         for b, q in enumerate(self.peers):
             if b != a and not self._ended(b) and not q.open_ended and q.rounds_done < (r + 1 if b < a else r):
                 return None
