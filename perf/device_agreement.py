@@ -37,15 +37,16 @@ def pairs_for(device: str) -> list[tuple[str, str]]:
 
 
 def run_real(data: str | Path, frames: int, pairs: list[tuple[str, str]], timeout: float = 7200.0,
-             ate_floor_m: float = 0.0) -> dict:
-    """`swarmsplat run DATA --frames N --kernels B --device D` per pair, each in its own interpreter. Returns
-    {"rows": [{pair, status, ate_rmse, psnr, gaussians, seconds, error?}], "agree": bool, "reasons": [...]},
-    each row compared with the first pair's (warp-cpu); ate_floor_m: see `agreement`."""
+             ate_floor_m: float = 0.0, settings: list[str] = ()) -> dict:
+    """`swarmsplat run DATA --frames N --kernels B --device D [--set S ...]` per pair, each in its own interpreter.
+    Returns {"rows": [{pair, status, ate_rmse, psnr, gaussians, seconds, error?}], "agree": bool, "reasons": [...]},
+    each row compared with the first pair's (warp-cpu); ate_floor_m: see `agreement`; settings: `--set` items."""
     rows = []
     for backend, device in pairs:
         with tempfile.TemporaryDirectory(prefix="swarmsplat-agree-") as tmp:
             cmd = [sys.executable, "-c", CLI, "run", str(data), "--frames", str(frames),
                    "--kernels", backend, "--device", device, "--out", tmp, "--quiet"]
+            cmd += [a for item in settings for a in ("--set", item)]
             print(f"[device-agreement] {backend}-{device}: {frames} frames of {Path(data).name}", file=sys.stderr,
                   flush=True)
             t0 = time.perf_counter()
