@@ -1,11 +1,16 @@
-"""`python -m perf fuzz [--seconds S] [--only NAME,...] [--json OUT] [--md OUT]`: coverage-guided fuzzing (atheris,
-libFuzzer) of every parser of outside data in perf/fuzz_targets.py, each in its own process for S seconds (default
-60), starting from its seed corpus (tests/fuzz/corpus/<target>/, copied: the repository's corpus is not grown),
-with a 1 s limit per input and 2 GB of memory. A target may only return or raise InputError; anything else is a
-crash, saved to tests/fuzz/crashes/<target>/ (the suite replays that folder, tests/test_fuzz_replay.py).
+"""`python -m perf fuzz [--seconds S] [--runs N] [--only NAME,...] [--json OUT] [--md OUT]`: coverage-guided fuzzing
+(atheris, libFuzzer) of every parser of outside data in perf/fuzz_targets.py, each in its own process, starting from
+its seed corpus (tests/fuzz/corpus/<target>/, copied: the repository's corpus is not grown), with a 1 s limit per
+input and 2 GB of memory. A target may only return or raise InputError; anything else is a crash, saved to
+tests/fuzz/crashes/<target>/ (the suite replays that folder, tests/test_fuzz_replay.py).
+
+How long: `--seconds S` fuzzes each target for S seconds (default 60); `--runs N` stops each target after N
+executions instead (libFuzzer's -runs=N; the seed corpus's own runs count), with `--seconds` then a cap on each
+target's time (none unless given). Targets run one after another, one process at a time.
 
 Reported per target: executions, executions per second, coverage (libFuzzer's `cov` and `ft`), the grown corpus,
-crashes found. Needs `pip install atheris`.
+crashes found, the child's exit status (non-zero: it failed, saved input or not), the seconds it took. Needs
+`pip install atheris`.
 """
 
 from __future__ import annotations
@@ -25,8 +30,8 @@ DESCRIPTION = "coverage-guided fuzzing of the parsers of outside data (atheris)"
 
 _CHILD = r"""
 import sys, atheris
-from swarmsplat.perf.fuzz_targets import TARGETS, expected_errors, preload
-with atheris.instrument_imports(include=["swarmsplat"]):
+from swarmsplat.perf.fuzz_targets import INSTRUMENT, TARGETS, expected_errors, preload
+with atheris.instrument_imports(include=INSTRUMENT):
     preload()
 target, ok = TARGETS[sys.argv[1]], expected_errors()
 
@@ -57,8 +62,12 @@ def _stats(log: str) -> dict:
     return out
 
 
-def fuzz_one(name: str, seconds: int, env: dict) -> dict:
+def fuzz_one(name: str, seconds: int | None, env: dict, runs: int | None = None) -> dict:
+    """Fuzz target `name` for `seconds` (None: no time limit) or `runs` executions (None: no count), whichever
+    ends first."""
     from .fuzz_targets import corpus_dir
+
+    limits = [f"-max_total_time={seconds or 0}"] + ([f"-runs={runs}"] if runs else [])
 
     crashes = corpus_dir(name).parent.parent / "crashes" / name
     with tempfile.TemporaryDirectory(prefix=f"swarmsplat-fuzz-{name}-") as tmp:
@@ -67,9 +76,10 @@ def fuzz_one(name: str, seconds: int, env: dict) -> dict:
         art = Path(tmp) / "artifacts"
         art.mkdir()
         t0 = time.perf_counter()
-        p = subprocess.run([sys.executable, "-c", _CHILD, name, str(corpus), f"-max_total_time={seconds}",
+        p = subprocess.run([sys.executable, "-c", _CHILD, name, str(corpus), *limits,
                             "-timeout=1", "-rss_limit_mb=2048", f"-artifact_prefix={art}/", "-print_final_stats=1"],
-                           capture_output=True, text=True, env=env, check=False, timeout=seconds + 120)
+                           capture_output=True, text=True, env=env, check=False,
+                           timeout=seconds + 120 if seconds else None)
         wall = time.perf_counter() - t0
         found = sorted(art.iterdir())
         if found:
@@ -77,10 +87,11 @@ def fuzz_one(name: str, seconds: int, env: dict) -> dict:
             for f in found:
                 shutil.copy(f, crashes / f.name)
         st = _stats(p.stderr)
+        # a child that ended badly without saving its input (e.g. killed while reporting a crash) says so too
+        why = next((ln for ln in p.stderr.splitlines() if "Error" in ln or "Traceback" in ln), "") or \
+            f"exit {p.returncode}: {' | '.join(p.stderr.strip().splitlines()[-2:])}"
         return {"target": name, **st, "seconds": round(wall, 1), "exit": p.returncode,
-                "crashes": [f.name for f in found],
-                "first_crash": next((ln for ln in p.stderr.splitlines() if "Error" in ln or "Traceback" in ln), "")
-                if found else ""}
+                "crashes": [f.name for f in found], "first_crash": why if found or p.returncode else ""}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     from .fuzz_targets import TARGETS
 
     p = argparse.ArgumentParser(prog="python -m perf fuzz", description=__doc__.splitlines()[0])
-    p.add_argument("--seconds", type=int, default=60, help="fuzzing time per target")
+    p.add_argument("--seconds", type=int, help="fuzzing time per target (default 60; with --runs, a cap)")
+    p.add_argument("--runs", type=int, help="stop each target after this many executions (libFuzzer -runs)")
     p.add_argument("--only", help="comma-separated targets (default: all): " + ", ".join(TARGETS))
     p.add_argument("--json", dest="json_out")
     p.add_argument("--md", dest="md_out")
@@ -101,19 +113,27 @@ def main(argv: list[str] | None = None) -> int:
         import atheris  # noqa: F401
     except ImportError:
         p.error("needs atheris: pip install atheris")
+    if args.runs is not None and args.runs < 1:
+        p.error(f"--runs must be at least 1, got {args.runs}")
+    if args.seconds is not None and args.seconds < 1:
+        p.error(f"--seconds must be at least 1, got {args.seconds}")
+    seconds = args.seconds if args.seconds or args.runs else 60
     env = dict(os.environ)
     rows = []
     for n in names:
-        r = fuzz_one(n, args.seconds, env)
+        r = fuzz_one(n, seconds, env, args.runs)
         rows.append(r)
         print(f"[fuzz] {n}: {r['executions']} executions, cov {r['cov']}, {len(r['crashes'])} crashes", file=sys.stderr)
-    cols = ["target", "executions", "exec_per_s", "cov", "ft", "corpus", "crashes", "seconds"]
-    report = {"subject": "fuzz", "machine": machine_info(), "seconds_per_target": args.seconds, "rows": rows}
-    md = (f"# fuzz\n\n{DESCRIPTION}; {args.seconds} s per target.\n\n"
+    cols = ["target", "executions", "exec_per_s", "cov", "ft", "corpus", "crashes", "exit", "seconds"]
+    limit = " or ".join(([f"{args.runs} executions"] if args.runs else []) + ([f"{seconds} s"] if seconds else []))
+    limit += ", whichever came first" if args.runs and seconds else ""
+    report = {"subject": "fuzz", "machine": machine_info(), "seconds_per_target": seconds,
+              "runs_per_target": args.runs, "rows": rows}
+    md = (f"# fuzz\n\n{DESCRIPTION}; each target until {limit}.\n\n"
           + markdown_table([{**r, "crashes": len(r["crashes"])} for r in rows], cols) + "\n")
     print(json.dumps(rows, indent=1))
     write_results(args.json_out, args.md_out, report, md)
-    return 1 if any(r["crashes"] for r in rows) else 0
+    return 1 if any(r["crashes"] or r["exit"] for r in rows) else 0
 
 
 if __name__ == "__main__":

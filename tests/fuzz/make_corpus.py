@@ -50,7 +50,124 @@ def main() -> int:
     _write("dpgo_csv", "measurements.csv",
            b"robot_src,pose_src,robot_dst,pose_dst,qx,qy,qz,qw,tx,ty,tz,kappa,tau,is_known_inlier,weight\n"
            b"0,0,0,1,0,0,0,1,1,0,0,100,100,1,1\n0,1,0,2,0,0,0,1,1,0,0,100,100,1,1\n")
+    _bags()
     return 0
+
+
+class _Tiny:
+    """A sequence of `n` frames of 8x6 pixels (the least a bag needs: colour, depth, a camera, poses) for the bag
+    seeds; write_bag (slam.io.bags.write) records it as a camera driver would."""
+
+    def __init__(self, n: int = 2, odometry: bool = False, scale: float = 1000.0):
+        import numpy as np
+
+        from swarmsplat.kernels.camera import PinholeCamera
+
+        rng = np.random.default_rng(n)
+        self.camera, self.depth_scale, self.is_rgbd = PinholeCamera(8.0, 8.0, 4.0, 3.0, 8, 6), scale, True
+        self.t = 1.0 + 0.1 * np.arange(n)
+        self.color = rng.integers(0, 256, (n, 6, 8, 3), dtype=np.uint8)
+        self.depth = (rng.integers(1, 4000, (n, 6, 8)) / 1000.0).astype(np.float32)
+        self.gt_poses = np.tile(np.eye(4), (n, 1, 1))
+        self.gt_poses[:, 0, 3] = self.t
+        self.odometry = self.gt_poses.copy() if odometry else None
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __getitem__(self, i: int):
+        from swarmsplat.slam.io.datasets.base import Frame
+
+        return Frame(i, float(self.t[i]), self.color[i], self.depth[i], self.gt_poses[i],
+                     None if self.odometry is None else self.odometry[i])
+
+
+def _ros1_again(src: Path, dst: Path, compression: str | None = None, chunk: int | None = None) -> None:
+    """`src` (a ROS 1 bag) recorded again with compressed chunks ("bz2", "lz4") or chunks of about `chunk` bytes."""
+    from rosbags.rosbag1 import Reader, Writer
+
+    with Reader(src) as r, Writer(dst) as w:
+        if compression:
+            w.close()  # set_compression needs an unopened writer
+            dst.unlink()
+            w.set_compression(Writer.CompressionFormat[compression.upper()])
+            w.open()
+        if chunk:
+            w.chunk_threshold = chunk
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, md5sum=c.digest)
+                 for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+
+
+def _mcap_again(src: Path, dst: Path, compression: str = "", chunk: int = 1 << 20) -> None:
+    """`src` (an MCAP file) written again by the mcap library, with chunks of about `chunk` bytes compressed by
+    "zstd", "lz4" or nothing."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    with src.open("rb") as f, dst.open("wb") as out:
+        w = Writer(out, chunk_size=chunk, compression=CompressionType[(compression or "none").upper()])
+        w.start(profile="ros2", library="swarmsplat-fuzz-seed")
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        schemas = {k: w.register_schema(s.name, s.encoding, s.data) for k, s in summary.schemas.items()}
+        chans = {k: w.register_channel(c.topic, c.message_encoding, schemas[c.schema_id], c.metadata)
+                 for k, c in summary.channels.items()}
+        for _, ch, m in reader.iter_messages():
+            w.add_message(chans[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+
+
+def _bags() -> None:
+    """Tiny valid bags of each format (a few KB: two or three 8x6 frames) and a few variants: compressed colour
+    with float depth and odometry, a team of two namespaces, compressed chunks, a recording cut short."""
+    import shutil
+    import sqlite3
+    import tempfile
+
+    from swarmsplat.slam.io.bags import write_bag
+
+    def save(target: str, name: str, src: Path) -> Path:
+        d = HERE / "corpus" / target
+        d.mkdir(parents=True, exist_ok=True)
+        shutil.copy(src, d / name)
+        return d / name
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        variants = {"rgbd": (_Tiny(2), {}),
+                    "png_odom": (_Tiny(3, odometry=True, scale=5000.0), {"color": "png"}),
+                    "team": ({"/robot1/camera": _Tiny(1), "/robot2/camera": _Tiny(1)}, {})}
+        for name, (seq, kw) in variants.items():
+            write_bag(seq, tmp / f"{name}.bag", "ros1", **kw)
+            save("ros1_bag", f"{name}.bag", tmp / f"{name}.bag")
+            folder = write_bag(seq, tmp / f"{name}_mcap", "mcap", **kw)
+            save("mcap_bag", f"{name}.mcap", folder / f"{name}_mcap.mcap")
+            folder = write_bag(seq, tmp / f"{name}_db3", "db3", **kw)
+            db = shutil.copy(folder / f"{name}_db3.db3", tmp / f"{name}.db3")
+            con = sqlite3.connect(db)  # 512-byte pages (from 4096): a smaller seed
+            con.execute("PRAGMA journal_mode=DELETE")
+            con.execute("PRAGMA page_size=512")
+            con.execute("VACUUM")
+            con.close()
+            save("ros2_sqlite", f"{name}.db3", db)
+        longer = write_bag(_Tiny(4), tmp / "long.bag", "ros1")
+        _ros1_again(longer, tmp / "bz2.bag", "bz2")
+        save("ros1_bag", "bz2.bag", tmp / "bz2.bag")
+        _ros1_again(longer, tmp / "lz4.bag", "lz4")
+        save("ros1_bag", "lz4.bag", tmp / "lz4.bag")
+        _ros1_again(longer, tmp / "chunks.bag", chunk=256)
+        data = (tmp / "chunks.bag").read_bytes()  # cut inside its last chunk: the index rebuilt from the rest
+        (tmp / "cut.bag").write_bytes(data[: len(data) * 3 // 4])
+        save("ros1_bag", "cut.bag", tmp / "cut.bag")
+        src = write_bag(_Tiny(4), tmp / "long_mcap", "mcap") / "long_mcap.mcap"
+        for comp in ("zstd", "lz4"):
+            _mcap_again(src, tmp / f"{comp}.mcap", comp, chunk=1024)
+            save("mcap_bag", f"{comp}.mcap", tmp / f"{comp}.mcap")
+        data = (tmp / "zstd.mcap").read_bytes()  # no summary, no footer: read to the last complete record
+        (tmp / "cut.mcap").write_bytes(data[: len(data) * 2 // 3])
+        save("mcap_bag", "cut.mcap", tmp / "cut.mcap")
 
 
 if __name__ == "__main__":

@@ -53,21 +53,28 @@ def load_bag_dataset(path: str | Path, topics: dict[str, str] | None = None, **k
     """A team from one bag whose colour topics differ only in their first namespace (one agent each, named after
     it), or one agent from a bag, or a folder holding several bags (one agent each, in name order)."""
     p = Path(path)
-    if is_bag(p):
-        types = _types(p)
-        spaces = agent_namespaces(types, topics)
-        seqs = [BagSequence(p, choose_topics(types, topics, str(p), namespace=ns),
-                            name=ns.strip("/") or p.stem, **kwargs) for ns in spaces]
-    elif p.is_dir():
-        bags = sorted(q for q in p.iterdir() if is_bag(q))
-        if not bags:
-            raise InputError(f"{p}: no bag in this folder (.bag, .mcap, .db3, or ROS 2 bag folders)")
-        seqs = [load_bag_sequence(b, topics, **kwargs) for b in bags]
-    else:
-        raise InputError(f"{p}: not a bag (expected .bag, .mcap, .db3 or a ROS 2 bag folder with metadata.yaml)")
-    kinds = {s.is_rgbd for s in seqs}
-    if len(kinds) > 1:
-        raise InputError(f"{p}: some agents have depth and some do not")
+    seqs: list[BagSequence] = []
+    try:
+        if is_bag(p):
+            types = _types(p)
+            for ns in agent_namespaces(types, topics):
+                seqs.append(BagSequence(p, choose_topics(types, topics, str(p), namespace=ns),
+                                        name=ns.strip("/") or p.stem, **kwargs))
+        elif p.is_dir():
+            bags = sorted(q for q in p.iterdir() if is_bag(q))
+            if not bags:
+                raise InputError(f"{p}: no bag in this folder (.bag, .mcap, .db3, or ROS 2 bag folders)")
+            for b in bags:
+                seqs.append(load_bag_sequence(b, topics, **kwargs))
+        else:
+            raise InputError(f"{p}: not a bag (expected .bag, .mcap, .db3 or a ROS 2 bag folder with metadata.yaml)")
+        kinds = {s.is_rgbd for s in seqs}
+        if len(kinds) > 1:
+            raise InputError(f"{p}: some agents have depth and some do not")
+    except BaseException:  # an agent refused: the files of those opened before it are closed too
+        for s in seqs:
+            s.close()
+        raise
     return MultiAgentDataset(root=p, agents=seqs, name=p.stem, kind="rgbd" if kinds.pop() else "mono",
                              meta={"layout": "bag", "topics": [s.topics.as_dict() for s in seqs]})
 

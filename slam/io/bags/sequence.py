@@ -24,10 +24,12 @@ from swarmsplat.kernels.errors import InputError
 from ..datasets._sequence import FramesBase, _row, poses_at
 from ..datasets.associate import associate_unique
 from ..datasets.base import Frame
-from .decode import camera_from_info, decode_color, decode_depth, pose_of, stamp_of
+from .decode import camera_from_info, decode_color, decode_depth, pose_of, stamp_of, why
 from .topics import TopicChoice
 
 _AHEAD = 32  # messages kept from the stream for later frames before it is restarted instead
+_EXPECTED = {".bag": "a ROS 1 bag (#ROSBAG V2.0)", ".mcap": "an MCAP file", ".db3": "a ROS 2 bag's SQLite file"}
+_FOLDER = "a ROS 2 bag folder (metadata.yaml and its .db3 or .mcap files)"
 
 
 def open_reader(path: Path, *, warn: bool = True):
@@ -46,8 +48,22 @@ def open_reader(path: Path, *, warn: bool = True):
         else:
             reader = AnyReader([path], default_typestore=store)
         reader.open()
-    except (AnyReaderError, ValueError, KeyError, OSError) as e:
-        raise InputError(f"{path}: cannot open as a bag: {e}") from None
+    except InputError:  # what slam.io.bags.truncated says of a damaged bag: already one line naming it
+        raise
+    except AnyReaderError as e:
+        raise InputError(f"{path}: cannot open as a bag: {' '.join(str(e).split())}") from None
+    except SyntaxError as e:  # rosbags execs the Python it generates from the bag's message definitions
+        raise InputError(f"{path}: cannot open as a bag: its message definitions do not make Python types "
+                         f"({why(e)}); expected ROS message definitions") from None
+    except Exception as e:  # noqa: BLE001 - rosbags lets asserts, struct, zstd, lz4 and codegen errors through
+        raise InputError(f"{path}: cannot open as a bag: {why(e)}; expected {_EXPECTED.get(path.suffix, _FOLDER)}"
+                         ) from None
+    odd = next((c for c in reader.connections if not (isinstance(c.topic, str) and isinstance(c.msgtype, str)
+                                                        and c.topic and c.msgtype)), None)
+    if odd is not None:  # an SQLite bag's columns hold any type; an MCAP channel's topic may be empty
+        reader.close()
+        raise InputError(f"{path}: a topic named {odd.topic!r} of type {odd.msgtype!r}; expected a name and a type "
+                         "(text) for every topic")
     at = truncation_of(reader)
     if at is not None and warn:
         warnings.warn(f"{path}: the file ends mid-record (a recording cut short); read its {reader.message_count} "
@@ -65,11 +81,15 @@ class BagSequence(FramesBase):
         self.topics = topics
         self.name = name or self.root.stem
         self._reader = open_reader(self.root)
-        conns = {c.topic: c for c in self._reader.connections}
-        self._color_conn = conns[topics.color]
-        self._depth_conn = conns.get(topics.depth) if topics.depth else None
-        self._maps = None
-        self._index(conns, camera, max_diff, pose_max_diff, undistort)
+        try:
+            conns = {c.topic: c for c in self._reader.connections}
+            self._color_conn = conns[topics.color]
+            self._depth_conn = conns.get(topics.depth) if topics.depth else None
+            self._maps = None
+            self._index(conns, camera, max_diff, pose_max_diff, undistort)
+        except BaseException:  # a bag refused: its file closed now, not whenever the reader is collected
+            self.close()
+            raise
         self._stream = None  # (generator, index of the next frame it serves)
         self._stash: dict[tuple[str, int], tuple[object, bytes]] = {}
 
@@ -86,6 +106,9 @@ class BagSequence(FramesBase):
         sizes: dict[str, tuple[int, int]] = {}
         try:
             for conn, rec_ns, raw in self._reader.messages(connections=wanted):
+                if not isinstance(rec_ns, int):  # an SQLite bag's columns hold any type
+                    raise InputError(f"{self._where(conn.topic)}: a message recorded at {rec_ns!r}; expected a "
+                                     "time in integer nanoseconds")
                 msg = self._reader.deserialize(raw, conn.msgtype)
                 if conn.topic == t.info:
                     info = info or msg
@@ -93,9 +116,10 @@ class BagSequence(FramesBase):
                 if conn.topic in (t.color, t.depth):
                     if conn.topic not in sizes:  # the first of each: its encoding and size (decoded once)
                         sizes[conn.topic] = self._size_of_first(conn, msg)
-                    rows[conn.topic].append((rec_ns, stamp_of(msg)))
+                    rows[conn.topic].append((rec_ns, stamp_of(msg, self._where(conn.topic))))
                 else:
-                    rows[conn.topic].append((stamp_of(msg), pose_of(msg, conn.msgtype)))
+                    where = self._where(conn.topic)
+                    rows[conn.topic].append((stamp_of(msg, where), pose_of(msg, conn.msgtype, where)))
         except InputError:
             raise
         except Exception as e:  # noqa: BLE001 - rosbags raises assorted errors on a bag cut mid-message
@@ -222,12 +246,30 @@ def _undistort_maps(cam: PinholeCamera, D: np.ndarray, model: str, where: str):
 
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]], dtype=np.float64)
     size = (cam.width, cam.height)
+    if model in ("plumb_bob", "rational_polynomial", "equidistant", "") and not np.all(np.isfinite(D)):
+        raise InputError(f"{where}: distortion coefficients D={D.tolist()[:14]} are not finite")
     if model in ("plumb_bob", "rational_polynomial", ""):
-        return cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1)
+        if D.size not in (4, 5, 8, 12, 14):
+            raise InputError(f"{where}: {D.size} distortion coefficients for {model or 'plumb_bob'!r}; expected 4, "
+                             "5, 8, 12 or 14 (OpenCV's k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])")
+        return _maps_or_error(lambda: cv2.initUndistortRectifyMap(K, D, None, K, size, cv2.CV_32FC1), K, D, where)
     if model == "equidistant":
-        return cv2.fisheye.initUndistortRectifyMap(K, D[:4], np.eye(3), K, size, cv2.CV_32FC1)
+        if D.size < 4:
+            raise InputError(f"{where}: {D.size} distortion coefficients for 'equidistant'; expected 4 (k1..k4)")
+        return _maps_or_error(lambda: cv2.fisheye.initUndistortRectifyMap(K, D[:4], np.eye(3), K, size,
+                                                                          cv2.CV_32FC1), K, D, where)
     raise InputError(f"{where}: distortion model {model!r} is not supported; expected plumb_bob, "
                      "rational_polynomial or equidistant, or rectified images")
+
+
+def _maps_or_error(make, K: np.ndarray, D: np.ndarray, where: str):
+    import cv2
+
+    try:
+        return make()
+    except cv2.error as e:  # e.g. a K that is singular in floating point (fx of 1e-300)
+        raise InputError(f"{where}: camera_info's K={K.reshape(-1).tolist()} and D={D.tolist()[:14]} do not make an "
+                         f"undistortion ({why(e)}); expected a camera's intrinsics") from None
 
 
 def _remap(maps, color: np.ndarray, depth: np.ndarray | None):

@@ -117,7 +117,7 @@ class TolerantReader1(Reader1):
                 continue
             compression = header.get_string("compression")
             datapos = bio.tell()
-            raw = decompressors[compression](bio.read(n))
+            raw = _decompressed(self.path, pos, compression, bio.read(n))
             self.chunks[pos] = Chunk(n, datapos, decompressors[compression])
             counts, t_min, t_max = self._scan_chunk(BytesIO(raw), len(raw), pos, conns, indexes)
             self.chunk_infos.append(ChunkInfo(pos, t_min, t_max + 1, counts))
@@ -150,6 +150,21 @@ class TolerantReader1(Reader1):
                 t_min, t_max = min(t_min, t), max(t_max, t)
             chunk.seek(n, 1)
         return dict(counts), t_min, t_max
+
+
+def _decompressed(path: Path, pos: int, compression: str, data: bytes) -> bytes:
+    """A complete chunk's records, or InputError: a chunk that does not decompress is damage, not a cut."""
+    from swarmsplat.kernels.errors import InputError
+
+    if compression not in decompressors:
+        raise InputError(f"{path}: the chunk at byte {pos} is compressed with {compression!r}; expected one of "
+                         f"{', '.join(decompressors)} (a ROS 1 bag)")
+    try:
+        return decompressors[compression](data)
+    except (OSError, ValueError, RuntimeError, EOFError) as e:  # bz2: OSError / EOFError; lz4: RuntimeError
+        why = " ".join(str(e).split()) or type(e).__name__
+        raise InputError(f"{path}: the chunk at byte {pos} does not decompress as {compression} ({why}); expected "
+                         "a ROS 1 bag's complete chunk") from None
 
 
 def tolerant_reader(path: Path, default_typestore):
