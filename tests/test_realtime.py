@@ -270,12 +270,13 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
 
 
 def test_realtime_run_offloads_finished_submaps_as_an_offline_run_does(seq, tmp_path):
-    """At 3 Hz every frame is tracked in time: a keyframe every 2 frames, a submap every 2 keyframes, and the
-    worker writes each finished submap's Gaussians and its keyframes' images to the run folder."""
+    """At 2 Hz every frame is tracked in time, even on a loaded machine (at 3 Hz and load 8, 3 of 12 were dropped):
+    a keyframe every 2 frames, a submap every 2 keyframes, and the worker writes each finished submap's Gaussians
+    and its keyframes' images to the run folder."""
     from swarmsplat.slam.run.realtime.run import run_realtime
 
     out = tmp_path / "rt"
-    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 3},
+    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 2},
                                                             "keyframes": {"every": 2},
                                                             "submaps": {"max_keyframes": 2}})
     m = run_realtime(seq, out, cfg, progress=False)
