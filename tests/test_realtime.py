@@ -270,17 +270,22 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
 
 
 def test_realtime_run_offloads_finished_submaps_as_an_offline_run_does(seq, tmp_path):
-    """At 2 Hz every frame is tracked in time, even on a loaded machine (at 3 Hz and load 8, 3 of 12 were dropped):
-    a keyframe every 2 frames, a submap every 2 keyframes, and the worker writes each finished submap's Gaussians
-    and its keyframes' images to the run folder."""
+    """At 3 Hz, a keyframe every 2 frames and a submap every 2 keyframes: the worker writes each finished submap's
+    Gaussians and its keyframes' images to the run folder. On an idle machine every frame is tracked in time; on a
+    loaded one the first frames, which wait for the first mapping, may be dropped (2-3 of 12 at load 4-8, each
+    with its reason). At load 4 and more, mapping also falls so far behind that keyframes are deferred and the
+    run makes one submap: then this test fails, as real time on a shared machine does."""
     from swarmsplat.slam.run.realtime.run import run_realtime
 
     out = tmp_path / "rt"
-    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 2},
+    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 3},
                                                             "keyframes": {"every": 2},
                                                             "submaps": {"max_keyframes": 2}})
     m = run_realtime(seq, out, cfg, progress=False)
-    assert m["frames_tracked"] == 12 and m["submaps"] >= 2
+    rt = m["realtime"]
+    assert rt["frames_tracked"] + rt["frames_dropped"] == 12 and sum(rt["dropped_by_reason"].values()) == \
+        rt["frames_dropped"] <= 3, json.dumps(rt, default=str)[:1500]
+    assert m["frames_tracked"] == rt["frames_tracked"] and m["submaps"] >= 2
     assert len(list((out / "submaps").glob("*.bin"))) == m["submaps"] - 1
     kept = sorted(p.name for p in (out / "keyframes" / "small").glob("*.bin"))
     assert len(kept) >= 2 and len(kept) < m["keyframes"]  # the active submap's keyframes stay in memory
