@@ -285,6 +285,8 @@ CRASHES = Path(__file__).parent / "fuzz" / "crashes"
     ("ros2_sqlite/null-topic-8b0c4bd1.db3", r"a topic named None of type None; expected a name and a type \(text\) "
                                             r"for every topic"),
     ("mcap_bag/empty-topic-af272cab.mcap", r"a topic named '' of type 'sensor_msgs/msg/Image'; expected a name"),
+    ("ros2_sqlite/corrupt-page-2a0d47ca.db3", r": frame 0 is indexed but its messages cannot be read \(CorruptError: "
+                                              r"database disk image is malformed\); expected an undamaged bag"),
     ("ros2_sqlite/text-timestamp.db3", r"topic /camera/color/image_raw: a message recorded at 'abc'; expected a "
                                        r"time in integer nanoseconds"),
 ])

@@ -198,6 +198,10 @@ class BagSequence(FramesBase):
                 conn, rec, raw = next(gen)
             except StopIteration:
                 raise InputError(f"{self.root}: frame {i} is indexed but its messages cannot be read") from None
+            except Exception as e:  # noqa: BLE001 - read from frame i's record time, a damaged bag can fail where
+                # the index's pass did not (an SQLite page only that query reaches): rosbags' and apsw's errors
+                raise InputError(f"{self.root}: frame {i} is indexed but its messages cannot be read ({why(e)}); "
+                                 "expected an undamaged bag") from None
             key = (conn.topic, int(rec))
             if key in keys or (key in later and len(self._stash) < 2 * _AHEAD):
                 self._stash[key] = (conn, raw)
@@ -208,17 +212,24 @@ class BagSequence(FramesBase):
         i = self._checked_index(i)
         msgs = self._messages(i)
         conn, raw = msgs[self.topics.color]
-        color = decode_color(self._reader.deserialize(raw, conn.msgtype), conn.msgtype, self._where(conn.topic))
+        color = decode_color(self._deserialize(conn, raw, i), conn.msgtype, self._where(conn.topic))
         self._check_size(color, self.topics.color)
         depth = None
         if self._depth_conn is not None:
             conn, raw = msgs[self.topics.depth]
-            depth = decode_depth(self._reader.deserialize(raw, conn.msgtype), conn.msgtype, self._where(conn.topic))
+            depth = decode_depth(self._deserialize(conn, raw, i), conn.msgtype, self._where(conn.topic))
             self._check_size(depth, self.topics.depth)
         if self._maps is not None:
             color, depth = _remap(self._maps, color, depth)
         return Frame(index=int(i), timestamp=float(self._t[i]), color=color, depth=depth,
                      T_world_cam_gt=_row(self._gt, i), T_world_cam_odom=_row(self._odom, i))
+
+    def _deserialize(self, conn, raw, i: int):
+        try:
+            return self._reader.deserialize(raw, conn.msgtype)
+        except Exception as e:  # noqa: BLE001 - as _messages: what a damaged bag's other read path returns
+            raise InputError(f"{self._where(conn.topic)}: frame {i}'s message does not deserialise as "
+                             f"{conn.msgtype} ({why(e)})") from None
 
     def _check_size(self, img: np.ndarray, topic: str) -> None:
         if img.shape[:2] != (self.camera.height, self.camera.width):
