@@ -69,12 +69,24 @@ def sequence(tmp_path_factory):
 
 
 def _connected(a, b, timeout=10.0) -> None:
+    """Until each session's puts reach the other's subscribers: the sessions are peers AND the subscriptions each
+    declared before this call are known to the other. Peers alone are not enough: a put before the declaration
+    arrives goes nowhere, and a test's camera driver then loses its first frames (seen on a loaded CI machine)."""
     t_end = time.time() + timeout
-    while time.time() < t_end:
-        if list(a.info.peers_zid()) and list(b.info.peers_zid()):
-            return
+    while time.time() < t_end and not (list(a.info.peers_zid()) and list(b.info.peers_zid())):
         time.sleep(0.05)
-    raise AssertionError("the two Zenoh sessions did not connect on localhost")
+    for sub_side, pub_side in ((a, b), (b, a)):
+        got = threading.Event()
+        probe = sub_side.declare_subscriber("swarmsplat-test/route-probe", lambda s, got=got: got.set())
+        try:
+            while time.time() < t_end:
+                pub_side.put("swarmsplat-test/route-probe", b"")
+                if got.wait(0.05):
+                    break
+            else:
+                raise AssertionError("the two Zenoh sessions did not connect on localhost")
+        finally:
+            probe.undeclare()
 
 
 def test_a_live_agent_tracks_what_it_receives_and_publishes_every_pose(sequence, tmp_path):
