@@ -151,3 +151,18 @@ def text_lines(path: str | os.PathLike, what: str):
             if "\ufffd" in line:
                 raise InputError(f"{path}:{lineno}: not a text {what} file (bytes that are not UTF-8 text)")
             yield lineno, line
+
+
+def is_file(path: str | os.PathLike, where: str = "", *, folder: bool = False) -> bool:
+    """Path.is_file() (is_dir() with `folder`) for a path read from a file or given by a user: a name the system
+    refuses outright (longer than the file system allows, ...) is an InputError naming `where` (the file:line that
+    listed it) and the reason, not an OSError from deep inside a loader; a path that does not exist is False."""
+    from .errors import InputError
+
+    p = Path(path)
+    try:
+        return p.is_dir() if folder else p.is_file()
+    except OSError as e:
+        raise InputError(f"{where + ': ' if where else ''}{'folder' if folder else 'file'} name cannot be used: "
+                         f"{os.strerror(e.errno) if e.errno else e} ({str(p)[:120]}{'...' if len(str(p)) > 120 else ''})"
+                         ) from None

@@ -134,6 +134,7 @@ def test_single_sequence_becomes_one_agent_dataset(tmp_path):
         ("calib", "missing key(s) depth_scale"),
         ("gtnan", "groundtruth.txt:3: NaN"),
         ("size", "calibration says 8x6"),
+        ("longname", "rgb.txt:6: file name cannot be used: File name too long"),
     ],
 )
 def test_folder_bad_input_names_the_file(tmp_path, breakage, message):
@@ -159,6 +160,9 @@ def test_folder_bad_input_names_the_file(tmp_path, breakage, message):
         (root / "groundtruth.txt").write_text("\n".join(lines) + "\n")
     elif breakage == "size":
         cv2.imwrite(str(root / "rgb" / "000001.png"), np.zeros((H + 1, W, 3), np.uint8))
+    elif breakage == "longname":  # longer than any file system's name limit (255 bytes on Linux, macOS, Windows)
+        with open(root / "rgb.txt", "a") as f:
+            f.write(f"101.5 rgb/{'x' * 300}.png\n")
     with pytest.raises(InputError) as e:
         seq = load_sequence(root)
         for f in seq:
@@ -180,6 +184,11 @@ def test_missing_and_unknown_inputs(tmp_path):
     (tmp_path / "dataset.yaml").write_text(yaml.safe_dump({"name": "x", "kind": "rgbd", "agents": ["a", "b"]}))
     with pytest.raises(InputError, match="agent folder not found"):
         load_dataset(tmp_path)
+    (tmp_path / "dataset.yaml").write_text(yaml.safe_dump({"name": "x", "kind": "rgbd", "agents": ["a", "b" * 300]}))
+    with pytest.raises(InputError, match="dataset.yaml: agents: folder name cannot be used"):
+        load_dataset(tmp_path)
+    with pytest.raises(InputError, match="dataset path: file name cannot be used"):
+        load_dataset(tmp_path / ("c" * 300))
 
 
 # ---- TUM RGB-D -----------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import is_file
 
 from ._sequence import ImageSequence
 from .associate import associate_unique, match_nearest
@@ -65,7 +66,7 @@ _LAYOUTS_HELP = ("our format (calibration.yaml + rgb.txt), TUM RGB-D (rgb.txt + 
 
 def _check(path: str | Path, fmt: str) -> tuple[Path, str]:
     p = Path(path)
-    if not p.exists():
+    if not _exists(p):
         raise InputError(f"dataset path not found: {p}")
     if not p.is_dir():
         raise InputError(f"dataset path is not a folder or a bag (.bag, .mcap, .db3): {p}")
@@ -96,6 +97,12 @@ def _load_agent_folder(folder: Path) -> ImageSequence:
     return seq
 
 
+def _exists(path: str | Path) -> bool:
+    """Path.exists(), a name the system refuses (too long, ...) an InputError naming it."""
+    is_file(path, "dataset path")
+    return Path(path).exists()
+
+
 def _bag_kind(path: str | Path, fmt: str) -> bool:
     """Is `path` a bag (or, for a team, a folder of bags)? fmt "bag" insists; another layout name refuses."""
     from swarmsplat.slam.io.bags import is_bag
@@ -111,7 +118,7 @@ def _bag_kind(path: str | Path, fmt: str) -> bool:
 def load_sequence(path: str | Path, fmt: str = "auto", **kwargs) -> ImageSequence:
     """Load one sequence; `fmt` is one of FORMATS, "bag" or "auto". Extra keyword arguments go to the loader
     (e.g. `camera=` for TUM/Redwood/Replica/7-Scenes, `undistort=` for EuRoC and bags, `topics=` for bags)."""
-    if Path(path).exists() and _bag_kind(path, fmt):
+    if _exists(path) and _bag_kind(path, fmt):
         from swarmsplat.slam.io.bags import load_bag_sequence
 
         return load_bag_sequence(path, **kwargs)
@@ -128,7 +135,7 @@ def load_dataset(path: str | Path, fmt: str = "auto", **kwargs) -> MultiAgentDat
     """Load a team: a root with dataset.yaml (our format), a single sequence (one agent), or a folder whose
     sub-folders are sequences of one layout (Multiagent Replica, a set of EuRoC runs, a 7-Scenes scene's seq-NN
     folders), agents in name order; or a bag (one agent, or one per /robotN/ namespace), or a folder of bags."""
-    if Path(path).exists() and _bag_kind(path, fmt):
+    if _exists(path) and _bag_kind(path, fmt):
         from swarmsplat.slam.io.bags import load_bag_dataset
 
         return load_bag_dataset(path, **kwargs)

@@ -19,6 +19,7 @@ import numpy as np
 
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import is_file
 from swarmsplat.slam.io.trajectory import read_euroc_csv
 
 from ._sequence import ImageSequence, poses_at
@@ -73,7 +74,7 @@ def _read_cam_csv(path: Path) -> tuple[np.ndarray, list[Path]]:
         except ValueError:
             raise InputError(f"{path}:{lineno}: timestamp is not an integer of nanoseconds: {parts[0]!r}") from None
         f = path.parent / "data" / parts[1]
-        if not f.is_file():
+        if not is_file(f, f"{path}:{lineno}"):
             raise InputError(f"{path}:{lineno}: listed image not found: {f}")
         stamps.append(t)
         files.append(f)

@@ -18,7 +18,7 @@ import numpy as np
 
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.fileio import text_lines
+from swarmsplat.kernels.fileio import is_file, text_lines
 from swarmsplat.slam.io.trajectory import read_tum
 
 from ._sequence import ImageSequence, poses_at
@@ -52,7 +52,7 @@ def read_image_list(path: str | Path) -> tuple[np.ndarray, list[Path]]:
         if not math.isfinite(t):
             raise InputError(f"{path}:{lineno}: timestamp is NaN or Inf")
         img = path.parent / parts[1]
-        if not img.is_file():
+        if not is_file(img, f"{path}:{lineno}"):
             raise InputError(f"{path}:{lineno}: listed image not found: {img}")
         stamps.append(t)
         files.append(img)
@@ -161,7 +161,7 @@ def load_folder_dataset(root: str | Path, load_agent=None) -> MultiAgentDataset:
     seqs = []
     for a in agents:
         folder = root / a
-        if not folder.is_dir():
+        if not is_file(folder, f"{meta_path}: agents", folder=True):
             raise InputError(f"{meta_path}: agent folder not found: {folder}")
         seq = (load_agent or load_folder_sequence)(folder)
         if (kind == "rgbd") != seq.is_rgbd:

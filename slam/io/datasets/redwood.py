@@ -19,6 +19,7 @@ import numpy as np
 
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.kernels.errors import InputError
+from swarmsplat.kernels.fileio import is_file
 from swarmsplat.slam.io.trajectory import read_redwood_log
 
 from ._sequence import ImageSequence
@@ -112,7 +113,7 @@ def _read_match(path: Path) -> tuple[list[Path], list[Path]]:
             raise InputError(f"{path}:{lineno}: expected 'depth/file color/file', got {len(parts)} fields")
         d, c = path.parent / parts[0], path.parent / parts[1]
         for f in (d, c):
-            if not f.is_file():
+            if not is_file(f, f"{path}:{lineno}"):
                 raise InputError(f"{path}:{lineno}: listed image not found: {f}")
         depth.append(d)
         color.append(c)
