@@ -319,7 +319,7 @@ def test_the_agent_command_refuses_bad_ros_settings(tmp_path, capsys, monkeypatc
     assert main(["agent", "zenoh/", "--out", out, "--map-period", "-1"]) == 2
     assert "--map-period must be >= 0, got -1.0" in capsys.readouterr().err
     assert main(["agent", "zenoh/", "--server", "tcp/127.0.0.1:9", "--resume"]) == 2
-    assert "--resume continues a lone agent; a team member has no checkpoint" in capsys.readouterr().err
+    assert "--resume continues the team agent whose checkpoint is in --out: give --out" in capsys.readouterr().err
 
 
 def test_paths_maps_and_loops_are_latched_for_a_late_subscriber():

@@ -38,8 +38,9 @@ def register(sub) -> None:
                    help="publish the whole map every S seconds (0: at the end only; default: 10)")
     p.add_argument("--resume", action="store_true",
                    help="continue the agent killed in --out from its last checkpoint (live: on the frames that "
-                        "arrive now; a recording: from the frame after the checkpoint; a team member on a "
-                        "recording: from the round after it, joining its server again)")
+                        "arrive now; a recording: from the frame after the checkpoint; a team member: from the "
+                        "round after it (live: the frames it logged since, then the ones that arrive now), "
+                        "joining its server again)")
     p.add_argument("--name", default="live", help="the agent's name (default: live)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
@@ -175,10 +176,6 @@ def run(args) -> int:
     cfg = load_config(args.config, {"--kernels": ("kernels.backend", args.kernels),
                                     "--device": ("kernels.device", args.device)}, preset=args.preset, sets=args.config_set)
     if args.server:
-        if args.resume and source.startswith(LIVE):
-            raise InputError("--resume continues a lone agent; a team member has no checkpoint on live topics "
-                             "(the frames after one would be gone, and its server holds what was made of them); on "
-                             "a recording it resumes")
         if args.resume and not args.out:
             raise InputError("--resume continues the team agent whose checkpoint is in --out: give --out")
         return _team_member(args, source, cfg)
@@ -222,8 +219,10 @@ def _live_team_member(args, source: str, cfg) -> int:
         m = run_live_team_agent(src, k, cfg, name=args.name, connect=args.server, run=args.run,
                                 publisher=pub, max_frames=args.frames, idle_timeout=args.idle_timeout,
                                 camera_timeout=args.camera_timeout, silent_warning=args.silent_warning,
-                                map_period=args.map_period, progress=not args.quiet, out=args.out)
-    print(f"{args.name}: {m['frames_tracked']} frames tracked ({m['reason']}), {m['poses_published']} poses "
+                                map_period=args.map_period, progress=not args.quiet, out=args.out,
+                                resume=args.resume)
+    again = f", {m['frames_replayed']} logged frames tracked again" if m["frames_replayed"] else ""
+    print(f"{args.name}: {m['frames_tracked']} frames tracked ({m['reason']}{again}), {m['poses_published']} poses "
           f"published, {m['bytes']['sent_total'] / 1e6:.2f} MB sent"
           + ("" if m["acknowledged"] else "; NOT all acknowledged by the server"))
     return 0 if m["acknowledged"] else 1

@@ -168,11 +168,14 @@ class MemberCheckpoints:
         atomic_write_text(path, f"{epoch}\n")
         return epoch * MID_RANGE
 
-    def after_round(self, node, i: int, submaps_before: int) -> None:
-        """After round i: a checkpoint when it finished the every_submaps-th submap (the next round is i + 1)."""
+    def after_round(self, node, i: int, submaps_before: int) -> bool:
+        """After round i: a checkpoint when it finished the every_submaps-th submap (the next round is i + 1).
+        Returns whether it wrote one."""
         finished = len(node.agent.gmap.submaps) - 1
         if self.every and len(node.agent.gmap.submaps) > submaps_before and finished and finished % self.every == 0:
             self.save(node, i + 1)
+            return True
+        return False
 
     def save(self, node, next_round: int) -> None:
         if self.every:
