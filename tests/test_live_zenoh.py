@@ -170,8 +170,9 @@ def test_the_agent_command_refuses_what_it_cannot_read_live(tmp_path, capsys):
 
 
 def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
-    """`swarmsplat agent zenoh/ --out DIR` killed (SIGKILL) after a checkpoint, then started again with --resume on
-    the frames that arrive now: its results hold the frames up to the checkpoint and the new ones."""
+    """`swarmsplat agent zenoh/ --out DIR` killed (SIGKILL) after a checkpoint, then started again with --resume: it
+    tracks again the frames it logged since the checkpoint (progress/frames/), then the frames that arrive now; its
+    results hold every frame it read before the kill and the new ones, once."""
     import os
     import pickle
     import signal
@@ -224,8 +225,13 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
     driver.start()
     try:
         t_end = time.time() + 180
-        while not (out / "progress" / "checkpoint.pkl").is_file() and time.time() < t_end and agent.poll() is None:
-            time.sleep(0.1)
+        while time.time() < t_end and agent.poll() is None:  # a checkpoint, and a frame read after it
+            if (out / "progress" / "checkpoint.pkl").is_file():
+                with open(out / "progress" / "checkpoint.pkl", "rb") as f:
+                    kept = pickle.load(f)["next_frame"]
+                if any(int(p.stem) > kept for p in (out / "progress" / "frames").glob("*.npz")):
+                    break
+            time.sleep(0.05)
         assert (out / "progress" / "checkpoint.pkl").is_file(), "no checkpoint was written"
         agent.send_signal(signal.SIGKILL)  # a hard kill: nothing is written on the way out
         agent.wait(timeout=30)
@@ -237,6 +243,10 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
     with open(out / "progress" / "checkpoint.pkl", "rb") as f:
         kept = pickle.load(f)["next_frame"]
     assert not (out / "metrics.json").is_file() or "complete" not in (out / "metrics.json").read_text()
+    logged = sorted(int(p.stem) for p in (out / "progress" / "frames").glob("*.npz"))
+    assert not logged or logged == list(range(kept, logged[-1] + 1)), (kept, logged)  # none before the checkpoint
+    read = logged[-1] + 1 if logged else kept  # the frames the killed process read
+    assert read > kept + 1, "killed before it read a frame after its checkpoint"
 
     port = _free_port()
     stop = threading.Event()
@@ -253,8 +263,8 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
 
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "complete" and m["reason"] == "max_frames"
-    assert m["frames_tracked"] == kept + 4
+    assert m["frames_tracked"] == read + 4 and m["frames_replayed"] == read - kept
     traj = np.loadtxt(out / "trajectory.txt")
-    np.testing.assert_allclose(traj[:kept, 0], seq.timestamps[:kept], atol=1e-6)  # from before the kill
-    np.testing.assert_allclose(traj[kept:, 0], seq.timestamps[10:14], atol=1e-6)  # and after it
-    assert not (out / "progress" / "checkpoint.pkl").exists()
+    np.testing.assert_allclose(traj[:read, 0], seq.timestamps[:read], atol=1e-6)  # from before the kill
+    np.testing.assert_allclose(traj[read:, 0], seq.timestamps[10:14], atol=1e-6)  # and after it
+    assert not (out / "progress" / "checkpoint.pkl").exists() and not list((out / "progress" / "frames").iterdir())

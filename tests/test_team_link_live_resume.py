@@ -1,6 +1,6 @@
 """A team member on live ROS 2 topics killed (SIGKILL) mid-stream and started again with `--resume`, over real Zenoh
-on localhost: it tracks again the frames it had logged since its checkpoint (slam.run.team_link.frame_log), then the
-ones that arrive now, and its server takes it back with every frame and keyframe once. Skipped without
+on localhost: it tracks again the frames it had logged since its checkpoint (slam.run.checkpoint.frame_log), then
+the ones that arrive now, and its server takes it back with every frame and keyframe once. Skipped without
 eclipse-zenoh or rosbags."""
 
 from __future__ import annotations

@@ -74,14 +74,18 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     """Track and map the frames of a live `source` (slam.io.live.ZenohRos2Source) until it ends; publish its pose,
     TF, path, submaps, map (every `map_period` s; 0: at the end only) and loops on `publisher` (slam.io.ros2.
     AgentTopics, or slam.io.live.PosePublisher for plain keys) if given. Checkpoints as `swarmsplat run` writes
-    them (config checkpoint.every_submaps); `resume`: continue the agent killed in `out_dir` from its last one, on
+    them (config checkpoint.every_submaps) and logs the frames read since the last one (slam.run.checkpoint.
+    frame_log); `resume`: continue the agent killed in `out_dir` from its last one, on the logged frames and then
     the frames that arrive now. Returns the metrics written to out_dir/metrics.json."""
+    from dataclasses import replace
+
     from swarmsplat.slam.dense.ply import save_ply
     from swarmsplat.slam.io.jsonio import write_json
     from swarmsplat.slam.io.progress import bar
     from swarmsplat.slam.io.trajectory import write_tum
 
     from .checkpoint import CHECKPOINT, find_resume, save_checkpoint
+    from .checkpoint.frame_log import FrameLog
     from .runtime import check_device, use_kernels
     from .sequence import JOURNAL, _write_loops_csv
 
@@ -95,6 +99,9 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
     agent = resumed.agent if resumed else Agent(camera, cfg, name=source.name)
     first = resumed.next_frame if resumed else 0  # the index of the first frame read now
+    log = FrameLog(out) if cfg.checkpoint.every_submaps else None
+    if log is not None:
+        log.trim(first) if resume else log.clear()
     if resume and progress:
         print(f"[{source.name}] resuming after {first} frames" if resumed else
               f"[{source.name}] no checkpoint in {out} yet: starting anew", file=sys.stderr)
@@ -108,21 +115,33 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     feed = AgentFeed(publisher, map_period_s=map_period) if publisher is not None else None
     t_last = 0.0
     reason = "source ended"
+    replayed = n_live = 0
     with _Stop() as stop, journal, bar(max_frames or None, f"[{source.name}] live frames", unit="frame",
                               enabled=progress) as b:
-        for frame, arrival, taken in source.frames(max_frames=max_frames, idle_timeout=idle_timeout,
-                                            silent_warning=silent_warning, stop=lambda: stop.requested):
+        live = source.frames(max_frames=max_frames, idle_timeout=idle_timeout, silent_warning=silent_warning,
+                             stop=lambda: stop.requested)
+        again = log.replay(first) if log is not None and resume else ()
+        for frame, arrival, taken in _logged_then_live(again, live):
+            is_live = arrival is not None
+            if is_live:  # numbered on from the last frame read, this process life or an earlier one
+                frame = replace(frame, index=n_read)
+                if log is not None:
+                    log.append(frame)  # before tracking: a kill from here on finds it again
             t_step = time.monotonic()
             n_submaps = len(agent.gmap.submaps)
-            rec = agent.step(first + frame.index, frame.timestamp, frame.color, frame.depth)
+            rec = agent.step(frame.index, frame.timestamp, frame.color, frame.depth)
             step = time.monotonic() - t_step
             journal.follow(agent)
-            n_read += 1
+            n_read = frame.index + 1
+            replayed += not is_live
+            n_live += is_live
             finished = len(agent.gmap.submaps) - 1
             if every and len(agent.gmap.submaps) > n_submaps and finished and finished % every == 0:
                 save_checkpoint(out, identity, agent, next_frame=n_read, journal=journal.state(),
                                 wall_s=time.perf_counter() - t0)
-            if feed is not None:
+                if log is not None:
+                    log.trim(n_read)
+            if feed is not None and is_live:  # the logged frames' poses went out before the kill
                 feed.step(agent, frame.timestamp, rec)
                 if rec is not None:
                     frames.append((arrival, taken, step, time.monotonic()))
@@ -130,7 +149,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
             b.update(1, f"{len(agent.gmap)} Gaussians")
         if stop.requested:
             reason = "stopped"
-        elif max_frames and n_read - first >= max_frames:
+        elif max_frames and n_live >= max_frames:
             reason = "max_frames"
         elif idle_timeout:
             reason = f"no sample for {idle_timeout:g} s"
@@ -159,7 +178,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         "loop_candidates": len(agent.loops.log), "loops_accepted": sum(1 for c in agent.loops.log if c.accepted),
         "pose_graph_optimisations": agent.loops.optimisations,
         "pose_latency_ms": latency_ms(latency), "pose_overhead_ms": latency_ms(overhead),
-        "poses_published": getattr(publisher, "published", 0),
+        "poses_published": getattr(publisher, "published", 0), "frames_replayed": replayed,
         "publish_ms": latency_ms(feed.publish_s) if feed is not None else latency_ms([]),
         "ros2": publisher.stats() if hasattr(publisher, "stats") else None,
         "live": {"samples": dict(st.samples), "frames": st.frames, "unpaired": st.unpaired, "dropped": st.dropped,
@@ -170,7 +189,16 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     }
     write_json(out / "metrics.json", metrics)
     (out / CHECKPOINT).unlink(missing_ok=True)  # a complete run needs none; the journal stays
+    if log is not None:
+        log.clear()
     return metrics
+
+
+def _logged_then_live(again, live):
+    """(frame, arrival, taken): the logged frames first (arrival and taken None), then the live source's."""
+    for f in again:
+        yield f, None, None
+    yield from live
 
 
 def live_identity(name: str, camera, cfg: SlamConfig) -> dict:

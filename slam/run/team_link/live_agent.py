@@ -6,7 +6,7 @@ submaps and poses as a recorded team member does (slam.run.team_link.agent_node)
 so the server never waits for it (slam.run.team_link.server_node); the stream ends on --frames, on
 --idle-timeout seconds without a sample, or on Ctrl-C, and the agent then waits for the server to acknowledge
 everything it sent. With --out it keeps checkpoints and logs the frames read since the last one
-(slam.run.team_link.frame_log); --resume tracks those again, then goes on live.
+(slam.run.checkpoint.frame_log); --resume tracks those again, then goes on live.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
     TF, path, submaps, map every `map_period` s, loops) goes to `publisher` (slam.io.ros2.AgentTopics) in the agent's
     world frame as the server last corrected it, the path again after each correction. With `out`, it keeps its
     pose journal, checkpoints (config checkpoint.every_submaps) and the frames read since the last one
-    (slam.run.team_link.frame_log) there; `resume` continues the agent killed in `out`: the logged frames again,
+    (slam.run.checkpoint.frame_log) there; `resume` continues the agent killed in `out`: the logged frames again,
     then the frames that arrive now. Returns the agent's link figures, plus `frames_tracked`, `reason` (why the
     stream ended), `poses_published` and `frames_replayed`."""
     from dataclasses import replace
@@ -39,7 +39,7 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
 
     from . import messages as L
     from .agent_node import AgentNode
-    from .frame_log import FrameLog
+    from swarmsplat.slam.run.checkpoint.frame_log import FrameLog
     from .member import MemberCheckpoints
     from .processes import _transport, check_member, finish_agent
 

@@ -1,16 +1,17 @@
-"""The frames a live team agent has read since its last checkpoint, on disk (out/progress/frames/).
+"""The frames a live agent has read since its last checkpoint, on disk (out/progress/frames/).
 
-A team agent on a recording resumes by tracking again the rounds after its checkpoint: the same frames give again
-the keyframes, submaps and poses the killed process may have sent, and the server drops the repeats by id
-(slam.run.team_link.member). On live topics those frames are gone once read, and the ids the killed process used
-after its checkpoint would be taken by other frames. So a live team agent writes each frame here before it tracks
-it, and forgets the frames a checkpoint has made unnecessary; `--resume` tracks the logged frames again first
-(the same frames under the same indices: the same ids, which the server drops as repeats) and then the frames that
-arrive now.
+An agent on a recording resumes by reading again the frames after its checkpoint. On live topics those frames are
+gone once read: without a log, a killed live agent loses every frame between its last checkpoint and the kill,
+and a team member would also make other keyframes under the ids its killed process had already sent after that
+checkpoint. So a live agent (slam.run.live, slam.run.team_link.live_agent) writes each frame here before it
+tracks it, and forgets the frames a checkpoint has made unnecessary; `--resume` tracks the logged frames again
+first (the same frames under the same indices: a team member's server drops what it already had by id,
+slam.run.team_link.member) and then the frames that arrive now, numbered after them.
 
 One file a frame, `<index>.npz`, uncompressed (colour uint8, depth float32 metres, the timestamp), written in one
-rename: a kill leaves whole files only. At 640x480 a frame is ~2.1 MB; the folder holds the frames since the last
-checkpoint (config checkpoint.every_submaps).
+rename: a kill leaves whole files only. At 640x480 a frame is ~2.1 MB and ~3 ms to write (a page-cache write, no
+fsync); the folder holds the frames since the last
+checkpoint (config checkpoint.every_submaps; with 0 no checkpoint is written and nothing is logged).
 """
 
 from __future__ import annotations
