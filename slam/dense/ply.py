@@ -9,6 +9,8 @@ file are ignored on load. Normals are written as zeros, as 3DGS does.
 
 from __future__ import annotations
 
+import os
+
 from pathlib import Path
 
 import numpy as np
@@ -124,10 +126,10 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianPa
                 raise InputError(f"{path}: expected {count} rows of {len(props)} values, got {list(arr.shape)}")
             rec = {p: arr[:, i] for i, p in enumerate(names)}
         else:
-            buf = f.read(count * dtype.itemsize)
-            if len(buf) < count * dtype.itemsize:
-                raise InputError(f"{path}: truncated PLY: {count} vertices need {count * dtype.itemsize} bytes, "
-                                 f"found {len(buf)}")
+            need, left = count * dtype.itemsize, os.fstat(f.fileno()).st_size - f.tell()
+            if need > left:  # before reading: a count past any file's size is not an allocation to try
+                raise InputError(f"{path}: truncated PLY: {count} vertices need {need} bytes, found {left}")
+            buf = f.read(need)
             a = np.frombuffer(buf, dtype=dtype, count=count)
             rec = {p: a[p] for p in names}
     col = lambda *ps: np.stack([np.asarray(rec[p], dtype=np.float64) for p in ps], axis=1)  # noqa: E731
