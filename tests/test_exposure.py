@@ -145,6 +145,65 @@ def test_mapping_with_the_model_keeps_the_map_in_the_first_cameras_colours(warp_
     assert scores(with_model, T1, seen1, e2) > scores(without, T1, seen1) + 1.0
 
 
+def test_the_map_gauge_moves_to_the_median_keyframe_and_keeps_every_exposed_render(warp_cpu):
+    from types import SimpleNamespace
+
+    params, views = _map_two_views(True, SlamConfig().override({"exposure": {"enabled": True}}))
+    e2 = views[1][3]
+    cam = slam_scene.camera(64, 48)
+    # three keyframes drifting darker (the first camera, the second, one darker still) and an outlier, whose
+    # gain takes no part in the median
+    kf = lambda e, outlier=False: SimpleNamespace(exposure=e.copy(), exposure_prior=e.copy(),  # noqa: E731
+                                                  exposure_outlier=outlier)
+    e3 = e2.copy()
+    e3[:3] *= 2
+    wild = exposure.identity()
+    wild[:3] = 3.0
+    kfs = [kf(exposure.identity()), kf(e2), kf(e3), kf(wild, True)]
+    seen = [(views[0][0], kfs[0]), (views[1][0], kfs[1]), (views[1][0], kfs[2]), (views[1][0], kfs[3])]
+
+    def renders(own=False):
+        with torch.no_grad():
+            out = [render(params, viewmat_from_pose(T), cam) for T, _ in seen]
+            return [o.color.clamp(0, 1) if own else exposure.apply(o.color, o.alpha, k.exposure).clamp(0, 1)
+                    for o, (_, k) in zip(out, seen)]
+
+    before, own_before = renders(), renders(own=True)
+    m = exposure.median_gauge(params.colors, kfs)
+    np.testing.assert_allclose(m, e2[:3], atol=1e-12)  # the second keyframe is the median one
+    np.testing.assert_allclose(kfs[1].exposure[:3], 0.0, atol=1e-12)  # ... now the map's own gauge
+    for k, e in zip(kfs, [exposure.identity(), e2, e3, wild]):  # every gain and anchor moves by -m, offsets stay
+        np.testing.assert_allclose(k.exposure[:3], e[:3] - m, atol=1e-12)
+        np.testing.assert_allclose(k.exposure_prior, k.exposure, atol=0)
+        np.testing.assert_allclose(k.exposure[3:], e[3:], atol=0)
+    for a, b in zip(renders(), before):  # every keyframe's exposed render is unchanged (the map only darkened)
+        torch.testing.assert_close(a, b, atol=2e-5, rtol=0)
+    # the map's own colours now render the darker camera's view as that camera saw it, not as the first did
+    seen1 = views[1][2]
+    score = lambda c: psnr(c.permute(2, 0, 1), seen1.permute(2, 0, 1))  # noqa: E731
+    assert score(renders(own=True)[1]) > score(own_before[1]) + 1.0
+    assert exposure.median_gauge(params.colors, [kf(exposure.identity(), True)]) is None
+
+
+def test_the_map_gauge_brightens_only_as_far_as_few_colours_clip():
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    colors = torch.as_tensor(rng.uniform(0.0, 0.8, (2000, 3)), dtype=torch.float32)
+    e = exposure.identity()
+    e[:3] = np.log([1.5, 1.1, 2.0])  # the keyframes see the map brighter: the median gauge would clip many colours
+    kfs = [SimpleNamespace(exposure=e.copy(), exposure_prior=e.copy(), exposure_outlier=False) for _ in range(3)]
+    c = colors.clone()
+    m = exposure.median_gauge(c, kfs, clip_fraction=0.01)
+    passed = (c > 1.0 + 1e-6).float().mean(dim=0).numpy()
+    assert np.all(passed <= 0.01 + 1e-3), passed
+    assert m[1] == pytest.approx(np.log(1.1))  # green: the median clips nothing, taken whole
+    assert m[0] < np.log(1.5) and m[2] < np.log(2.0)  # red, blue: capped
+    np.testing.assert_allclose(c.numpy(), (colors * torch.as_tensor(np.exp(m), dtype=torch.float32)).numpy(),
+                               rtol=1e-6)
+    np.testing.assert_allclose(kfs[0].exposure[:3], e[:3] - m, atol=1e-12)
+
+
 def test_a_black_keyframe_is_an_outlier_and_leaves_the_map_alone(warp_cpu):
     from swarmsplat.slam.dense.agent import Agent
 

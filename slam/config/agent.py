@@ -156,6 +156,12 @@ class ExposureConfig(_Section):
     max_gain: float = Field(2.5, gt=1, description="a keyframe whose fitted gain differs from its predecessor's "
                             "by more than this factor in a channel (or whose image is black or white) is an "
                             "outlier: it keeps the previous exposure and its colour is left out of the loss")
+    map_gauge: Literal["first", "median"] = Field(
+        "first", description="the gauge of the map's own colours (map.ply, the viewer) after the final map "
+        "refinement. first: the first keyframe's, which drifts over a long walk, so the map's own colours can end "
+        "darker or brighter than any image. median: the keyframes' median exposure per channel, exp(m) on every "
+        "colour and -m on every log gain, which leaves each exposed render as it was except where a colour passes "
+        "1 and the rasteriser clips it (the trade-off on a real camera: docs/decisions/0011)")
 
 
 class MapRefineConfig(_Section):

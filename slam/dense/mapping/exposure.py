@@ -127,6 +127,37 @@ def is_outlier(e: np.ndarray, previous: np.ndarray, max_gain: float) -> bool:
     return bool((np.abs(e[:3] - previous[:3]) > np.log(max_gain)).any() or (np.abs(e[3:] - previous[3:]) > 0.33).any())
 
 
+def median_gauge(colors: torch.Tensor, keyframes, clip_fraction: float = 1.0) -> np.ndarray | None:
+    """Bring a map's colours to its keyframes' median exposure, in place: m [3] the per-channel median log gain of
+    `keyframes` (objects with `exposure`, `exposure_prior`, `exposure_outlier`; outliers and those without an
+    exposure left out of the median), colours [N, 3] times exp(m), and m taken off every keyframe's log gain and
+    its anchor. exp(g - m) * exp(m) c = exp(g) c: every exposed render stays as it was, except where a colour then
+    passes 1 (the rasteriser clamps each Gaussian's colour): with clip_fraction < 1, m is lowered per channel
+    until at most that fraction of the colours passes 1. Returns m, or None when no keyframe has an exposure.
+
+    The gauge of the first keyframe, which mapping keeps, drifts over a long walk (docs/decisions/0011): the map's
+    own colours, what map.ply and the viewer show, then match no image. At the median they look as a typical
+    keyframe saw the scene."""
+    es = [k.exposure for k in keyframes if k.exposure is not None and not k.exposure_outlier]
+    if not es:
+        return None
+    m = np.median(np.stack(es)[:, :3], axis=0)
+    with torch.no_grad():  # clamped first, as the rasteriser clamps them: then a darker gauge changes no render
+        colors.clamp_(0.0, 1.0)
+        if len(colors) and clip_fraction < 1:  # brighter only as far as few colours pass 1 (they would clip)
+            q = np.quantile(colors.numpy(), 1.0 - clip_fraction, axis=0)
+            m = np.minimum(m, -np.log(np.maximum(q, 1e-6)))
+        colors.mul_(torch.as_tensor(np.exp(m), dtype=colors.dtype))
+    for k in keyframes:
+        for name in ("exposure", "exposure_prior"):
+            e = getattr(k, name)
+            if e is not None:
+                e = np.array(e, dtype=np.float64)
+                e[:3] -= m
+                setattr(k, name, e)
+    return m
+
+
 def summary(exposures: list[np.ndarray | None], outliers: int) -> dict:
     """metrics.json's `exposure` block: how much the keyframes' exposures vary, and how many were outliers."""
     es = np.array([e for e in exposures if e is not None])

@@ -19,6 +19,7 @@ from swarmsplat.kernels import se3
 
 from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, transform_params
 from swarmsplat.slam.dense.mapping.refine_merged import RefineView, ViewCache
+from .exposure import median_gauge
 from .refine_regions import refine_by_region
 from swarmsplat.slam.dense.packed import PackedRGBD
 from .mapper import fallback_depth
@@ -88,10 +89,13 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None, 
                                     for (sm, T, n), a in zip(parts, starts)])
     refined, kept, st, regions = refine_by_region(merged, views, cfg, mapping, fixed_views=fixed_views,
                                                   exposure=exposure, exposure_gauge=exposure_gauge)
+    gauge = None
     if st.exposures is not None:  # each keyframe keeps its refined exposure (slam.dense.mapping.exposure)
         for (_, kf), e in zip(view_keyframes, st.exposures):
             if e is not None and kf.exposure is not None:
                 kf.exposure = np.asarray(e, dtype=np.float64)
+        if exposure is not None and exposure.map_gauge == "median":  # the map's own colours as a typical keyframe sees them
+            gauge = median_gauge(refined.colors, [kf for _, kf in view_keyframes])
     keep = owned.clone()
     keep[owned] = kept
     overlap, hidden = int((~owned).sum()), int((~kept).sum())
@@ -116,7 +120,8 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None, 
     return {"iterations": st.iterations, "keyframes": st.views, "gaussians": total, "overlap_dropped": overlap,
             "hidden_dropped": hidden,
             "pruned": pruned, "loss_first": st.loss_first, "loss_last": st.loss_last,
-            "overlap_cull_seconds": cull_s, **regions, **poses, "seconds": time.perf_counter() - t0}
+            "overlap_cull_seconds": cull_s, **regions, **poses, "seconds": time.perf_counter() - t0,
+            **({} if gauge is None else {"exposure_gauge_gain": [float(g) for g in np.exp(gauge)]})}
 
 
 def _start_pose(server, a, kf, cfg):
