@@ -10,8 +10,8 @@ slam.run.team_link.member) and then the frames that arrive now, numbered after t
 
 One file a frame, `<index>.npz`, uncompressed (colour uint8, depth float32 metres, the timestamp), written in one
 rename: a kill leaves whole files only. At 640x480 a frame is ~2.1 MB and ~3 ms to write (a page-cache write, no
-fsync); the folder holds the frames since the last
-checkpoint (config checkpoint.every_submaps; with 0 no checkpoint is written and nothing is logged).
+fsync); the folder holds the frames since the last checkpoint (config checkpoint.every_submaps; with 0 no
+checkpoint is written and nothing is logged).
 """
 
 from __future__ import annotations
@@ -74,11 +74,7 @@ class FrameLog:
                                  f"it") from None
             yield frame
 
-    def last_index(self) -> int | None:
-        """The highest logged index, or None when the log is empty."""
-        files = self._files()
-        return files[-1][0] if files else None
-
     def clear(self) -> None:
+        """Forget every logged frame (a new run in the folder, or a run whose work is all kept)."""
         for _, p in self._files():
             p.unlink(missing_ok=True)
