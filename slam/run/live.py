@@ -121,7 +121,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         live = source.frames(max_frames=max_frames, idle_timeout=idle_timeout, silent_warning=silent_warning,
                              stop=lambda: stop.requested)
         again = log.replay(first) if log is not None and resume else ()
-        for frame, arrival, taken in _logged_then_live(again, live):
+        for frame, arrival, taken in logged_then_live(again, live):
             is_live = arrival is not None
             if is_live:  # numbered on from the last frame read, this process life or an earlier one
                 frame = replace(frame, index=n_read)
@@ -147,12 +147,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
                     frames.append((arrival, taken, step, time.monotonic()))
             t_last = frame.timestamp
             b.update(1, f"{len(agent.gmap)} Gaussians")
-        if stop.requested:
-            reason = "stopped"
-        elif max_frames and n_live >= max_frames:
-            reason = "max_frames"
-        elif idle_timeout:
-            reason = f"no sample for {idle_timeout:g} s"
+        reason = end_reason(stop.requested, max_frames, n_live, idle_timeout) or reason
     if feed is not None:
         feed.finish(agent, t_last)  # the last path, submaps, loops and the whole map
     # a pose is published when its thread sent it (in order); without that record, when it was handed over
@@ -194,7 +189,19 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     return metrics
 
 
-def _logged_then_live(again, live):
+def end_reason(stopped: bool, max_frames: int, n_live: int, idle_timeout: float) -> str | None:
+    """Why a live stream ended: "stopped" (Ctrl-C), "max_frames", "no sample for S s"; None when the source
+    itself ended."""
+    if stopped:
+        return "stopped"
+    if max_frames and n_live >= max_frames:
+        return "max_frames"
+    if idle_timeout:
+        return f"no sample for {idle_timeout:g} s"
+    return None
+
+
+def logged_then_live(again, live):
     """(frame, arrival, taken): the logged frames first (arrival and taken None), then the live source's."""
     for f in again:
         yield f, None, None

@@ -33,7 +33,7 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
     from dataclasses import replace
 
     from swarmsplat.kernels.fileio import output_dir
-    from swarmsplat.slam.run.live import _Stop, live_identity
+    from swarmsplat.slam.run.live import _Stop, end_reason, live_identity, logged_then_live
     from swarmsplat.slam.run.runtime import check_device, use_kernels
     from swarmsplat.slam.run.ros2.feed import AgentFeed
 
@@ -70,9 +70,10 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
                 live = source.frames(max_frames=max_frames, idle_timeout=idle_timeout,
                                      silent_warning=silent_warning, stop=lambda: stop.requested)
                 again = log.replay(i) if log is not None and resume else ()
-                for frame, is_live in _frames(again, live):
+                for frame, arrival, _taken in logged_then_live(again, live):
                     if stop.requested:
                         break
+                    is_live = arrival is not None
                     if is_live:  # numbered on from the last frame read, this process life or an earlier one
                         frame = replace(frame, index=i)
                     i = frame.index
@@ -92,12 +93,7 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
                         last = time.monotonic()
                         say(f"[{name}] frame {i}  keyframes {len(node.agent.keyframes)}  queued "
                             f"{len(node.outbox.items)}", file=sys.stderr)
-                if stop.requested:
-                    reason = "stopped"
-                elif max_frames and n_live >= max_frames:
-                    reason = "max_frames"
-                elif idle_timeout:
-                    reason = f"no sample for {idle_timeout:g} s"
+                reason = end_reason(stop.requested, max_frames, n_live, idle_timeout) or reason
             if ckpt is not None:  # every frame read: a kill while waiting for the server resumes here
                 ckpt.save(node, i)
                 if log is not None:
@@ -117,10 +113,3 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
     return {**figures, "frames_tracked": len(node.agent.poses), "reason": reason,
             "poses_published": getattr(publisher, "published", 0), "frames_replayed": replayed}
 
-
-def _frames(again, live):
-    """(frame, is_live): the logged frames first, then the live ones (their index set by the caller)."""
-    for f in again:
-        yield f, False
-    for frame, _arrival, _taken in live:
-        yield frame, True
