@@ -4,7 +4,8 @@
 
 Cases: FLOCC's formulation study team (graph.synthetic, LIO odometry, eq.-6 scales, the chordal start of
 perf/flocc_experiment; `--quick`: its 250 m-per-robot team) in the base, IS, SS and shared formulations with LM;
-DGS's blocks_world with 2, 4, 9 and 16 robots (LM) and the 6-robot outdoor graph of Kimera-Multi (GNC) from
+DGS's blocks_world with every team size present (2, 4, 9 and 16 robots in ../shared; 25, 36 and 49 where they
+are added beside them) (LM) and the 6-robot outdoor graph of Kimera-Multi (GNC) from
 `../shared/data`, each started from `swarmsplat graph solve`'s initial estimate (the better of chordal and GTSAM's
 per component); each robot's over-relaxation adaptive (the default), a few cases again with plain descent. Per case: the centralised cost (LM, or GNC where robust),
 the distributed cost and its ratio, rounds to 1 % and 0.1 % of the centralised cost, bytes sent in all and up to
@@ -47,15 +48,22 @@ def _flocc_cases(quick: bool):
     yield "flocc-is", g, P0, "is", "lm", 1.0
 
 
+def _blocks_world() -> list[tuple[str, tuple[str, ...]]]:
+    """DGS's blocks_world teams present in the shared data, by size (`Nrobots` folders: the repository has 2-49)."""
+    root = _data("dgs_multirobot", "blocks_world")
+    if root is None:
+        return []
+    sizes = sorted(int(d.name[:-6]) for d in root.glob("*robots") if d.name[:-6].isdigit())
+    return [(f"blocks_world-{n}", ("dgs_multirobot", "blocks_world", f"{n}robots")) for n in sizes]
+
+
 def _shared_cases():
     from swarmsplat.graph.init import initialize
     from swarmsplat.graph.team_files import read_team
 
-    for name, parts, solver in (("blocks_world-2", ("dgs_multirobot", "blocks_world", "2robots"), "lm"),
-                                ("blocks_world-4", ("dgs_multirobot", "blocks_world", "4robots"), "lm"),
-                                ("blocks_world-9", ("dgs_multirobot", "blocks_world", "9robots"), "lm"),
-                                ("blocks_world-16", ("dgs_multirobot", "blocks_world", "16robots"), "lm"),
-                                ("kimera-outdoor-6", ("kimera_multi_outdoor_6robots",), "gnc")):
+    cases = [(name, parts, "lm") for name, parts in _blocks_world()]
+    cases.append(("kimera-outdoor-6", ("kimera_multi_outdoor_6robots",), "gnc"))
+    for name, parts, solver in cases:
         path = _data(*parts)
         if path is None:
             continue
@@ -140,8 +148,9 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
              "the same time); relax 0: each robot's over-relaxation adapted to its rate of convergence (the default), "
              "1: plain block-coordinate descent (every round lowers the cost)",
              "bytes_per_sep: all bytes sent (headers, scales, weights, consensus scalars included) per separator "
-             "pose sent; gather_bytes: every robot but the lowest sends its poses and owned edges, the lowest sends "
-             "every pose back to each (the same float32 encodings)",
+             "pose sent (a pose: 12 B as a float16 twist from the estimate the neighbour holds, 24 B absolute); "
+             "gather_bytes: every robot but the lowest sends its poses and owned edges, the lowest sends every pose "
+             "back to each (absolute float32 poses)",
              "kept / rejected (GNC): share of the centralised GNC's kept / rejected loops the distributed GNC also "
              "keeps / rejects"]
     sim3, ours = similarity3_timing()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from swarmsplat.graph.distributed.messages import Estimate, FLAG_SCALARS
+from swarmsplat.graph.distributed.messages import Estimate, FLAG_DELTA, FLAG_SCALARS
 from swarmsplat.graph.distributed.partition import partition
 from swarmsplat.graph.distributed.robot import Settings
 from swarmsplat.graph.distributed.team import Faults, problem_error, solve_distributed
@@ -113,7 +113,7 @@ def test_estimates_round_trip_and_garbage_is_refused():
     m = Estimate(97, 98, 7, T, np.array([1.5]), np.array([0.25, 1.0]), FLAG_SCALARS, shared_g=0.5, shared_s=2.0,
                  relayed=[(99, 6, -1.5, 4.0)])
     data = m.to_bytes()
-    assert len(data) == 23 + 2 * 24 + 3 * 4 + 36 + 2 + 21
+    assert len(data) == 25 + 2 * 24 + 3 * 4 + 36 + 2 + 21
     back = Estimate.from_bytes(data)
     assert np.allclose(back.poses, T, atol=1e-6) and back.scales.tolist() == [1.5] and back.shared_s == 2.0
     assert back.relayed == [(99, 6, -1.5, 4.0)]

@@ -7,12 +7,19 @@ the same lists from the loops they share (`partition.RobotPart.separators` and `
 the order of the sender's separator list for the recipient, scales in the order of the pair's up-to-scale loops
 and weights in that of the pair's loops the sender owns (only when GNC runs).
 
-Wire format (little-endian, no pickle): a 23-byte header (magic, sender, recipient, stamp, counts, flags), then
-the poses as 6 float32 (rotation vector, translation) = 24 bytes each, scales and weights as float32, and with
-FLAG_SCALARS four float64 and a uint32 stamp, then a uint16 count of relayed terms, each robot (uint8), stamp
-(uint32), g and H (float64): the shared scale's terms of robots that are not the recipient's neighbours. float32 rounds a position 1 km from the origin by ~30 µm, far
-below any loop's noise; the sender keeps its own estimate in float64. Bytes that do not decode raise InputError; the transport drops
-them, and a robot drops an estimate whose counts are not those it expects.
+Wire format (little-endian, no pickle): a 25-byte header (magic, sender, recipient, stamp, base, ack, counts,
+flags), then the poses, scales and weights as float32, and with FLAG_SCALARS four float64 and a uint32 stamp, then
+a uint16 count of relayed terms, each robot (uint8), stamp (uint32), g and H (float64): the shared scale's terms of
+robots that are not the recipient's neighbours.
+
+Poses come one of two ways. Absolute (FLAG_DELTA clear): 6 float32 each (rotation vector, translation), 24 bytes;
+float32 rounds a position 1 km from the origin by ~30 µm, far below any loop's noise. Relative (FLAG_DELTA): 6
+float16 each, 12 bytes, the twist `log(B^-1 T)` from the pose B the recipient decoded from the sender's estimate
+stamped `base`, which the recipient said it holds (`ack` of its own estimates); graph.distributed.delta keeps
+both sides' histories and decodes, so the recipient's copy is its base moved by the rounded twist and the next
+twist is taken from that copy (the rounding never accumulates). The sender keeps its own estimate in float64.
+Bytes that do not decode raise InputError; the transport drops them, and a robot drops an estimate whose counts
+are not those it expects or whose base it does not hold.
 """
 
 from __future__ import annotations
@@ -26,15 +33,18 @@ from swarmsplat.kernels.errors import InputError
 
 from .. import lie
 
-MAGIC = b"DPG1"
-_HEAD = struct.Struct("<4sBBIIIIB")
+MAGIC = b"DPG2"
+_HEAD = struct.Struct("<4sBBIiiHHHB")  # magic, sender, recipient, stamp, base, ack, poses, scales, weights, flags
 _SCALARS = struct.Struct("<ddddI")
 _COUNT = struct.Struct("<H")
 _RELAYED = struct.Struct("<BIdd")  # robot, the stamp of its terms, its shared-scale g and H
 FLAG_SCALARS = 1  # the consensus scalars follow
 FLAG_STILL = 2  # the sender's last step moved its poses by less than the tolerance
 FLAG_BINARY = 4  # every GNC weight the sender owns is 0 or 1
-POSE_BYTES = 24
+FLAG_DELTA = 8  # the poses are float16 twists from the sender's estimate `base` (module docstring)
+POSE_BYTES = 24  # an absolute pose
+DELTA_BYTES = 12  # a pose relative to a base
+COUNT_MAX = 0xFFFF
 
 
 @dataclass
@@ -54,13 +64,26 @@ class Estimate:
     mu0: float = 0.0
     shared_stamp: int = 0
     relayed: list = field(default_factory=list)  # [(robot, stamp, g, H)]: other robots' terms, passed on
+    base: int = -1  # FLAG_DELTA: the stamp of the sender's estimate the twists start from
+    ack: int = -1  # the newest stamp of the recipient's estimates the sender holds (-1: none)
+    delta: np.ndarray | None = None  # FLAG_DELTA: [P, 6] twists (float16 values); `poses` is then empty until
+    # the recipient decodes them (graph.distributed.delta.Received)
 
     def to_bytes(self) -> bytes:
-        P, S, W = len(self.poses), len(self.scales), len(self.weights)
-        xi = np.concatenate([lie.so3_log(self.poses[:, :3, :3]), self.poses[:, :3, 3]], 1) if P else np.zeros((0, 6))
-        out = [_HEAD.pack(MAGIC, self.sender, self.recipient, self.stamp, P, S, W, self.flags),
-               np.asarray(xi, "<f4").tobytes(), np.asarray(self.scales, "<f4").tobytes(),
-               np.asarray(self.weights, "<f4").tobytes()]
+        S, W = len(self.scales), len(self.weights)
+        if self.flags & FLAG_DELTA:
+            P = len(self.delta)
+            body = np.asarray(self.delta, "<f2").tobytes()
+        else:
+            P = len(self.poses)
+            xi = (np.concatenate([lie.so3_log(self.poses[:, :3, :3]), self.poses[:, :3, 3]], 1) if P
+                  else np.zeros((0, 6)))
+            body = np.asarray(xi, "<f4").tobytes()
+        if max(P, S, W) > COUNT_MAX:
+            raise InputError(f"distributed estimate: {max(P, S, W)} poses, scales or weights for one neighbour, "
+                             f"at most {COUNT_MAX}")
+        out = [_HEAD.pack(MAGIC, self.sender, self.recipient, self.stamp, self.base, self.ack, P, S, W, self.flags),
+               body, np.asarray(self.scales, "<f4").tobytes(), np.asarray(self.weights, "<f4").tobytes()]
         if self.flags & FLAG_SCALARS:
             out.append(_SCALARS.pack(self.shared_g, self.shared_h, self.shared_s, self.mu0, self.shared_stamp))
             out.append(_COUNT.pack(len(self.relayed)))
@@ -71,10 +94,13 @@ class Estimate:
     def from_bytes(cls, data: bytes) -> "Estimate":
         if len(data) < _HEAD.size:
             raise InputError(f"distributed estimate: {len(data)} bytes, shorter than its header")
-        magic, sender, recipient, stamp, P, S, W, flags = _HEAD.unpack_from(data)
+        magic, sender, recipient, stamp, base, ack, P, S, W, flags = _HEAD.unpack_from(data)
         if magic != MAGIC:
             raise InputError("distributed estimate: wrong magic")
-        size = _HEAD.size + P * POSE_BYTES + 4 * (S + W)
+        delta = bool(flags & FLAG_DELTA)
+        if delta and base < 0:
+            raise InputError("distributed estimate: relative poses without a base")
+        size = _HEAD.size + P * (DELTA_BYTES if delta else POSE_BYTES) + 4 * (S + W)
         n_relayed = 0
         if flags & FLAG_SCALARS:
             size += _SCALARS.size + _COUNT.size
@@ -92,14 +118,14 @@ class Estimate:
             o += a.nbytes
             return a
 
-        xi = take("<f4", 6 * P).reshape(P, 6).astype(np.float64)
+        xi = take("<f2" if delta else "<f4", 6 * P).reshape(P, 6).astype(np.float64)
         s, w = take("<f4", S).astype(np.float64), take("<f4", W).astype(np.float64)
         if not (np.all(np.isfinite(xi)) and np.all(np.isfinite(s)) and np.all(np.isfinite(w))):
             raise InputError("distributed estimate: non-finite value")
-        T = np.tile(np.eye(4), (P, 1, 1))
-        T[:, :3, :3] = lie.so3_exp(xi[:, :3])
-        T[:, :3, 3] = xi[:, 3:]
-        msg = cls(sender, recipient, stamp, T, s, w, flags)
+        if delta:
+            msg = cls(sender, recipient, stamp, np.zeros((0, 4, 4)), s, w, flags, base=base, ack=ack, delta=xi)
+        else:
+            msg = cls(sender, recipient, stamp, absolute_poses(xi), s, w, flags, base=base, ack=ack)
         if flags & FLAG_SCALARS:
             msg.shared_g, msg.shared_h, msg.shared_s, msg.mu0, msg.shared_stamp = _SCALARS.unpack_from(data, o)
             o += _SCALARS.size + _COUNT.size
@@ -107,3 +133,19 @@ class Estimate:
             if not all(np.isfinite(r[2:]).all() for r in msg.relayed):
                 raise InputError("distributed estimate: non-finite value")
         return msg
+
+
+def absolute_poses(xi: np.ndarray) -> np.ndarray:
+    """[P, 6] (rotation vector, translation) -> [P, 4, 4]."""
+    T = np.tile(np.eye(4), (len(xi), 1, 1))
+    T[:, :3, :3] = lie.so3_exp(xi[:, :3])
+    T[:, :3, 3] = xi[:, 3:]
+    return T
+
+
+def as_sent(poses: np.ndarray) -> np.ndarray:
+    """The poses exactly as the recipient decodes them from an absolute estimate (float32 on the wire)."""
+    if not len(poses):
+        return np.zeros((0, 4, 4))
+    xi = np.concatenate([lie.so3_log(poses[:, :3, :3]), poses[:, :3, 3]], 1)
+    return absolute_poses(np.asarray(xi, "<f4").astype(np.float64))

@@ -30,7 +30,8 @@ from ..formulations import build_problem, initial_scales
 from ..pose_graph import Edge, PoseGraph
 from ..scale_factors import is_residuals, is_residuals_network
 from ..solvers import SCALE_MIN, levenberg_marquardt, loop_costs
-from .messages import FLAG_BINARY, FLAG_SCALARS, FLAG_STILL, Estimate
+from .delta import Received, Sent
+from .messages import FLAG_BINARY, FLAG_DELTA, FLAG_SCALARS, FLAG_STILL, Estimate
 from .partition import RobotPart
 
 OMEGA_MAX = 1.9
@@ -53,6 +54,8 @@ class Settings:
     shared_s0: float = 1.0  # the shared scale's initial value (median of the loops' initial scales)
     relax: float = 0.0  # over-relaxation: the step moves own poses and scales this many times the local update;
     # 0: adapted to the robot's observed rate of convergence (RobotSolver._adapt)
+    delta: bool = True  # separator poses as float16 twists from the neighbour's last held estimate
+    # (graph.distributed.delta); False: absolute float32 poses in every estimate
 
 
 class RobotSolver:
@@ -88,6 +91,8 @@ class RobotSolver:
         self.nb_still: dict[int, bool] = {}
         self.gnc = False  # weights travel with the estimates once GNC runs
         self.refused = 0  # estimates dropped for counts other than expected
+        self.baseless = 0  # relative estimates dropped because their base is not held
+        self._tx, self._rx = Sent(), Received()
         self._owner = {n: min(e.key_i >> 56, e.key_j >> 56) for n, e in zip(self.edge_ids, self.edges)}
         self._scaled = {n: e.up_to_scale for n, e in zip(self.edge_ids, self.edges)}
         self._sent: dict[tuple[int, int], tuple[list[int], list[int]]] = {}
@@ -196,6 +201,9 @@ class RobotSolver:
             msg.scales = np.array([self.scales[n] for n in sc])
             if self.gnc:
                 msg.weights = np.array([self.weights.get(n, 1.0) for n in wt])
+            msg.ack = self._rx.ack(q)
+            if self.settings.delta:
+                self._tx.encode(msg, tuple(keys))
             out.append(msg)
         if scalars:
             for q in sorted(set(self.part.neighbours) | set(self.heard)):
@@ -240,13 +248,17 @@ class RobotSolver:
                 self.shared, self.shared_stamp = msg.shared_s, msg.shared_stamp
         if msg.stamp <= self.nb_stamp.get(q, -1):
             return False
+        self._tx.heard(q, msg.stamp, msg.ack)
         keys = self._expect.get(q, [])
         sc, wt = self._sent_loops(q, q)
-        if (len(msg.poses) and len(msg.poses) != len(keys)) or len(msg.scales) not in (0, len(sc)) \
-                or len(msg.weights) not in (0, len(wt)):
+        P = len(msg.delta) if msg.flags & FLAG_DELTA else len(msg.poses)
+        if (P and P != len(keys)) or len(msg.scales) not in (0, len(sc)) or len(msg.weights) not in (0, len(wt)):
             self.refused += 1
             return False
-        if not len(msg.poses) and keys:  # a scalars-only message: not an estimate of the poses
+        if not P and keys:  # a scalars-only message: not an estimate of the poses
+            return False
+        if not self._rx.decode(msg, tuple(keys)):
+            self.baseless += 1
             return False
         self.nb_stamp[q] = msg.stamp
         for k, T in zip(keys, msg.poses):

@@ -101,7 +101,9 @@ class SwarmPart:
         g = self.graph()
         part = partition(g)[ord(robot_char(self.me))]
         part.anchors = part.keys[:1] if self.root == self.me else []
-        settings = Settings(formulation=cfg.formulation, relax=1.0)  # plain descent: parts grow, neighbours come and go
+        # plain descent: parts grow, neighbours come and go; absolute poses: a rebuilt part starts with no history of
+        # what its neighbours hold, and a robot joining a frame reads an estimate's poses before its solver does
+        settings = Settings(formulation=cfg.formulation, relax=1.0, delta=False)
         self.stamp = self.solver.stamp if self.solver is not None else self.stamp
         self.solver = RobotSolver(part, dict(enumerate(g.edges)), g.poses, settings)
         self.solver.stamp = self.stamp
