@@ -42,3 +42,28 @@ def test_robot_processes_equal_the_simulated_team_and_survive_a_robot_dying(tmp_
     assert out["finished"] == [97, 99]
     assert max(np.abs(out["poses"][k] - sim.poses[k]).max() for k in out["poses"]) <= 1e-6
     assert sim.history[-1] < sim.history[4]  # the others kept converging after b left
+
+
+def test_robot_processes_run_the_same_gnc_as_the_simulated_team(tmp_path):
+    """GNC on a fixed plan (graph.distributed.gnc_plan): each robot proposes the initial mu, relays the smallest and
+    sets its loops' weights at its own step, so three robot processes reject the same loops as the simulated team
+    and end at its poses."""
+    from scipy.stats import chi2
+
+    from swarmsplat.graph.distributed.gnc_plan import GncPlan
+    from swarmsplat.slam.run.swarm_processes import solve_graph_processes
+
+    team = make_team(TeamConfig(robots=3, length_m=120, grid_step=30.0, grid_nodes=2, target_loops=80,
+                                loop_radius=8.0, outlier_fraction=0.1, seed=5))
+    write_g2o(team.graph, tmp_path / "team.g2o")
+    g = read_team([tmp_path / "team.g2o"])
+    plan = GncPlan(ls_rounds=4, relay_rounds=3, steps=5, step_rounds=2, final_rounds=3,
+                   barc=0.5 * float(chi2.ppf(0.99, 6)))
+    sim = solve_distributed(g, Settings(gnc_plan=plan), "gnc", initial_poses=g.poses)
+    assert sim.rounds == plan.total and len(sim.rejected) >= 3
+    out = solve_graph_processes([str(tmp_path / "team.g2o")], tmp_path / "w", initial_poses=g.poses,
+                                settings=Settings(gnc_plan=plan), rounds=plan.total, port_base=_free_port_base(3))
+    assert out["finished"] == [97, 98, 99]
+    assert sorted(n for n, w in out["weights"].items() if w < 0.5) == sim.rejected
+    assert max(abs(out["weights"][n] - w) for n, w in sim.weights.items()) <= 1e-6
+    assert max(np.abs(out["poses"][k] - sim.poses[k]).max() for k in sim.poses) <= 1e-6

@@ -31,6 +31,7 @@ from ..pose_graph import Edge, PoseGraph
 from ..scale_factors import is_residuals, is_residuals_network
 from ..solvers import SCALE_MIN, levenberg_marquardt, loop_costs
 from .delta import Received, Sent
+from .gnc_plan import GncPlan
 from .messages import FLAG_BINARY, FLAG_DELTA, FLAG_SCALARS, FLAG_STILL, Estimate
 from .partition import RobotPart
 
@@ -56,6 +57,8 @@ class Settings:
     # 0: adapted to the robot's observed rate of convergence (RobotSolver._adapt)
     delta: bool = True  # separator poses as float16 twists from the neighbour's last held estimate
     # (graph.distributed.delta); False: absolute float32 poses in every estimate
+    gnc_plan: GncPlan | None = None  # GNC on a fixed schedule, decided by each robot at its step
+    # (graph.distributed.gnc_plan: robot processes); None: the team drives GNC (graph.distributed.team)
 
 
 class RobotSolver:
@@ -141,6 +144,9 @@ class RobotSolver:
     def step(self) -> list[Estimate]:
         """Minimise the robot's part (a few LM iterations) and return one estimate per neighbour."""
         self.stamp += 1
+        plan = self.settings.gnc_plan
+        if plan is not None:
+            self._follow(plan, self.stamp)
         problem, weights, ids = self.local_problem()
         res = levenberg_marquardt(problem, weights=weights, max_iterations=self.settings.local_iterations)
         w = self.settings.relax if self.settings.relax > 0 else self.omega
@@ -163,7 +169,17 @@ class RobotSolver:
             self.term_stamp[self.robot] = self.stamp
             if self.is_keeper():
                 self._shared_newton()
-        return self.messages()
+        return self.messages(scalars=True if plan is not None and plan.relays(self.stamp) else None)
+
+    def _follow(self, plan: GncPlan, k: int) -> None:
+        """What a GNC plan has this robot do at its step in round k, from what it holds now."""
+        if plan.proposes(k):
+            self.propose_mu0(plan.barc)
+        j = plan.gnc_step(k)
+        if j is not None:
+            mu0 = self.team_mu0()
+            if mu0 > 0:
+                self.gnc_update(mu0 * plan.mu_step ** j, plan.barc)
 
     def _adapt(self, d: float, cost: float) -> None:
         """Successive over-relaxation's optimal omega from the rate at which this robot's steps shrink (`d`: the
@@ -242,8 +258,8 @@ class RobotSolver:
             for r, stamp, g, h in [(q, msg.stamp, msg.shared_g, msg.shared_h)] + list(msg.relayed):
                 if r != self.robot and stamp >= self.term_stamp.get(r, -1):
                     self.terms[r], self.term_stamp[r] = (g, h), stamp
-            if msg.mu0:
-                self.mu0[q] = msg.mu0
+            if msg.mu0 > 0:  # the smallest a sender ever relayed (a late resend carries an older, larger one)
+                self.mu0[q] = min(self.mu0.get(q, msg.mu0), msg.mu0)
             if msg.shared_stamp > self.shared_stamp:
                 self.shared, self.shared_stamp = msg.shared_s, msg.shared_stamp
         if msg.stamp <= self.nb_stamp.get(q, -1):

@@ -229,21 +229,27 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
                       probability: float = 0.99, mu_step: float = 1.4, gnc_rounds: int = 10,
                       max_gnc: int = 100, on_round=None, stop_when_still: bool = True) -> DistributedResult:
     """Solve `graph` with simulated robots (module docstring); `solver` 'lm' (least squares) or 'gnc'.
-    `stop_when_still=False` runs `max_rounds` rounds whatever (the fixed schedule of the robot processes)."""
+    `stop_when_still=False` runs `max_rounds` rounds whatever (the fixed schedule of the robot processes). With
+    `settings.gnc_plan` (solver 'gnc') the team runs the plan's rounds and the robots do GNC themselves
+    (graph.distributed.gnc_plan); `max_rounds`, `mu_step`, `gnc_rounds` and `max_gnc` then do not apply."""
     if solver not in ("lm", "gnc"):
         raise InputError(f"solver must be 'lm' or 'gnc', got {solver!r}")
     t0 = time.perf_counter()
-    team = Team(graph, settings or Settings(), initial_poses=initial_poses, gt_scales=gt_scales, faults=faults)
+    settings = settings or Settings()
+    plan = settings.gnc_plan
+    if plan is not None and solver != "gnc":
+        raise InputError("a GNC plan (Settings.gnc_plan) runs with solver 'gnc'")
+    team = Team(graph, settings, initial_poses=initial_poses, gt_scales=gt_scales, faults=faults)
     team.start()
     converged = False
-    for _ in range(max_rounds):
+    for _ in range(plan.total if plan is not None else max_rounds):  # a plan: every decision the robots' own
         converged = team.run_round()
         if on_round:
             on_round(team)
-        if converged and stop_when_still:
+        if converged and stop_when_still and plan is None:
             break
-    k = 0
-    if solver == "gnc":
+    k = plan.steps if plan is not None else 0
+    if solver == "gnc" and plan is None:
         barc = 0.5 * float(chi2.ppf(probability, 3 if graph.is_2d else 6))
         mu = team.agree_mu0(barc)
         if max(mu.values()) > 0:

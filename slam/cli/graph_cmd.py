@@ -51,8 +51,16 @@ def register(sub) -> None:
                         "process)")
     s.add_argument("--max-rounds", type=int, default=300, help="--distributed: rounds at most (default 300)")
     s.add_argument("--processes", action="store_true",
-                   help="--distributed: one process per robot over Zenoh on this machine (least squares; a fixed "
-                        "number of rounds, --max-rounds)")
+                   help="--distributed: one process per robot over Zenoh on this machine, a fixed number of rounds "
+                        "(--max-rounds; with --solver gnc, GNC on a fixed plan: --gnc-steps)")
+    s.add_argument("--gnc-steps", type=int, default=None, metavar="S",
+                   help="--distributed --solver gnc: GNC on a fixed plan the robots follow themselves (what "
+                        "--processes runs; default there 25): --max-rounds rounds of least squares, the initial mu "
+                        "relayed for as many rounds as there are robots, S steps of mu of --gnc-rounds rounds each, "
+                        "--max-rounds rounds with the final weights. Without it the simulated team stops each phase "
+                        "when it is still")
+    s.add_argument("--gnc-rounds", type=int, default=10, metavar="R",
+                   help="--distributed --solver gnc: rounds per GNC step at most (default 10)")
     s.add_argument("--port-base", type=int, default=17600,
                    help="--processes: robot K listens on TCP port PORT_BASE + K (default 17600)")
     s.add_argument("--relax", type=float, default=0.0,
@@ -85,8 +93,10 @@ def run(args) -> int:
         raise InputError("--max-rounds must be >= 1 and --relax in [1, 2) or 0 (adaptive)")
     if args.processes and not args.distributed:
         raise InputError("--processes runs the distributed solver: add --distributed")
-    if args.processes and args.solver != "lm":
-        raise InputError("--processes runs least squares (--solver lm); GNC runs with simulated robots")
+    if args.gnc_steps is not None and not (args.distributed and args.solver == "gnc"):
+        raise InputError("--gnc-steps plans the distributed GNC: add --distributed --solver gnc")
+    if (args.gnc_steps is not None and args.gnc_steps < 1) or args.gnc_rounds < 1:
+        raise InputError("--gnc-steps and --gnc-rounds must be >= 1")
     t_start = time.perf_counter()
     graph = read_team(args.inputs, information=args.information)
     fixed = repaired_edges(graph)
@@ -105,11 +115,14 @@ def run(args) -> int:
         from swarmsplat.graph.distributed.team import solve_distributed
 
         settings = Settings(objective=args.objective, relax=args.relax)
+        if args.solver == "gnc" and (args.processes or args.gnc_steps is not None):
+            settings.gnc_plan = _gnc_plan(args, graph)
         if args.processes:
             res = dist = _solve_processes(args, graph, poses, settings, problem)
         else:
             res = dist = solve_distributed(graph, settings, args.solver, initial_poses=poses,
-                                           max_rounds=args.max_rounds, probability=args.gnc_probability)
+                                           max_rounds=args.max_rounds, probability=args.gnc_probability,
+                                           gnc_rounds=args.gnc_rounds)
     elif args.solver == "gnc":
         res = gnc(problem, probability=args.gnc_probability, lm_max_iterations=args.max_iterations)
     else:
@@ -164,6 +177,10 @@ def run(args) -> int:
             "gather_bytes": dist.gather_bytes, "relax": args.relax, "processes": args.processes,
             "groups": [[_robot_number(chr(r)) for r in grp] for grp in dist.groups],
             "error_per_round": dist.history}
+        if settings.gnc_plan is not None:
+            from dataclasses import asdict
+
+            summary["distributed"]["gnc_plan"] = asdict(settings.gnc_plan)
     if args.solver == "gnc":
         summary["rejected_loops"] = rejected
     js = Path(args.json) if args.json else Path(out).with_suffix(".json")
@@ -185,6 +202,18 @@ def _loop_ids(edge, key_robot, key_index) -> list[int]:
             _robot_number(key_robot(edge.key_j)), key_index(edge.key_j)]
 
 
+def _gnc_plan(args, graph):
+    """The fixed GNC plan of --gnc-steps / --processes (graph.distributed.gnc_plan)."""
+    from scipy.stats import chi2
+
+    from swarmsplat.graph.distributed.gnc_plan import GncPlan
+    from swarmsplat.graph.distributed.partition import partition
+
+    return GncPlan(ls_rounds=args.max_rounds, relay_rounds=len(partition(graph)), steps=args.gnc_steps or 25,
+                   step_rounds=args.gnc_rounds, final_rounds=args.max_rounds,
+                   barc=0.5 * float(chi2.ppf(args.gnc_probability, 3 if graph.is_2d else 6)))
+
+
 def _solve_processes(args, graph, poses, settings, problem):
     """--processes: the robots as processes (slam.run.swarm_processes.solve_graph_processes), their estimates
     gathered for the output, summarised like the simulated team's result."""
@@ -196,8 +225,9 @@ def _solve_processes(args, graph, poses, settings, problem):
     from swarmsplat.kernels.errors import GraphError
     from swarmsplat.slam.run.swarm_processes import solve_graph_processes
 
+    rounds = settings.gnc_plan.total if settings.gnc_plan is not None else args.max_rounds
     with tempfile.TemporaryDirectory(prefix="swarmsplat-graph-") as work:
-        out = solve_graph_processes(args.inputs, work, initial_poses=poses, settings=settings, rounds=args.max_rounds,
+        out = solve_graph_processes(args.inputs, work, initial_poses=poses, settings=settings, rounds=rounds,
                                     information=args.information, port_base=args.port_base)
     if not out["finished"]:
         raise GraphError("no robot process finished")
@@ -206,11 +236,13 @@ def _solve_processes(args, graph, poses, settings, problem):
         print(f"warning: robot(s) {', '.join(missing)} did not finish: their initial poses are written",
               file=sys.stderr)
     est = {k: out["poses"].get(k, poses[k]) for k in graph.poses}
-    err = problem_error(problem, est, out["scales"], {})
+    weights = out["weights"] if settings.gnc_plan is not None else {}
+    err = problem_error(problem, est, out["scales"], weights)
     sent = out["bytes_total"]
     groups = [sorted({ord(key_robot(k)) for k in c}) for c in graph.components()]
     separators = sum(len(s) for p in partition(graph).values() for s in p.separators.values())
-    return DistributedResult(est, out["scales"], {}, [], args.max_rounds, [err], [sent],
-                             problem_error(problem, poses, {}, {}), err, sent, separators * (args.max_rounds + 1),
+    rejected = sorted(n for n, w in weights.items() if w < 0.5)
+    return DistributedResult(est, out["scales"], weights, rejected, rounds, [err], [sent],
+                             problem_error(problem, poses, {}, {}), err, sent, separators * (rounds + 1),
                              gather_bytes(graph),
                              len(out["robots"]), groups, not missing, out["time_s"])

@@ -240,7 +240,8 @@ def solve_graph_processes(inputs: list[str], workdir: str | Path, *, initial_pos
     reading the files, holding its part (graph.distributed) and running slam.flocc.swarm.solver_node over Zenoh on
     localhost (robot K on port_base + K). `initial_poses`: the team's initial estimate (written to `workdir` for
     the robots). `crash`: robot number -> the round after which that robot's process dies without a word (fault
-    tests). Returns the robots' poses and scales merged, their bytes and which robots finished."""
+    tests). `rounds`: the rounds to run (with `settings.gnc_plan`, its total). Returns the robots' poses, scales and
+    owned loops' GNC weights merged, their bytes and which robots finished."""
     import pickle
 
     from swarmsplat.graph.distributed.partition import partition
@@ -267,7 +268,7 @@ def solve_graph_processes(inputs: list[str], workdir: str | Path, *, initial_pos
         if p.poll() is None:
             p.kill()
         p.wait()
-    poses, scales, bytes_total, finished = {}, {}, 0, []
+    poses, scales, weights, bytes_total, finished = {}, {}, {}, 0, []
     for r in robots:
         f = workdir / f"robot_{r - ord('a')}.npz"
         if not f.is_file():
@@ -275,9 +276,11 @@ def solve_graph_processes(inputs: list[str], workdir: str | Path, *, initial_pos
         z = np.load(f)
         poses.update({int(k): T for k, T in zip(z["keys"], z["poses"])})
         scales.update({int(n): float(s) for n, s in zip(z["scale_edges"], z["scales"])})
+        weights.update({int(n): float(w) for n, w in zip(z["weight_edges"], z["weights"])})
         bytes_total += int(z["bytes_sent"])
         finished.append(r)
-    return {"graph": graph, "poses": poses, "scales": scales, "bytes_total": bytes_total, "robots": robots,
+    return {"graph": graph, "poses": poses, "scales": scales, "weights": weights, "bytes_total": bytes_total,
+            "robots": robots,
             "finished": finished, "time_s": time.time() - t0}
 
 
@@ -316,9 +319,12 @@ def _solver_process(inputs, information, robot, robots, rounds, port_base, run, 
         transport.close()
     keys = np.array(solver.part.keys, dtype=np.uint64)
     own = sorted(n for n in solver.part.owned if n in solver.scales)
+    owned = sorted(solver.part.owned)
     with atomic_path(workdir / f"robot_{transport_id(robot)}.npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, keys=keys, poses=np.stack([solver.poses[int(k)] for k in keys]),
                      scale_edges=np.array(own, dtype=np.int64), scales=np.array([solver.scales[n] for n in own]),
+                     weight_edges=np.array(owned, dtype=np.int64),
+                     weights=np.array([solver.weights.get(n, 1.0) for n in owned]),
                      bytes_sent=transport.stats.to_dict()["sent_total"], timeouts=info["timeouts"],
                      gone=np.array(info["gone"], dtype=np.int64))
