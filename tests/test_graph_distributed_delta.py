@@ -95,3 +95,24 @@ def test_relative_poses_end_where_absolute_ones_do_on_fewer_bytes():
         assert rel.final_error <= full.final_error * 1.0005
         assert rel.bytes_total < 0.75 * full.bytes_total
         assert rel.bytes_per_separator_iteration < 20 < full.bytes_per_separator_iteration
+
+
+def test_gnc_weights_are_sent_only_until_the_neighbour_holds_them():
+    """Three robots with 10 % outlier loops, GNC on a short fixed plan: the same loops rejected and the same cost
+    with absolute poses and every weight in every estimate as with relative poses and weights left out once held,
+    on far fewer bytes."""
+    from scipy.stats import chi2
+
+    from swarmsplat.graph.distributed.gnc_plan import GncPlan
+    from swarmsplat.graph.synthetic import TeamConfig, make_team
+
+    team = make_team(TeamConfig(robots=3, length_m=120, grid_step=30.0, grid_nodes=2, target_loops=120,
+                                loop_radius=8.0, outlier_fraction=0.1, seed=5))
+    g = team.graph
+    plan = GncPlan(ls_rounds=5, relay_rounds=3, steps=8, step_rounds=3, final_rounds=5,
+                   barc=0.5 * float(chi2.ppf(0.99, 6)))
+    full = solve_distributed(g, Settings(formulation="is", delta=False, gnc_plan=plan), "gnc")
+    rel = solve_distributed(g, Settings(formulation="is", gnc_plan=plan), "gnc")
+    assert len(full.rejected) >= 5 and rel.rejected == full.rejected
+    assert abs(rel.final_error - full.final_error) <= 1e-3 * full.final_error
+    assert rel.bytes_total < 0.6 * full.bytes_total

@@ -9,6 +9,9 @@ component) stays in one estimate and never accumulates, and it shrinks as the te
 shrink. Lost, duplicated and reordered estimates are harmless: an estimate whose base the recipient does not hold
 is dropped like a lost one and the sender, still acked with an older stamp, starts from that; with no ack, or a
 twist float16 cannot hold, the estimate goes absolute. A resend of one stamp carries the same bytes.
+
+GNC weights, which change only when a robot updates them, are left out (FLAG_WEIGHTS_HELD) once the recipient has
+acked an estimate that carried the current ones: every estimate it took since then carried the same.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import lie
-from .messages import FLAG_DELTA, Estimate, as_sent
+from .messages import FLAG_DELTA, FLAG_WEIGHTS_HELD, Estimate, as_sent
 
 HISTORY = 16  # stamps remembered per neighbour, on each side
 F16_MAX = 6.0e4  # twists beyond this (float16's range ends at 65504) go absolute
@@ -40,6 +43,7 @@ class Sent:
         self.decoded: dict[int, dict[int, tuple[tuple, np.ndarray]]] = {}  # recipient -> stamp -> (keys, poses)
         self.acked: dict[int, tuple[int, int]] = {}  # recipient -> (its stamp the ack came with, the ack)
         self.made: dict[int, tuple[int, tuple, int, np.ndarray | None]] = {}  # recipient -> (stamp, keys, base, delta)
+        self.weights: dict[int, tuple[tuple, int]] = {}  # recipient -> (weights, the first stamp that sent them)
 
     def heard(self, q: int, stamp: int, ack: int) -> None:
         """`q`'s estimate `stamp` says it holds our estimate `ack`."""
@@ -64,6 +68,16 @@ class Sent:
         if made[3] is not None:
             msg.flags |= FLAG_DELTA
             msg.base, msg.delta = made[2], made[3]
+
+    def encode_weights(self, msg: Estimate) -> None:
+        """Leave `msg`'s weights out where the recipient holds them (module docstring)."""
+        q, w = msg.recipient, tuple(msg.weights.tolist())
+        held = self.weights.get(q)
+        if held is None or held[0] != w or held[1] > msg.stamp:
+            self.weights[q] = held = (w, msg.stamp)
+        if len(w) and self.acked.get(q, (-1, -1))[1] >= held[1]:
+            msg.flags |= FLAG_WEIGHTS_HELD
+            msg.weights = np.zeros(0)
 
 
 class Received:

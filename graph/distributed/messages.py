@@ -42,6 +42,7 @@ FLAG_SCALARS = 1  # the consensus scalars follow
 FLAG_STILL = 2  # the sender's last step moved its poses by less than the tolerance
 FLAG_BINARY = 4  # every GNC weight the sender owns is 0 or 1
 FLAG_DELTA = 8  # the poses are float16 twists from the sender's estimate `base` (module docstring)
+FLAG_WEIGHTS_HELD = 16  # no weights: the recipient holds the sender's current ones (graph.distributed.delta)
 POSE_BYTES = 24  # an absolute pose
 DELTA_BYTES = 12  # a pose relative to a base
 COUNT_MAX = 0xFFFF

@@ -220,6 +220,8 @@ class RobotSolver:
             msg.ack = self._rx.ack(q)
             if self.settings.delta:
                 self._tx.encode(msg, tuple(keys))
+                if self.gnc:
+                    self._tx.encode_weights(msg)
             out.append(msg)
         if scalars:
             for q in sorted(set(self.part.neighbours) | set(self.heard)):
