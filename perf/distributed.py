@@ -153,6 +153,11 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
              "back to each (absolute float32 poses)",
              "kept / rejected (GNC): share of the centralised GNC's kept / rejected loops the distributed GNC also "
              "keeps / rejects"]
+    extra = [name for name, _ in _blocks_world() if name not in {f"blocks_world-{n}" for n in (2, 4, 9, 16)}]
+    if extra:
+        notes.append(f"{', '.join(extra)}: read from dgs_multirobot/blocks_world beside the shared teams, which ship "
+                     "2, 4, 9 and 16 robots (DGS's repository, distributed_mapper_core/data/blocks_world/, has the "
+                     "others)")
     sim3, ours = similarity3_timing()
     notes.append(f"linearising 2,000 loops: GTSAM BetweenFactorSimilarity3 {sim3 * 1e3:.1f} ms, our batched IS "
                  f"residuals and Jacobians {ours * 1e3:.1f} ms (a Sim(3) factor puts the scale on keyframes, not on "
