@@ -40,6 +40,8 @@ def main() -> int:
     _write("config_yaml", "config.yaml", b"mapping:\n  iterations: 5\nserver:\n  top_k: 3\n")
     _write("config_set", "sets.txt", b"server.top_k=4\nloop_closure.descriptor=thumbnail\nserver.tau_sim=null\n")
     _write("swarm_message", "hello.bin", sm.SWARM.encode(sm.Hello(tick=3, n_keyframes=2, have_desc={"1": 4}), 1, 7))
+    _write("swarm_message", "estimate.bin", sm.SWARM.encode(sm.DistributedEstimate(root=97, blob=_relative_estimate()),
+                                                            1, 8))
     _write("link_message", "join.bin", lm.LINK.encode(lm.Join(mid=1, name="a", camera=[525.0, 525.0, 319.5, 239.5,
                                                                                       640, 480], config="x"), 1, 1))
     g = torch.Generator().manual_seed(0)
@@ -52,6 +54,17 @@ def main() -> int:
            b"0,0,0,1,0,0,0,1,1,0,0,100,100,1,1\n0,1,0,2,0,0,0,1,1,0,0,100,100,1,1\n")
     _bags()
     return 0
+
+
+def _relative_estimate():
+    """A distributed-solver estimate with two separator poses as float16 twists from stamp 3, a scale and a weight."""
+    import numpy as np
+
+    from swarmsplat.graph.distributed.messages import FLAG_DELTA, Estimate
+
+    m = Estimate(97, 98, 4, scales=np.array([1.25]), weights=np.array([1.0]), flags=FLAG_DELTA, base=3, ack=2,
+                 delta=np.array([[0.01, 0, 0, 0.1, 0, 0], [0, 0.02, 0, 0, 0.2, 0]]))
+    return np.frombuffer(m.to_bytes(), np.uint8)
 
 
 class _Tiny:
