@@ -158,6 +158,10 @@ def run(args) -> int:
     if args.solver == "gnc":
         names = ", ".join(f"{a}.{i}-{b}.{j}" for a, i, b, j in rejected)
         print(f"rejected loops {len(rejected)}" + (f": {names}" if names else ""))
+    undecided = sum(1 for w in (dist.weights.values() if dist is not None else []) if 1e-4 < w < 1 - 1e-4)
+    if undecided and args.solver == "gnc":
+        print(f"warning: {undecided} loops' GNC weights are still between 0 and 1 (counted rejected below 0.5): "
+              f"more GNC steps (--gnc-steps) let them settle", file=sys.stderr)
     summary = {
         "inputs": [str(p) for p in args.inputs], "out": str(out), "poses": len(graph.poses),
         "edges": len(graph.edges), "loops": len(graph.loops()), "components": len(graph.components()),
@@ -177,6 +181,8 @@ def run(args) -> int:
             "gather_bytes": dist.gather_bytes, "relax": args.relax, "processes": args.processes,
             "groups": [[_robot_number(chr(r)) for r in grp] for grp in dist.groups],
             "error_per_round": dist.history}
+        if args.solver == "gnc":
+            summary["distributed"]["undecided_loops"] = undecided
         if settings.gnc_plan is not None:
             from dataclasses import asdict
 
