@@ -30,8 +30,12 @@ CONFIG = {  # the team's logic at a small cost: a keyframe every 4 frames, a sub
     "tracking": {"refine": False},
     "keyframes": {"every": 4},
     "submaps": {"max_keyframes": 4},
-    "loop_closure": {"min_index_gap": 2, "cloud_route": False},  # KISS-Matcher's threads: not bit-reproducible
-    "server": {"tau_sim": 0.5, "cloud_route": False},
+    # KISS-Matcher's threads are not bit-reproducible: no cloud route. One descriptor and one pose candidate per
+    # keyframe and one inter-agent candidate (defaults 3, 2, 2): the server verifies every agent's candidates, and
+    # with the defaults it fell minutes behind three agents sharing two cores (3 x 600 frames: the agents ended at
+    # 180 s, the server had taken their keyframes at 361 s; with these, at 257 s)
+    "loop_closure": {"min_index_gap": 2, "cloud_route": False, "top_k": 1, "pose_top_k": 1},
+    "server": {"tau_sim": 0.5, "cloud_route": False, "top_k": 1},
     "team": {"render_views": 4},
     "map_refine": {"iterations_per_keyframe": 2},
     "link": {"resend_s": 5.0},  # the default 30 s would stall the server that long after each restart
