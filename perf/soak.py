@@ -11,7 +11,8 @@ how long the agents run on this machine, which turns them into seconds (the sche
   link_cut       the agents reach the server through a TCP relay in this process; for 5-60 s it closes every
                  connection it carries and refuses new ones (checked: no connection reaches the server's port
                  meanwhile)
-  disk_full      each agent's --out is a 128 MB tmpfs of its own; a ballast file fills it, the agent stops at its
+  disk_full      each agent's --out is a tmpfs of its own (128 MB, or 0.15 MB a frame for long sequences: two of its
+                 checkpoints); a ballast file fills it, the agent stops at its
                  next write (one line, exit 1), the ballast goes after a hold and the agent is started with
                  --resume (no tmpfs without the right to mount one: not run, and said so)
   corrupt_frame  an image of an agent's sequence a few frames ahead of where it is, cut to half its bytes
@@ -167,8 +168,9 @@ def _summary(m: dict) -> dict:
             "lost_agents": link.get("lost_agents"), "replayed_messages": link.get("replayed_messages"),
             "keyframes": [a.get("keyframes") for a in m.get("agents", [])],
             "frames_tracked": [a.get("frames_tracked") for a in m.get("agents", [])],
-            "repeats_received": {k: v.get("repeats_received") for k, v in link.get("agents", {}).items()},
-            "resent": {k: v.get("agent_side", {}).get("resent") for k, v in link.get("agents", {}).items()}}
+            "repeats_received": {k: (v or {}).get("repeats_received") for k, v in link.get("agents", {}).items()},
+            # an agent lost before its last process ended has no agent side
+            "resent": {k: ((v or {}).get("agent_side") or {}).get("resent") for k, v in link.get("agents", {}).items()}}
 
 
 def markdown(report: dict) -> str:

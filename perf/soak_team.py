@@ -5,6 +5,7 @@ memory, log lines) and restarted by the harness."""
 from __future__ import annotations
 
 import atexit
+import math
 import os
 import pickle
 import random
@@ -23,7 +24,15 @@ KINDS = ("agent_kill", "server_kill", "link_cut", "disk_full", "corrupt_frame", 
 ON_AGENT = ("agent_kill", "disk_full", "corrupt_frame", "clock_jump")
 AGENTS, WIDTH, HEIGHT = 3, 160, 120
 SECONDS_PER_ROUND = 0.8  # a round of 3 agents and the server at 160x120 on 2 shared cores (load ~6), measured
-TMPFS_MB = 128
+TMPFS_MB = 128  # each agent's --out under disk_full, at least; and per frame of its sequence:
+TMPFS_MB_PER_FRAME = 0.15  # an agent's checkpoint grows with its map (~60 MB at frame ~1,030 at 160x120) and is
+# written beside the previous one: a 20-minute soak's agents filled 128 MB on their own at frames 1,026-1,041
+
+
+def tmpfs_mb(frames: int) -> int:
+    """The size (MB) of an agent's tmpfs for a sequence of `frames`: room for two checkpoints, the ballast fills the
+    rest when a disk_full fault comes."""
+    return max(TMPFS_MB, math.ceil(TMPFS_MB_PER_FRAME * frames))
 MEMORY_MINUTES = 5.0  # from this length on, a soak without a process life past the warm-up fails its memory check
 CONFIG = {  # the team's logic at a small cost: a keyframe every 4 frames, a submap (and a checkpoint) every 4
     "mapping": {"iterations": 8, "first_iterations": 25},
@@ -202,9 +211,11 @@ class TeamRun:
         self.server_dir = root / "server"
         self.agent_dirs = [root / f"agent_{k}" for k in range(AGENTS)]
         self.mounts = []
+        rgb = data / "agent_0" / "rgb"
+        size = tmpfs_mb(sum(1 for _ in rgb.iterdir()) if rgb.is_dir() else 0)
         for d in self.agent_dirs:
             d.mkdir(exist_ok=True)
-            if tmpfs and subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_MB}m", "tmpfs", str(d)],
+            if tmpfs and subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}m", "tmpfs", str(d)],
                                         capture_output=True).returncode == 0:
                 self.mounts.append(d)
         self.tmpfs = bool(self.mounts)

@@ -130,3 +130,14 @@ def test_an_agent_that_sent_everything_is_not_lost_while_the_server_catches_up()
     now[0] = cfg.link.agent_timeout_s + 1
     server.poll()
     assert [p.lost for p in server.peers] == [False, True]
+
+
+def test_the_summary_of_a_team_whose_agents_were_all_lost():
+    """A 20-minute soak's server reported every agent lost: their link records then have no agent side, and the
+    summary says so instead of failing."""
+    from swarmsplat.perf.soak import _summary
+
+    m = {"status": "complete", "link": {"lost_agents": ["agent_0"], "agents": {"agent_0": {"agent_side": None},
+                                                                             "agent_1": None}}}
+    s = _summary(m)
+    assert s["lost_agents"] == ["agent_0"] and s["resent"] == {"agent_0": None, "agent_1": None}
