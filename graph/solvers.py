@@ -317,6 +317,12 @@ def _single(problem: Problem, lf):
     return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d, problem.objective)
 
 
+def inlier_threshold(probability: float, is_2d: bool) -> float:
+    """GNC's largest inlier cost 0.5 ||r||²_Omega at a chi-square `probability` (GTSAM's barcSq,
+    `setInlierCostThresholdsAtProbability`): residuals of 3 (2D) or 6 dimensions."""
+    return 0.5 * float(chi2.ppf(probability, 3 if is_2d else 6))
+
+
 def gnc(problem: Problem, *, inlier_cost: float | None = None, probability: float = 0.99, mu_step: float = 1.4,
         max_iterations: int = 100, relative_cost_tol: float = 1e-5, weights_tol: float = 1e-4,
         lm_max_iterations: int = 100, gtsam_schedule: bool = False) -> SolveResult:
@@ -332,8 +338,7 @@ def gnc(problem: Problem, *, inlier_cost: float | None = None, probability: floa
     if not 0.0 < probability < 1.0:
         raise InputError(f"gnc: probability must be in (0, 1), got {probability}")
     t0 = time.perf_counter()
-    dim = 3 if problem.is_2d else 6
-    barc = float(inlier_cost) if inlier_cost is not None else 0.5 * float(chi2.ppf(probability, dim))
+    barc = float(inlier_cost) if inlier_cost is not None else inlier_threshold(probability, problem.is_2d)
     res = levenberg_marquardt(problem, max_iterations=lm_max_iterations)
     iters, e0 = res.iterations, res.initial_error
     costs = loop_costs(problem, res.values)

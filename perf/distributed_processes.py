@@ -114,15 +114,13 @@ def _gnc_case() -> dict | None:
     import sys
 
     import numpy as np
-    from scipy.stats import chi2
-
     from swarmsplat.graph.distributed.gnc_plan import GncPlan
     from swarmsplat.graph.distributed.partition import partition
     from swarmsplat.graph.distributed.robot import Settings
     from swarmsplat.graph.distributed.team import problem_error, solve_distributed
     from swarmsplat.graph.formulations import build_problem
     from swarmsplat.graph.init import initialize
-    from swarmsplat.graph.solvers import solve
+    from swarmsplat.graph.solvers import inlier_threshold, solve
     from swarmsplat.graph.team_files import read_team
     from swarmsplat.slam.flocc.swarm.zenoh_transport import free_port_base
     from swarmsplat.slam.run.swarm_processes import solve_graph_processes
@@ -138,7 +136,7 @@ def _gnc_case() -> dict | None:
     problem = build_problem(g, "base", initial_poses=P0)
     central = solve(problem, "gnc").final_error
     plan = GncPlan(ls_rounds=30, relay_rounds=n, steps=25, step_rounds=10, final_rounds=30,
-                   barc=0.5 * float(chi2.ppf(0.99, 6)))
+                   barc=inlier_threshold(0.99, g.is_2d))
     sim = solve_distributed(g, Settings(gnc_plan=plan), "gnc", initial_poses=P0)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:

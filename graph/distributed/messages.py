@@ -77,9 +77,7 @@ class Estimate:
             body = np.asarray(self.delta, "<f2").tobytes()
         else:
             P = len(self.poses)
-            xi = (np.concatenate([lie.so3_log(self.poses[:, :3, :3]), self.poses[:, :3, 3]], 1) if P
-                  else np.zeros((0, 6)))
-            body = np.asarray(xi, "<f4").tobytes()
+            body = np.asarray(_wire(self.poses), "<f4").tobytes()
         if max(P, S, W) > COUNT_MAX:
             raise InputError(f"distributed estimate: {max(P, S, W)} poses, scales or weights for one neighbour, "
                              f"at most {COUNT_MAX}")
@@ -144,9 +142,13 @@ def absolute_poses(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def _wire(poses: np.ndarray) -> np.ndarray:
+    """[P, 4, 4] -> [P, 6] (rotation vector, translation): an absolute pose as the wire carries it."""
+    if not len(poses):
+        return np.zeros((0, 6))
+    return np.concatenate([lie.so3_log(poses[:, :3, :3]), poses[:, :3, 3]], 1)
+
+
 def as_sent(poses: np.ndarray) -> np.ndarray:
     """The poses exactly as the recipient decodes them from an absolute estimate (float32 on the wire)."""
-    if not len(poses):
-        return np.zeros((0, 4, 4))
-    xi = np.concatenate([lie.so3_log(poses[:, :3, :3]), poses[:, :3, 3]], 1)
-    return absolute_poses(np.asarray(xi, "<f4").astype(np.float64))
+    return absolute_poses(np.asarray(_wire(poses), "<f4").astype(np.float64))

@@ -21,13 +21,12 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
 from swarmsplat.kernels.errors import InputError
 
 from ..formulations import Problem, build_problem, initial_scales
 from ..pose_graph import PoseGraph
-from ..solvers import _ScaleTerm
+from ..solvers import _ScaleTerm, inlier_threshold
 from .messages import POSE_BYTES, Estimate
 from .partition import partition, robot_of
 from .robot import RobotSolver, Settings
@@ -250,7 +249,7 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
             break
     k = plan.steps if plan is not None else 0
     if solver == "gnc" and plan is None:
-        barc = 0.5 * float(chi2.ppf(probability, 3 if graph.is_2d else 6))
+        barc = inlier_threshold(probability, graph.is_2d)
         mu = team.agree_mu0(barc)
         if max(mu.values()) > 0:
             for k in range(1, max_gnc + 1):

@@ -210,14 +210,13 @@ def _loop_ids(edge, key_robot, key_index) -> list[int]:
 
 def _gnc_plan(args, graph):
     """The fixed GNC plan of --gnc-steps / --processes (graph.distributed.gnc_plan)."""
-    from scipy.stats import chi2
-
     from swarmsplat.graph.distributed.gnc_plan import GncPlan
     from swarmsplat.graph.distributed.partition import partition
+    from swarmsplat.graph.solvers import inlier_threshold
 
     return GncPlan(ls_rounds=args.max_rounds, relay_rounds=len(partition(graph)), steps=args.gnc_steps or 25,
                    step_rounds=args.gnc_rounds, final_rounds=args.max_rounds,
-                   barc=0.5 * float(chi2.ppf(args.gnc_probability, 3 if graph.is_2d else 6)))
+                   barc=inlier_threshold(args.gnc_probability, graph.is_2d))
 
 
 def _solve_processes(args, graph, poses, settings, problem):
