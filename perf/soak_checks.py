@@ -4,6 +4,7 @@ the reference, and what the team did after each fault."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 
@@ -47,10 +48,30 @@ def check_poses(data: Path, server_dir: Path, agent_dirs: list[Path], metrics: d
     return rows
 
 
+_HELD = re.compile(r"held (\d+) MB")
+
+
+def _beyond_held(li: Life, series: list[tuple[float, float]]) -> list[tuple[float, float, float]] | None:
+    """(t, resident MB, MB held) at each of the life's status lines that report what it holds (the map and the
+    messages in flight: slam.dense.team.held), against the resident sample nearest it (within 3 s); None: its lines
+    report nothing held."""
+    out = []
+    for t, ln in li.lines:
+        if (m := _HELD.search(ln)) and series:
+            ts, rss = min(series, key=lambda x: abs(x[0] - t))
+            if abs(ts - t) <= 3.0:
+                out.append((t, rss, float(m.group(1))))
+    return out or None
+
+
 def check_memory(lives: list[Life], samples: list[dict], span_s: float, limit: float = 0.10) -> list[dict]:
-    """Per process life lasting past the warm-up (a quarter of the soak, at least 20 s) by 20 s or more: its
-    resident memory's peak after the warm-up against its median over the 20 s after it. The server counts while it
-    serves (up to its last status line; its end, the evaluation and the merged map's refinement, is another load)."""
+    """Per process life lasting past the warm-up (a quarter of the soak, at least 20 s) by 20 s or more: its memory
+    after the warm-up at its peak against its median over the 20 s after it. The memory measured is what the process
+    holds beyond its map: resident memory less the arrays it reports holding in its status lines (the server keeps
+    every agent's keyframes and Gaussians, an agent its own keyframes and poses: their growth is the map's, shown
+    in the columns held_*), or resident memory alone for a process that reports nothing held. The server counts
+    while it serves (up to its last status line; its end, the evaluation and the merged map's refinement, is
+    another load)."""
     warm = max(20.0, 0.25 * span_s)
     rows = []
     for li in lives:
@@ -62,15 +83,21 @@ def check_memory(lives: list[Life], samples: list[dict], span_s: float, limit: f
         t_warm = li.start + warm
         if end - t_warm < 20 or not series:
             continue
-        base = sorted(m for t, m in series if t_warm <= t <= t_warm + 20)
-        after = [m for t, m in series if t >= t_warm]
+        held = _beyond_held(li, series)
+        measured = [(t, rss - h, h) for t, rss, h in held] if held else [(t, m, 0.0) for t, m in series]
+        base = sorted((m, h) for t, m, h in measured if t_warm <= t <= t_warm + 20)
+        after = [(m, h) for t, m, h in measured if t >= t_warm]
         if not base or not after:
             continue
-        b = base[len(base) // 2]
-        growth = max(after) / b - 1
+        b, h0 = base[len(base) // 2]
+        peak = max(after)
+        growth = peak[0] / b - 1
+        rss_after = [m for t, m in series if t >= t_warm]
         rows.append({"process": li.role, "pid": li.pid, "from_s": round(li.start, 1), "to_s": round(end, 1),
-                     "rss_start_mb": round(series[0][1]), "rss_after_warmup_mb": round(b),
-                     "rss_peak_after_mb": round(max(after)), "growth_pct": round(100 * growth, 1),
+                     "measure": "beyond held" if held else "resident",
+                     "rss_start_mb": round(series[0][1]), "rss_peak_after_mb": round(max(rss_after)),
+                     "held_after_warmup_mb": round(h0), "held_end_mb": round(measured[-1][2]),
+                     "after_warmup_mb": round(b), "peak_after_mb": round(peak[0]), "growth_pct": round(100 * growth, 1),
                      "ok": growth <= limit})
     return rows
 

@@ -82,7 +82,7 @@ def test_the_checks_fail_on_outputs_that_break_them(report, tmp_path):
     assert S.result_checks(m, ref, rows, [], [], memory_required=False)["memory_flat"]["ok"] is None
 
     class Life:  # a process whose memory grows by a fifth after the warm-up
-        role, pid, start, end = "agent_0", 1, 0.0, 100.0
+        role, pid, start, end, lines = "agent_0", 1, 0.0, 100.0, []
 
     samples = [{"t": float(t), "rss_mb": {"1": 500.0 + (100.0 if t > 80 else 0.0)}} for t in range(0, 100, 2)]
     leak = S.check_memory([Life()], samples, 100.0)
@@ -90,6 +90,19 @@ def test_the_checks_fail_on_outputs_that_break_them(report, tmp_path):
     assert S.result_checks(m, ref, rows, leak, [], memory_required=False)["memory_flat"]["ok"] is False
     flat = [{"t": float(t), "rss_mb": {"1": 500.0 + (20.0 if t > 80 else 0.0)}} for t in range(0, 100, 2)]
     assert S.result_checks(m, ref, rows, S.check_memory([Life()], flat, 100.0), [])["memory_flat"]["ok"] is True
+
+    class Mapping(Life):  # the same growth, reported held by its status lines (its map): no leak
+        lines = [(float(t), f"[agent_0] round {t}  held {300 + (100 if t > 80 else 0)} MB") for t in range(0, 100, 10)]
+
+    grows = S.check_memory([Mapping()], samples, 100.0)
+    assert grows[0]["measure"] == "beyond held" and grows[0]["growth_pct"] == 0.0 and grows[0]["ok"]
+    assert grows[0]["held_end_mb"] == 400 and grows[0]["rss_peak_after_mb"] == 600
+
+    class Leaking(Life):  # resident memory grows by 100 MB, the map by 20: 80 MB on 200 beyond it
+        lines = [(float(t), f"[agent_0] round {t}  held {300 + (20 if t > 80 else 0)} MB") for t in range(0, 100, 10)]
+
+    leaks = S.check_memory([Leaking()], samples, 100.0)
+    assert leaks[0]["growth_pct"] == 40.0 and not leaks[0]["ok"]
 
 
 def test_an_agent_that_sent_everything_is_not_lost_while_the_server_catches_up():

@@ -16,6 +16,7 @@ import time
 
 from swarmsplat.kernels.errors import InputError
 from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.team.held import held_bytes
 
 
 def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *, name: str | None = None,
@@ -92,7 +93,8 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
                     if progress and time.monotonic() - last > 10:
                         last = time.monotonic()
                         say(f"[{name}] frame {i}  keyframes {len(node.agent.keyframes)}  queued "
-                            f"{len(node.outbox.items)}", file=sys.stderr)
+                            f"{len(node.outbox.items)}  held {held_bytes(node.agent, node.outbox) / 2**20:.0f} MB",
+                            file=sys.stderr)
                 reason = end_reason(stop.requested, max_frames, n_live, idle_timeout) or reason
             if ckpt is not None:  # every frame read: a kill while waiting for the server resumes here
                 ckpt.save(node, i)

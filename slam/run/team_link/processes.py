@@ -20,6 +20,7 @@ from swarmsplat.kernels.errors import InputError, SwarmsplatError
 from swarmsplat.kernels.fileio import atomic_write_text, output_dir
 
 from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.team.held import held_bytes
 from swarmsplat.slam.run.guard import guarded
 
 from . import messages as L
@@ -276,7 +277,8 @@ def _member_rounds(seq, index: int, cfg: SlamConfig, ckpt, resumed, *, name: str
             if progress and time.monotonic() - last > 10:
                 last = time.monotonic()
                 say(f"[{name}] round {i + 1}/{rounds}  keyframes {len(node.agent.keyframes)}  "
-                    f"queued {len(node.outbox.items)}  {time.monotonic() - t0:.0f}s", file=sys.stderr)
+                    f"queued {len(node.outbox.items)}  {time.monotonic() - t0:.0f}s  "
+                    f"held {held_bytes(node.agent, node.outbox) / 2**20:.0f} MB", file=sys.stderr)
         if ckpt is not None and start < rounds:  # every round done: a kill while waiting for the server resumes here
             ckpt.save(node, rounds)
         figures = finish_agent(node, rounds, tx, name, out, say)

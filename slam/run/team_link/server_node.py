@@ -31,6 +31,7 @@ import numpy as np
 from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.slam.dense.agent import FramePose
 from swarmsplat.slam.dense.frames import RGBD
+from swarmsplat.slam.dense.team.held import held_bytes
 from swarmsplat.slam.flocc.swarm.messages import MessageError
 
 from . import messages as L
@@ -348,7 +349,9 @@ class ServerNode:
         for a, p in enumerate(self.peers):
             state = "lost" if p.lost else "done" if self._ended(a) else "joined" if p.joined else "waiting"
             parts.append(f"{p.name} {state} {p.processed} kf / {p.rounds_done} rounds")
-        return "; ".join(parts) + "  |  " + self.team.status(0, 0, time.monotonic() - self.t0).split("  ", 1)[1]
+        held = held_bytes(self.team, self.peers) / 2**20  # the map it keeps (slam.dense.team.held)
+        return ("; ".join(parts) + "  |  " + self.team.status(0, 0, time.monotonic() - self.t0).split("  ", 1)[1]
+                + f"  held {held:.0f} MB")
 
     def finished(self, status: str = "complete") -> None:
         """Tell the agents the results are written (several times: a lost copy must not keep one waiting)."""
