@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import lie
-from .messages import FLAG_DELTA, FLAG_WEIGHTS_HELD, Estimate, as_sent
+from .messages import DELTA_BYTES, FLAG_DELTA, FLAG_SPARSE, FLAG_WEIGHTS_HELD, Estimate, as_sent
 
 HISTORY = 16  # stamps remembered per neighbour, on each side
 F16_MAX = 6.0e4  # twists beyond this (float16's range ends at 65504) go absolute
@@ -39,7 +39,10 @@ class Sent:
     """The sending side, per recipient: what it decoded for each recent stamp, the newest ack it sent back, and the
     encoding made for the latest stamp."""
 
-    def __init__(self):
+    def __init__(self, tol: tuple[float, float] = (0.0, 0.0)):
+        """`tol`: (rotation in radians, translation in the graph's units): a twist whose every rotation and every
+        translation component is below these is sent as zero (the recipient keeps its copy)."""
+        self.tol = tol
         self.decoded: dict[int, dict[int, tuple[tuple, np.ndarray]]] = {}  # recipient -> stamp -> (keys, poses)
         self.acked: dict[int, tuple[int, int]] = {}  # recipient -> (its stamp the ack came with, the ack)
         self.made: dict[int, tuple[int, tuple, int, np.ndarray | None]] = {}  # recipient -> (stamp, keys, base, delta)
@@ -61,6 +64,8 @@ class Sent:
             if keys and ack in hist and hist[ack][0] == keys:
                 d = lie.log(lie.between(hist[ack][1], msg.poses))
                 if np.all(np.isfinite(d)) and np.abs(d).max() < F16_MAX:
+                    a = np.abs(d)
+                    d[(a[:, :3].max(1) < self.tol[0]) & (a[:, 3:].max(1) < self.tol[1])] = 0.0
                     base, delta = ack, d.astype("<f2").astype(np.float64)
             hist[msg.stamp] = (keys, as_sent(msg.poses) if delta is None else moved(hist[base][1], delta))
             _trim(hist)
@@ -68,6 +73,9 @@ class Sent:
         if made[3] is not None:
             msg.flags |= FLAG_DELTA
             msg.base, msg.delta = made[2], made[3]
+            moving = int(np.any(made[3] != 0, axis=1).sum())
+            if (len(made[3]) + 7) // 8 < (len(made[3]) - moving) * DELTA_BYTES:
+                msg.flags |= FLAG_SPARSE
 
     def encode_weights(self, msg: Estimate) -> None:
         """Leave `msg`'s weights out where the recipient holds them (module docstring)."""

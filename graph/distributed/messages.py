@@ -18,7 +18,10 @@ float16 each, 12 bytes, the twist `log(B^-1 T)` from the pose B the recipient de
 stamped `base`, which the recipient said it holds (`ack` of its own estimates); graph.distributed.delta keeps
 both sides' histories and decodes, so the recipient's copy is its base moved by the rounded twist and the next
 twist is taken from that copy (the rounding never accumulates). The sender keeps its own estimate in float64.
-Bytes that do not decode raise InputError; the transport drops them, and a robot drops an estimate whose counts
+Twists too small to matter (graph.distributed.delta.Sent's tolerance) are sent as zero; when that saves bytes the
+estimate is sparse (FLAG_SPARSE): a bit per pose (ceil(P / 8) bytes, bit i of byte i // 8 from the lowest) tells
+which twists follow, the others are zero (the recipient's copy stays its base). Bytes that do not decode raise
+InputError; the transport drops them, and a robot drops an estimate whose counts
 are not those it expects or whose base it does not hold.
 """
 
@@ -43,6 +46,7 @@ FLAG_STILL = 2  # the sender's last step moved its poses by less than the tolera
 FLAG_BINARY = 4  # every GNC weight the sender owns is 0 or 1
 FLAG_DELTA = 8  # the poses are float16 twists from the sender's estimate `base` (module docstring)
 FLAG_WEIGHTS_HELD = 16  # no weights: the recipient holds the sender's current ones (graph.distributed.delta)
+FLAG_SPARSE = 32  # with FLAG_DELTA: a bit per pose, then the twists of the set bits only (the others are zero)
 POSE_BYTES = 24  # an absolute pose
 DELTA_BYTES = 12  # a pose relative to a base
 COUNT_MAX = 0xFFFF
@@ -68,13 +72,19 @@ class Estimate:
     base: int = -1  # FLAG_DELTA: the stamp of the sender's estimate the twists start from
     ack: int = -1  # the newest stamp of the recipient's estimates the sender holds (-1: none)
     delta: np.ndarray | None = None  # FLAG_DELTA: [P, 6] twists (float16 values); `poses` is then empty until
-    # the recipient decodes them (graph.distributed.delta.Received)
+    # the recipient decodes them (graph.distributed.delta.Received). With FLAG_SPARSE only the rows that are not
+    # zero go on the wire, after a bit mask of them.
 
     def to_bytes(self) -> bytes:
         S, W = len(self.scales), len(self.weights)
         if self.flags & FLAG_DELTA:
             P = len(self.delta)
-            body = np.asarray(self.delta, "<f2").tobytes()
+            d = np.asarray(self.delta, "<f2")
+            if self.flags & FLAG_SPARSE:
+                rows = np.any(d != 0, axis=1)
+                body = np.packbits(rows, bitorder="little").tobytes() + d[rows].tobytes()
+            else:
+                body = d.tobytes()
         else:
             P = len(self.poses)
             body = np.asarray(_wire(self.poses), "<f4").tobytes()
@@ -99,7 +109,21 @@ class Estimate:
         delta = bool(flags & FLAG_DELTA)
         if delta and base < 0:
             raise InputError("distributed estimate: relative poses without a base")
-        size = _HEAD.size + P * (DELTA_BYTES if delta else POSE_BYTES) + 4 * (S + W)
+        sparse = bool(flags & FLAG_SPARSE)
+        if sparse and not delta:
+            raise InputError("distributed estimate: a pose mask without relative poses")
+        rows = None
+        if sparse:
+            nmask = (P + 7) // 8
+            if len(data) < _HEAD.size + nmask:
+                raise InputError(f"distributed estimate: {len(data)} bytes, shorter than its pose mask")
+            bits = np.unpackbits(np.frombuffer(data, np.uint8, nmask, _HEAD.size), bitorder="little")
+            if bits[P:].any():
+                raise InputError("distributed estimate: pose mask bits beyond its poses")
+            rows = bits[:P].astype(bool)
+            size = _HEAD.size + nmask + int(rows.sum()) * DELTA_BYTES + 4 * (S + W)
+        else:
+            size = _HEAD.size + P * (DELTA_BYTES if delta else POSE_BYTES) + 4 * (S + W)
         n_relayed = 0
         if flags & FLAG_SCALARS:
             size += _SCALARS.size + _COUNT.size
@@ -108,7 +132,7 @@ class Estimate:
                 size += n_relayed * _RELAYED.size
         if len(data) != size:
             raise InputError(f"distributed estimate: {len(data)} bytes, expected {size}")
-        o = _HEAD.size
+        o = _HEAD.size + ((P + 7) // 8 if sparse else 0)
         buf = memoryview(data)
 
         def take(dtype, n):
@@ -117,7 +141,11 @@ class Estimate:
             o += a.nbytes
             return a
 
-        xi = take("<f2" if delta else "<f4", 6 * P).reshape(P, 6).astype(np.float64)
+        if sparse:
+            xi = np.zeros((P, 6))
+            xi[rows] = take("<f2", 6 * int(rows.sum())).reshape(-1, 6).astype(np.float64)
+        else:
+            xi = take("<f2" if delta else "<f4", 6 * P).reshape(P, 6).astype(np.float64)
         s, w = take("<f4", S).astype(np.float64), take("<f4", W).astype(np.float64)
         if not (np.all(np.isfinite(xi)) and np.all(np.isfinite(s)) and np.all(np.isfinite(w))):
             raise InputError("distributed estimate: non-finite value")

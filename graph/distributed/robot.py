@@ -57,6 +57,8 @@ class Settings:
     # 0: adapted to the robot's observed rate of convergence (RobotSolver._adapt)
     delta: bool = True  # separator poses as float16 twists from the neighbour's last held estimate
     # (graph.distributed.delta); False: absolute float32 poses in every estimate
+    sparse_tol: float = 1e-3  # a separator twist below this (radians; times the part's median edge length for
+    # translation) in every component goes as zero, and the estimate lists only the others (FLAG_SPARSE)
     gnc_plan: GncPlan | None = None  # GNC on a fixed schedule, decided by each robot at its step
     # (graph.distributed.gnc_plan: robot processes); None: the team drives GNC (graph.distributed.team)
 
@@ -95,7 +97,9 @@ class RobotSolver:
         self.gnc = False  # weights travel with the estimates once GNC runs
         self.refused = 0  # estimates dropped for counts other than expected
         self.baseless = 0  # relative estimates dropped because their base is not held
-        self._tx, self._rx = Sent(), Received()
+        lengths = [float(np.linalg.norm(e.T_ij[:3, 3])) for e in self.edges if not e.up_to_scale]
+        length = float(np.median(lengths)) if lengths else 1.0
+        self._tx, self._rx = Sent((settings.sparse_tol, settings.sparse_tol * length)), Received()
         self._owner = {n: min(e.key_i >> 56, e.key_j >> 56) for n, e in zip(self.edge_ids, self.edges)}
         self._scaled = {n: e.up_to_scale for n, e in zip(self.edge_ids, self.edges)}
         self._sent: dict[tuple[int, int], tuple[list[int], list[int]]] = {}

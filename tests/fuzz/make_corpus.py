@@ -42,6 +42,8 @@ def main() -> int:
     _write("swarm_message", "hello.bin", sm.SWARM.encode(sm.Hello(tick=3, n_keyframes=2, have_desc={"1": 4}), 1, 7))
     _write("swarm_message", "estimate.bin", sm.SWARM.encode(sm.DistributedEstimate(root=97, blob=_relative_estimate()),
                                                             1, 8))
+    _write("swarm_message", "estimate_sparse.bin", sm.SWARM.encode(
+        sm.DistributedEstimate(root=97, blob=_relative_estimate(sparse=True)), 1, 9))
     _write("link_message", "join.bin", lm.LINK.encode(lm.Join(mid=1, name="a", camera=[525.0, 525.0, 319.5, 239.5,
                                                                                       640, 480], config="x"), 1, 1))
     g = torch.Generator().manual_seed(0)
@@ -56,14 +58,19 @@ def main() -> int:
     return 0
 
 
-def _relative_estimate():
-    """A distributed-solver estimate with two separator poses as float16 twists from stamp 3, a scale and a weight."""
+def _relative_estimate(sparse: bool = False):
+    """A distributed-solver estimate with two separator poses as float16 twists from stamp 3, a scale and a weight
+    (`sparse`: eleven poses, two of them moved, after their bit mask)."""
     import numpy as np
 
-    from swarmsplat.graph.distributed.messages import FLAG_DELTA, Estimate
+    from swarmsplat.graph.distributed.messages import FLAG_DELTA, FLAG_SPARSE, Estimate
 
-    m = Estimate(97, 98, 4, scales=np.array([1.25]), weights=np.array([1.0]), flags=FLAG_DELTA, base=3, ack=2,
-                 delta=np.array([[0.01, 0, 0, 0.1, 0, 0], [0, 0.02, 0, 0, 0.2, 0]]))
+    delta = np.array([[0.01, 0, 0, 0.1, 0, 0], [0, 0.02, 0, 0, 0.2, 0]])
+    if sparse:
+        delta = np.zeros((11, 6))
+        delta[[3, 9]] = [[0.01, 0, 0, 0.1, 0, 0], [0, 0.02, 0, 0, 0.2, 0]]
+    m = Estimate(97, 98, 4, scales=np.array([1.25]), weights=np.array([1.0]),
+                 flags=FLAG_DELTA | (FLAG_SPARSE if sparse else 0), base=3, ack=2, delta=delta)
     return np.frombuffer(m.to_bytes(), np.uint8)
 
 
