@@ -84,12 +84,18 @@ class PoseGraph:
         self.poses[int(key)] = T
         return int(key)
 
-    def add_edge(self, edge: Edge) -> Edge:
+    def add_edge(self, edge: Edge, *, checked: bool = False) -> Edge:
+        """Add `edge` after checking it (its keys are poses of the graph and differ, its information is positive
+        definite, its confidence in (0, 1]). `checked`: an edge that passed the checks when added to another graph
+        with these poses; its keys alone are checked again."""
         for k in (edge.key_i, edge.key_j):
             if k not in self.poses:
                 where = f"{edge.source}: " if edge.source else ""
                 raise InputError(f"{where}edge {key_str(edge.key_i)}-{key_str(edge.key_j)} refers to pose "
                                  f"{key_str(k)}, which the graph does not have")
+        if checked:
+            self.edges.append(edge)
+            return edge
         if edge.key_i == edge.key_j:
             raise InputError(f"{edge.source or 'edge'}: self-loop on {key_str(edge.key_i)}")
         check_information(edge.info, edge.source or f"edge {key_str(edge.key_i)}-{key_str(edge.key_j)}")

@@ -213,3 +213,62 @@ def test_team_refines_its_component_region_by_region(tiny, tmp_path):
     gain, gain_whole = m["psnr"] - m["psnr_before_refine"], whole["psnr"] - whole["psnr_before_refine"]
     assert gain_whole > 1.0 and gain > 0.8 * gain_whole
     assert m["ate_rmse_team"] is not None and m["ate_rmse_team"] < 0.05
+
+
+def test_the_server_builds_each_edge_once_and_every_graph_as_anew():
+    """Server.build_graph keeps each edge it built (projected measurement, checked information) for later graphs
+    while its source holds the same arrays: every graph equals, bit for bit, the one built from nothing; an edge
+    whose measurement was replaced is built again, a rejected one left out; a pickled server keeps no cache."""
+    from types import SimpleNamespace as NS
+
+    from swarmsplat.kernels import se3
+    from swarmsplat.slam.dense.team.server import InterLoop, Server
+
+    rng = np.random.default_rng(5)
+    info = np.diag([400.0, 400.0, 400.0, 100.0, 100.0, 100.0])
+
+    def edge(i, j):
+        return NS(i=i, j=j, T_ij=se3.exp(rng.normal(size=6) * 0.1) * 1.000001, info=info.copy(), rejected=False)
+
+    class _Agent:
+        def __init__(self, name):
+            self.name = name
+            self.gmap = NS(submaps=[NS(T_world_local=se3.exp(rng.normal(size=6) * 0.2), keyframe_ids=[0, 1, 2])])
+            self.keyframes = [NS(id=k, submap_id=0, T_local_cam=se3.exp(rng.normal(size=6) * 0.3),
+                                 T_local_refined=None, T_local=None) for k in range(3)]
+            for kf in self.keyframes:
+                kf.T_local = kf.T_local_cam
+            self.loops = NS(odometry=[edge(0, 1), edge(1, 2)], loops=[edge(0, 2)])
+
+    srv = Server([_Agent("a0"), _Agent("a1")])
+    srv.inter.append(InterLoop(0, 1, 1, 2, se3.exp(rng.normal(size=6) * 0.1), record=None))
+
+    def same(g1, g2):
+        assert g1.poses.keys() == g2.poses.keys()
+        assert all(np.array_equal(g1.poses[k], g2.poses[k]) for k in g1.poses)
+        assert [(e.key_i, e.key_j, e.kind) for e in g1.edges] == [(e.key_i, e.key_j, e.kind) for e in g2.edges]
+        assert all(np.array_equal(a.T_ij, b.T_ij) and np.array_equal(a.info, b.info) for a, b in zip(g1.edges, g2.edges))
+
+    def fresh():
+        assert "_edges" in srv.__dict__ and "_edges" not in srv.__getstate__()  # what pickle keeps
+        other = Server.__new__(Server)
+        other.__dict__.update(srv.__dict__)
+        other.__dict__.pop("_edges", None)
+        return other.build_graph()
+
+    g1, tags1 = srv.build_graph()
+    assert len(srv._edges) == 7 and len(g1.edges) == 7
+    g2, tags2 = srv.build_graph()
+    assert tags1 == tags2 and all(a is b for a, b in zip(g1.edges, g2.edges))  # reused, not rebuilt
+    same(g2, fresh()[0])
+    loops = srv.slots[0].agent.loops
+    old = loops.loops[0].T_ij
+    loops.loops[0].T_ij = se3.exp(rng.normal(size=6) * 0.1)  # a new measurement: built again
+    loops.loops[0].rejected = False
+    g3, _ = srv.build_graph()
+    assert not np.array_equal(old, loops.loops[0].T_ij)
+    same(g3, fresh()[0])
+    srv.slots[1].agent.loops.loops[0].rejected = True  # left out
+    g4, tags4 = srv.build_graph()
+    assert ("intra", 1, 0) not in tags4 and len(g4.edges) == 6
+    same(g4, fresh()[0])
