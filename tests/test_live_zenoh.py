@@ -108,12 +108,14 @@ def test_a_live_agent_tracks_what_it_receives_and_publishes_every_pose(sequence,
     try:
         _connected(src.session, robot)
 
-        def camera_driver():  # 30 Hz; colour as the bridge names it, depth as rmw_zenoh does
+        def camera_driver():  # 30 Hz; colour as the bridge names it, depth as rmw_zenoh does; a reliable publisher
+            # (blocks rather than drops when a loaded machine's Zenoh queue is full)
+            block = zenoh.CongestionControl.BLOCK
             for i in range(len(sequence)):
-                robot.put("camera/color/camera_info", _cdr(store, sequence, i, "info"))
-                robot.put("camera/color/image_raw", _cdr(store, sequence, i, "color"))
+                robot.put("camera/color/camera_info", _cdr(store, sequence, i, "info"), congestion_control=block)
+                robot.put("camera/color/image_raw", _cdr(store, sequence, i, "color"), congestion_control=block)
                 robot.put(f"0/camera/depth/image_raw/sensor_msgs::msg::dds_::Image_/{type_hash('sensor_msgs/msg/Image')}",
-                          _cdr(store, sequence, i, "depth"))
+                          _cdr(store, sequence, i, "depth"), congestion_control=block)
                 time.sleep(1 / 30)
 
         driver = threading.Thread(target=camera_driver, daemon=True)

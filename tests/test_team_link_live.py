@@ -70,11 +70,13 @@ def test_a_live_agent_is_a_team_member(tmp_path):
     try:
         _connected(src.session, robot)
 
-        def camera_driver():
+        def camera_driver():  # a reliable publisher (rmw_zenoh's RELIABLE QoS blocks rather than drops): a loaded
+            # machine's Zenoh would otherwise drop images, and this test is about the team, not a lossy link
+            block = zenoh.CongestionControl.BLOCK
             for i in range(len(live_seq)):
-                robot.put("camera/color/camera_info", _cdr(store, live_seq, i, "info"))
-                robot.put("camera/color/image_raw", _cdr(store, live_seq, i, "color"))
-                robot.put("camera/depth/image_raw", _cdr(store, live_seq, i, "depth"))
+                robot.put("camera/color/camera_info", _cdr(store, live_seq, i, "info"), congestion_control=block)
+                robot.put("camera/color/image_raw", _cdr(store, live_seq, i, "color"), congestion_control=block)
+                robot.put("camera/depth/image_raw", _cdr(store, live_seq, i, "depth"), congestion_control=block)
                 time.sleep(1 / 15)
 
         driver = threading.Thread(target=camera_driver, daemon=True)
