@@ -90,6 +90,8 @@ CASES = [  # (argv with placeholders, a fragment the error line must contain)
     ("graph solve G2O --out FILE/o.g2o", "is a file"),
     ("graph solve G2O --out NEW --solver gnc --gnc-probability 2", "probability"),
     ("graph solve G2O --out NEW --distributed --relax 2.5", "--relax in"),
+    ("graph solve G2O --out NEW --distributed --sparse-tol -1", "--sparse-tol"),
+    ("graph solve G2O --out NEW --sparse-tol 0.001", "--sparse-tol applies to --distributed"),
     ("graph solve DIR --out NEW --distributed", "no <k>.g2o files"),
     ("graph solve G2O --out NEW --distributed", "needs robot keys"),
     ("graph solve G2O --out NEW --processes", "add --distributed"),

@@ -151,6 +151,11 @@ def test_graph_solve_distributed_on_a_measurements_folder(tmp_path):
                                      "gather_bytes"}
     assert d["distributed"]["robots"] == 2 and d["rejected_loops"] == central["rejected_loops"] == []
     assert d["final_error"] <= central["final_error"] * 1.01 + 1e-9
+    assert d["distributed"]["sparse_tol"] == 1e-3
+    assert main(["graph", "solve", str(folder), "--out", str(tmp_path / "e.g2o"), "--solver", "gnc",
+                 "--distributed", "--sparse-tol", "0"]) == 0
+    every = json.loads((tmp_path / "e.json").read_text())["distributed"]
+    assert every["sparse_tol"] == 0.0 and every["bytes_total"] >= d["distributed"]["bytes_total"]
 
 
 def test_a_disconnected_team_is_solved_per_group_and_reported(tmp_path):

@@ -66,6 +66,10 @@ def register(sub) -> None:
     s.add_argument("--relax", type=float, default=0.0,
                    help="--distributed: over-relaxation of each robot's step, 1 to 1.9 (1: every round lowers the "
                         "cost; default 0: each robot adapts it to its observed rate of convergence)")
+    s.add_argument("--sparse-tol", type=float, default=None, metavar="TOL",
+                   help="--distributed: a separator pose that moved less than TOL radians and TOL times the "
+                        "robot's median edge length since the neighbour's copy is not sent (default 1e-3; 0 sends "
+                        "every pose every round)")
     s.set_defaults(func=run)
 
 
@@ -91,6 +95,8 @@ def run(args) -> int:
               file=sys.stderr)
     if args.distributed and not (args.max_rounds >= 1 and (args.relax == 0.0 or 1.0 <= args.relax < 2.0)):
         raise InputError("--max-rounds must be >= 1 and --relax in [1, 2) or 0 (adaptive)")
+    if args.sparse_tol is not None and not (args.distributed and 0.0 <= args.sparse_tol < 0.1):
+        raise InputError("--sparse-tol applies to --distributed and must be in [0, 0.1)")
     if args.processes and not args.distributed:
         raise InputError("--processes runs the distributed solver: add --distributed")
     if args.gnc_steps is not None and not (args.distributed and args.solver == "gnc"):
@@ -115,6 +121,8 @@ def run(args) -> int:
         from swarmsplat.graph.distributed.team import solve_distributed
 
         settings = Settings(objective=args.objective, relax=args.relax)
+        if args.sparse_tol is not None:
+            settings.sparse_tol = args.sparse_tol
         if args.solver == "gnc" and (args.processes or args.gnc_steps is not None):
             settings.gnc_plan = _gnc_plan(args, graph)
         if args.processes:
@@ -178,7 +186,8 @@ def run(args) -> int:
         summary["distributed"] = {
             "robots": dist.robots, "iterations": dist.rounds, "bytes_total": dist.bytes_total,
             "bytes_per_separator_iteration": dist.bytes_per_separator_iteration,
-            "gather_bytes": dist.gather_bytes, "relax": args.relax, "processes": args.processes,
+            "gather_bytes": dist.gather_bytes, "relax": args.relax, "sparse_tol": settings.sparse_tol,
+            "processes": args.processes,
             "groups": [[_robot_number(chr(r)) for r in grp] for grp in dist.groups],
             "error_per_round": dist.history}
         if args.solver == "gnc":
