@@ -237,3 +237,24 @@ def test_a_killed_team_run_resumes_to_the_uninterrupted_result(sequence, tmp_pat
     _assert_same_files(out, whole, TEAM_OUTPUTS)
     for name in ("agent_0", "agent_1"):  # every frame journaled once, in order, as the uninterrupted run's
         assert _journal_frames(out / "progress" / f"{name}.tum") == _journal_frames(whole / "progress" / f"{name}.tum")
+
+
+def test_a_checkpoint_write_cut_short_by_a_kill_leaves_nothing_in_the_way(tmp_path):
+    """A SIGKILL during a checkpoint's write leaves its temporary file (found by a soak: beside a 250 MB
+    checkpoint, the leftover filled the agent's tmpfs at its next checkpoint). The next save removes such leftovers
+    of the checkpoint, and nothing else."""
+    from types import SimpleNamespace as NS
+
+    from swarmsplat.slam.run.checkpoint.state import CHECKPOINT, load_checkpoint, save_checkpoint
+
+    progress = (tmp_path / CHECKPOINT).parent
+    progress.mkdir(parents=True)
+    stale = progress / f".{Path(CHECKPOINT).name}.k1ll3d.pkl"  # atomic_path's name for it
+    stale.write_bytes(b"\x80half a pickle")
+    other = progress / ".poses.tum.abc.tum"
+    other.write_text("not ours to remove\n")
+    agent = NS(keyframes=[], gmap=NS(submaps=[]), data=np.arange(10))
+    save_checkpoint(tmp_path, {"run": 1}, agent, next_frame=3, journal=[], wall_s=1.0)
+    assert not stale.exists() and other.exists()
+    assert sorted(p.name for p in progress.iterdir()) == sorted([Path(CHECKPOINT).name, other.name])
+    assert load_checkpoint(tmp_path, {"run": 1}).next_frame == 3

@@ -74,6 +74,11 @@ def save_checkpoint(out: Path, identity: dict, agent, *, next_frame: int, journa
               "wall_s": float(wall_s), "keyframes": sum(len(a.keyframes) for a in agents),
               "submaps": sum(len(a.gmap.submaps) for a in agents)}
     path.parent.mkdir(parents=True, exist_ok=True)
+    # The temporary file of a write that a kill cut short (SIGKILL leaves no time to remove it) is never a
+    # checkpoint, and beside a checkpoint of hundreds of MB it can take the space the next one needs: found by a
+    # soak, where such a leftover filled the agent's disk at its next checkpoint. One process owns `out` (its lock).
+    for stale in path.parent.glob(f".{path.name}.*{path.suffix}"):
+        stale.unlink(missing_ok=True)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             pickle.dump(header, f, protocol=pickle.HIGHEST_PROTOCOL)
