@@ -36,7 +36,7 @@ def _run_agent(seq, overrides: dict, n: int | None = None):
 def _row(name: str, seq, agent, seconds: float) -> dict:
     from swarmsplat.slam.metrics import ate
 
-    stamps, T = agent.trajectory()
+    stamps, T = agent.trajectory(per_keyframe=True)
     _, T0 = agent.trajectory_no_lc()
     gt = seq.gt_poses
     ok = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
@@ -59,7 +59,7 @@ def _reference_check(seq, agent) -> list[dict]:
     from swarmsplat.registration.icp import evaluate_rgbd
     from swarmsplat.slam.dense.frames import make_rgbd
 
-    _, T = agent.trajectory()
+    _, T = agent.trajectory(per_keyframe=True)
     gt = seq.gt_poses
     rows = []
     for q, m in REVISITS:

@@ -79,6 +79,9 @@ def test_loop_closure_corrects_injected_drift():
     assert accepted and accepted[0].match_kf in (0, 1), [(c.match_kf, c.reason) for c in closer.log]
     closer.optimise(kfs, gm)
     assert err(0) < 1e-6  # the anchor stays
+    assert sorted(closer.optimum) == list(range(6))  # every keyframe's optimum, its submap's origin placed there
+    for k in kfs:
+        np.testing.assert_allclose(closer.optimum[k.id], world_pose(gm, k), atol=1e-9)
     assert before > 0.02 and err(5) < 0.35 * before, (before, err(5))
     rows = closer.log_rows()
     assert all(r["reason"] for r in rows) and any(r["accepted"] for r in rows)
@@ -182,3 +185,31 @@ def test_single_agent_refinement_region_by_region(tmp_path, warp_cpu):
     assert sp["iterations"] >= st["iterations"]  # every keyframe visited in each region it sees
     assert parts["ate_rmse"] == whole["ate_rmse"]
     assert parts["psnr_merged"] > off["psnr_merged"] + 0.5 * (whole["psnr_merged"] - off["psnr_merged"])
+
+
+def test_trajectory_per_keyframe_follows_each_keyframes_optimum():
+    """A submap's later keyframe has its own pose-graph optimum, which the rigid submap move (eq. 14) ignores: the
+    per-keyframe trajectory places the frames after it by that optimum, the rigid one by the submap."""
+    from types import SimpleNamespace
+
+    from swarmsplat.slam.dense.agent import FramePose
+
+    gm = GaussianMap()
+    s = gm.new_submap(np.eye(4))
+    t = lambda x, y=0.0: se3.make(np.eye(3), np.array([x, y, 0.0]))  # noqa: E731
+    kfs = [Keyframe(0, 0, 0.0, s.id, t(0.0), None, None), Keyframe(1, 2, 0.2, s.id, t(1.0), None, None)]
+    s.keyframe_ids += [0, 1]
+    poses = [FramePose(i, 0.1 * i, s.id, t(x)) for i, x in enumerate([0.0, 0.5, 1.0, 1.5])]
+    loops = SimpleNamespace(optimum={})
+    agent = SimpleNamespace(poses=poses, keyframes=kfs, gmap=gm, loops=loops)
+    rigid = Agent.trajectory(agent)[1]
+    np.testing.assert_allclose(Agent.trajectory(agent, per_keyframe=True)[1], rigid)  # no optimum yet
+    loops.optimum = {0: t(0.0), 1: t(1.0, 0.1)}
+    stamps, T = Agent.trajectory(agent, per_keyframe=True)
+    np.testing.assert_allclose(stamps, [0.0, 0.1, 0.2, 0.3])
+    np.testing.assert_allclose(T[:2], rigid[:2])  # frames after keyframe 0, whose optimum is where it stands
+    np.testing.assert_allclose(T[2:, :3, 3], [[1.0, 0.1, 0.0], [1.5, 0.1, 0.0]])
+    np.testing.assert_allclose(rigid[2:, :3, 3], [[1.0, 0.0, 0.0], [1.5, 0.0, 0.0]])
+    kfs[1].T_local_refined = t(1.0, -0.2)  # a refined keyframe: its frames follow the refined pose in both modes
+    np.testing.assert_allclose(Agent.trajectory(agent, per_keyframe=True)[1], Agent.trajectory(agent)[1])
+    np.testing.assert_allclose(Agent.trajectory(agent)[1][3, :3, 3], [1.5, -0.2, 0.0])

@@ -47,7 +47,7 @@ def _ate(seq, stamps, T):
 
 def test_loop_closure_does_not_wreck_the_trajectory(redwood_run):
     seq, agent = redwood_run
-    stamps, T = agent.trajectory()
+    stamps, T = agent.trajectory(per_keyframe=True)
     _, T0 = agent.trajectory_no_lc()
     with_lc, without = _ate(seq, stamps, T), _ate(seq, stamps, T0)
     assert len(T) == len(seq) == 211

@@ -22,7 +22,7 @@ from swarmsplat.slam.dense.mapping import exposure
 from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper, MappingStats
 from .render import render, viewmat_from_pose
 from .submap_codec import use_storage
-from .submaps import Keyframe, frame_local_poses, needs_new_submap, start_submap, world_pose
+from .submaps import Keyframe, frame_local_poses, last_keyframes, needs_new_submap, start_submap, world_pose
 from swarmsplat.slam.dense.tracking.tracker import Tracker
 
 
@@ -239,13 +239,25 @@ class Agent:
 
     # ---- results ----------------------------------------------------------------------------------------------
 
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+    def trajectory(self, *, per_keyframe: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(timestamps [N], T_world_cam [N, 4, 4]) of every tracked frame, with the current submap frames (and
-        following its keyframe's refined pose, once the map refinement refined it: slam.dense.submaps.frame_local_poses)."""
+        following its keyframe's refined pose, once the map refinement refined it: slam.dense.submaps.frame_local_poses).
+
+        per_keyframe=False: every frame moves rigidly with its submap (eq. 14), consistent with the map.
+        per_keyframe=True: a frame follows the pose-graph optimum of the last keyframe before it in its submap
+        (T = T_kf^opt · T_kf_local⁻¹ · T_frame_local; LoopCloser.optimum) — the trajectory the pose graph
+        estimates, as a team's server scores it (Server.global_trajectory). Frames whose keyframe is not in the
+        last applied optimum, or whose keyframe the map refinement refined, are placed as with False."""
         if not self.poses:
             return np.zeros(0), np.zeros((0, 4, 4))
         local = frame_local_poses(self.poses, self.keyframes)
         T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ L for p, L in zip(self.poses, local)])
+        optimum = self.loops.optimum if per_keyframe else {}
+        if optimum:
+            for n, (rec, last) in enumerate(zip(self.poses, last_keyframes(self.poses, self.keyframes))):
+                if last is None or last.T_local_refined is not None or last.id not in optimum:
+                    continue
+                T[n] = optimum[last.id] @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
         return np.array([p.timestamp for p in self.poses]), T
 
     def trajectory_no_lc(self) -> tuple[np.ndarray, np.ndarray]:

@@ -156,7 +156,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     latency = [d - f[0] for f, d in zip(frames, done)]
     overhead = [d - f[1] - f[2] for f, d in zip(frames, done)]  # decoding and publishing, beyond the agent
     wall = time.perf_counter() - t0
-    stamps, T_est = agent.trajectory()
+    stamps, T_est = agent.trajectory(per_keyframe=True)
     if len(stamps):
         write_tum(out / "trajectory.txt", stamps, T_est)
         write_tum(out / "trajectory_no_lc.txt", stamps, agent.trajectory_no_lc()[1])

@@ -40,7 +40,7 @@ def write_partial_agent(agent, out: Path, *, status: str, reason: str, n_frames:
 
     out = Path(out)
     done, errors = [], {}
-    stamps, T = agent.trajectory()
+    stamps, T = agent.trajectory(per_keyframe=True)
     if len(stamps):
         _attempt(done, errors, "trajectory.txt", lambda: write_tum(out / "trajectory.txt", stamps, T))
     if agent.gmap.submaps:

@@ -147,7 +147,7 @@ def finish_agent_run(agent: Agent, seq, out: Path, cfg: SlamConfig, *, n_frames:
         from swarmsplat.slam.io.progress import reporting
         from swarmsplat.slam.dense.mapping.refine import refine_agent
 
-        before = agent.trajectory()[1] if rc.refine_poses else None
+        before = agent.trajectory(per_keyframe=True)[1] if rc.refine_poses else None
         with reporting(progress):
             refined = refine_agent(agent, rc, cfg.mapping, cfg.exposure if cfg.exposure.enabled else None)
     wall = time.perf_counter() - t0 - t_eval
@@ -166,7 +166,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
     from swarmsplat.slam.dense.ply import save_ply
 
     check_not_empty([agent])
-    stamps, T_est = agent.trajectory()
+    stamps, T_est = agent.trajectory(per_keyframe=True)
     _, T_no_lc = agent.trajectory_no_lc()
     if len(stamps):
         write_tum(out / "trajectory.txt", stamps, T_est)

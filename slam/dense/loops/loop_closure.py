@@ -91,6 +91,9 @@ class LoopCloser:
         self.log: list[LoopCandidate] = []
         self.optimisations = 0
         self.not_applied = 0  # optimisations whose move was not justified by the loops
+        # The last applied optimum: keyframe id -> T_world_cam. Submaps move rigidly with their first keyframe
+        # (eq. 14); a submap's later keyframes keep their own optimised poses here (Agent.trajectory per_keyframe).
+        self.optimum: dict[int, np.ndarray] = {}
         self._graph: IncrementalGraph | None = None  # the pose graph iSAM2 keeps (solver 'incremental')
         self.model = InformationModel(n_eff=cfg.information_points)
         # 'auto' is decided on the first keyframe, whose size it needs; a named descriptor is checked now.
@@ -98,6 +101,10 @@ class LoopCloser:
         self._pending: dict[int, np.ndarray] = {}  # xfeat-vlad: local descriptors of keyframes awaiting the vocabulary
         self.clouds = None  # the cloud route's WindowRegistrar, made on first use
         self.cloud_tries: dict[int, int] = {}  # query keyframe id -> candidates that took the cloud route
+
+    def __setstate__(self, state: dict) -> None:  # checkpoints from before the optimum was kept
+        state.setdefault("optimum", {})
+        self.__dict__.update(state)
 
     def budget(self) -> dict:
         """The candidates verified per keyframe at most (top_k descriptor ones, pose_top_k pose ones) and the
@@ -349,6 +356,7 @@ class LoopCloser:
             return {"submaps_moved": 0, "max_shift_m": 0.0, "rejected": rejected, "applied": False}
         for e in self.loops:
             e.applied = True
+        self.optimum = {k: np.array(T) for k, T in optimised.items()}
         shifts = []
         for s in gmap.submaps:
             if not s.keyframe_ids:
