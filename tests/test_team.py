@@ -272,3 +272,42 @@ def test_the_server_builds_each_edge_once_and_every_graph_as_anew():
     g4, tags4 = srv.build_graph()
     assert ("intra", 1, 0) not in tags4 and len(g4.edges) == 6
     same(g4, fresh()[0])
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.05, 0.2])
+def test_the_server_solves_at_a_bounded_rate(fraction, monkeypatch):
+    """server.optimise_fraction: with a loop accepted at every keyframe, 0 solves at every keyframe; f > 0 once f of
+    the team's keyframes has arrived since the last solve (about log(N) / f solves over N keyframes), and at once
+    after a join; the mission's end (Team.finish) solves what waits."""
+    from types import SimpleNamespace as NS
+
+    from swarmsplat.slam.dense.team.server import Server
+
+    srv = Server.__new__(Server)
+    srv.cfg = ServerConfig(optimise_fraction=fraction)
+    srv.slots = [NS(agent=NS(keyframes=[])) for _ in range(3)]
+    srv.joins, srv.time = 0, {"intra": 0.0, "inter": 0.0}
+    solved = []
+    monkeypatch.setattr(Server, "optimise", lambda self: (solved.append(self.keyframe_count()),
+                                                          self.__dict__.update(_unsolved=False,
+                                                                               _solved_at=(self.keyframe_count(),
+                                                                                           self.joins))))
+    monkeypatch.setattr(Server, "_describe", lambda self, a, kf: None)
+    monkeypatch.setattr(Server, "_intra", lambda self, a, kf, step: [NS(accepted=True)])
+    srv.cfg.inter_loops = False
+    n = 3000
+    for k in range(n):
+        a = k % 3
+        srv.slots[a].agent.keyframes.append(k)
+        if k == 1500:
+            srv.joins += 1
+        srv.on_keyframe(a, k)
+    if fraction == 0:
+        assert solved == list(range(1, n + 1))
+        return
+    gaps = np.diff(solved)
+    assert all(g >= fraction * s - 1 for g, s in zip(gaps, solved[1:]) if s != 1501)  # none early, but the join
+    assert 1501 in solved
+    assert len(solved) <= np.log(n) / np.log1p(fraction) + 3  # logarithmic, not linear
+    assert n - solved[-1] < fraction * n + 1  # what waits at the end is under one interval (Team.finish solves it)
+    assert srv.__dict__["_unsolved"] == (solved[-1] != n)

@@ -98,8 +98,23 @@ class Server(JoinRules, CloudRoute, TeamGraph):
         self.time["intra"] += t1 - t0
         self.time["inter"] += t2 - t1
         if any(r.accepted for r in new):
+            self._unsolved = True
+        if self.__dict__.get("_unsolved") and self._solve_due():
             self.optimise()
         return new
+
+    def keyframe_count(self) -> int:
+        return sum(len(s.agent.keyframes) for s in self.slots)
+
+    def _solve_due(self) -> bool:
+        """Whether accepted loops waiting for a solve are solved now (config server.optimise_fraction): always when
+        the fraction is 0 or two components joined since the last solve; otherwise once that fraction of the team's
+        keyframes has arrived since it, so a mission of N keyframes is solved O(log N / fraction) times, not at
+        nearly every keyframe (the team's last solve, Team.finish and the process server's end, takes the rest)."""
+        f = self.cfg.optimise_fraction
+        last = self.__dict__.get("_solved_at", (0, 0))  # (keyframes, joins) at the last solve
+        n = self.keyframe_count()
+        return f <= 0 or self.joins != last[1] or n - last[0] >= f * n
 
     def _describe(self, a: int, kf: Keyframe) -> None:
         """The server's descriptor of agent a's keyframe into self.descriptors (slam.dense.team.descriptors)."""
@@ -270,6 +285,7 @@ class Server(JoinRules, CloudRoute, TeamGraph):
         from swarmsplat.graph.solvers import solve
 
         t0 = time.perf_counter()
+        self._unsolved, self._solved_at = False, (self.keyframe_count(), self.joins)
         lc = self.slots[0].agent.cfg.loop_closure
         new = self._unapplied_loops()
         rejected = 0
