@@ -66,7 +66,7 @@ class ServerConfig(BaseModel):
     global_fallback: bool = Field(True, description="FPFH + RANSAC start when agents are not yet in one frame "
                                                     "(or the guess fails the gates)")
     solver: Literal["lm", "gnc"] = Field("lm", description="pose-graph solver; gnc rejects inconsistent loops")
-    optimise_fraction: float = Field(0.0, ge=0, le=1, description="solve the team's pose graph after an accepted "
+    optimise_fraction: float = Field(0.05, ge=0, le=1, description="solve the team's pose graph after an accepted "
                                      "loop only once this fraction of the team's keyframes has arrived since the "
                                      "last solve (a join of two agents is solved at once; the end of the mission "
                                      "solves what waits): a long mission is then solved a number of times that "
