@@ -158,7 +158,8 @@ def test_a_live_run_trims_once_per_finished_submap(driver_sequence, tmp_path, tr
 def test_a_realtime_run_trims_once_per_finished_submap_on_its_worker(driver_sequence, tmp_path, trims):
     from swarmsplat.slam.run.realtime.run import run_realtime
 
-    cfg = _cfg(runtime={"realtime": True, "rate": 3})  # slow enough that every frame is tracked and mapped
+    cfg = _cfg(runtime={"realtime": True, "rate": 3})  # slow enough that, on an idle machine, every frame is tracked
     m = run_realtime(driver_sequence, tmp_path / "rt", cfg, progress=False)
-    assert m["realtime"]["frames_tracked"] == 18 and m["submaps"] >= 3
+    rt = m["realtime"]  # a loaded machine may drop a frame the tracker could not take in time: counted, not lost
+    assert rt["frames_tracked"] + rt["frames_dropped"] == 18 and rt["frames_tracked"] >= 12 and m["submaps"] >= 3
     assert len(trims) == m["submaps"] - 1 and all(t.endswith("-mapping") for t in trims), trims

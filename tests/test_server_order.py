@@ -57,3 +57,28 @@ def test_a_keyframe_whose_images_are_late_holds_back_the_later_ones():
     server.peers[0].images.pop(0)
     server.peers[0].lost = True  # a lost agent's keyframe without images holds nobody
     assert server.next_keyframe()[0] == 1
+
+
+def test_a_backlog_still_reports_publishes_and_keeps_the_deadline(monkeypatch):
+    """Found by a 20-minute soak: a server that always had a keyframe waiting stayed inside one `process()` call for
+    its whole life (338 s) and printed no status line, so its memory could not be measured; its feed and deadline
+    waited as long. Each keyframe of a backlog now ends with the same tick as an idle loop's."""
+    import pytest
+
+    from swarmsplat.slam.run.team_link.server_node import ServerNode
+
+    node = ServerNode.__new__(ServerNode)
+    backlog = [(0, "kf")] * 3
+    said, fed = [], []
+    monkeypatch.setattr(ServerNode, "next_keyframe", lambda self: backlog.pop() if backlog else None)
+    monkeypatch.setattr(ServerNode, "_process", lambda self, a, m: None)
+    monkeypatch.setattr(ServerNode, "poll", lambda self: 0)
+    monkeypatch.setattr(ServerNode, "status", lambda self: "keyframes n")
+    node.say, node.feed, node.t0 = said.append, type("Feed", (), {"step": lambda self, n: fed.append(n)})(), 0.0
+    node._ticking = (True, None, float("-inf"))  # a status line is due
+    assert node.process() == 3
+    assert len(fed) == 3 and said == ["[server] keyframes n"]  # one line per 10 s, not per keyframe
+    backlog[:] = [(0, "kf")]
+    node._ticking = (False, 1.0, 0.0)
+    with pytest.raises(TimeoutError, match="gave up after 1 s"):
+        node.process()

@@ -269,6 +269,7 @@ class ServerNode:
             self._process(*nxt)
             n += 1
             self.poll()  # acknowledge while the server works
+            self._tick()  # and publish, report and keep the deadline: a backlog can last minutes
         return n
 
     def _process(self, a: int, m: L.KeyframeMeta) -> None:
@@ -321,20 +322,25 @@ class ServerNode:
 
     def run(self, *, progress: bool = True, timeout: float | None = None) -> None:
         """Serve until every agent has finished (all its keyframes handled) or is lost."""
-        last = time.monotonic()
+        self._ticking = (progress, timeout, time.monotonic())
         while not self.all_ended():
             busy = self.step()
-            if self.feed is not None:
-                self.feed.step(self)
-            now = time.monotonic()
-            if progress and now - last > 10:
-                last = now
-                self.say("[server] " + self.status())
-            if timeout is not None and now - self.t0 > timeout:
-                raise TimeoutError(f"the team server gave up after {timeout:.0f} s: {self.status()}")
+            self._tick()
             if not busy:
                 time.sleep(0.02)
         self.collect_submaps()
+
+    def _tick(self) -> None:
+        """Between keyframes, also inside a backlog: the feed's update, a status line every 10 s, the deadline."""
+        if self.feed is not None:
+            self.feed.step(self)
+        progress, timeout, last = self.__dict__.get("_ticking", (False, None, 0.0))
+        now = time.monotonic()
+        if progress and now - last > 10:
+            self._ticking = (progress, timeout, now)
+            self.say("[server] " + self.status())
+        if timeout is not None and now - self.t0 > timeout:
+            raise TimeoutError(f"the team server gave up after {timeout:.0f} s: {self.status()}")
 
     def collect_submaps(self) -> None:
         """Every finished submap's Gaussians into its mirror."""
