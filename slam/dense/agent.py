@@ -22,7 +22,8 @@ from swarmsplat.slam.dense.mapping import exposure
 from swarmsplat.slam.dense.mapping.mapper import MapKeyframe, Mapper, MappingStats
 from .render import render, viewmat_from_pose
 from .submap_codec import use_storage
-from .submaps import Keyframe, frame_local_poses, last_keyframes, needs_new_submap, start_submap, world_pose
+from .submaps import (Keyframe, follow_keyframe_optimum, frame_local_poses, needs_new_submap, start_submap,
+                      world_pose)
 from swarmsplat.slam.dense.tracking.tracker import Tracker
 
 
@@ -252,12 +253,8 @@ class Agent:
             return np.zeros(0), np.zeros((0, 4, 4))
         local = frame_local_poses(self.poses, self.keyframes)
         T = np.stack([self.gmap.submaps[p.submap_id].T_world_local @ L for p, L in zip(self.poses, local)])
-        optimum = self.loops.optimum if per_keyframe else {}
-        if optimum:
-            for n, (rec, last) in enumerate(zip(self.poses, last_keyframes(self.poses, self.keyframes))):
-                if last is None or last.T_local_refined is not None or last.id not in optimum:
-                    continue
-                T[n] = optimum[last.id] @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
+        if per_keyframe and self.loops.optimum:
+            follow_keyframe_optimum(T, self.poses, self.keyframes, lambda kf: self.loops.optimum.get(kf.id))
         return np.array([p.timestamp for p in self.poses]), T
 
     def trajectory_no_lc(self) -> tuple[np.ndarray, np.ndarray]:

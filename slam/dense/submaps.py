@@ -121,6 +121,20 @@ def last_keyframes(poses, keyframes: list[Keyframe]) -> list[Keyframe | None]:
     return out
 
 
+def follow_keyframe_optimum(T: np.ndarray, poses, keyframes: list[Keyframe], optimum_of) -> np.ndarray:
+    """Move each frame of `T` [N, 4, 4] (the rigid placement of `poses`) to the pose-graph optimum of the last keyframe
+    before it in its submap: T = T_kf^opt · T_kf_local⁻¹ · T_frame_local, T_kf^opt = optimum_of(kf) in T's frame
+    (None: that keyframe has no optimum, the frame keeps its rigid pose). Frames of a keyframe the map refinement
+    refined keep theirs too: the frames already follow its refined pose. In place; returns T."""
+    for n, (rec, last) in enumerate(zip(poses, last_keyframes(poses, keyframes))):
+        if last is None or last.T_local_refined is not None:
+            continue
+        T_kf = optimum_of(last)
+        if T_kf is not None:
+            T[n] = T_kf @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
+    return T
+
+
 def frame_local_poses(poses, keyframes: list[Keyframe]) -> list[np.ndarray]:
     """Each tracked frame's pose in its submap (`poses`: records with frame_index, submap_id, T_local_cam, in
     tracking order): as tracked, except after a keyframe of the same submap whose pose was refined, where the frame

@@ -27,7 +27,7 @@ from swarmsplat.slam.dense.team.descriptors import coarse_view, describe_keyfram
 from swarmsplat.slam.dense.team.cloud_route import CloudRoute, gate_failure
 from swarmsplat.slam.dense.team.joins import JoinRules
 from swarmsplat.slam.dense.team.team_graph import TeamGraph
-from swarmsplat.slam.dense.submaps import Keyframe, last_keyframes, world_pose
+from swarmsplat.slam.dense.submaps import Keyframe, follow_keyframe_optimum, world_pose
 
 
 _rigid = se3.project_rigid  # poses composed from many tracked and moved frames drift off SE(3)
@@ -396,12 +396,7 @@ class Server(JoinRules, CloudRoute, TeamGraph):
         T = s.T_global_world[None] @ T
         if per_keyframe and self.last_graph is not None:
             optimum = self.last_graph[1]
-            for n, (rec, last) in enumerate(zip(s.agent.poses, last_keyframes(s.agent.poses, s.agent.keyframes))):
-                if last is None or last.T_local_refined is not None:
-                    continue  # (a refined keyframe: the agent's trajectory already follows its refined pose)
-                T_kf = optimum.get(self.key(a, last.id))
-                if T_kf is not None:
-                    T[n] = T_kf @ se3.inverse(last.T_local_cam) @ rec.T_local_cam
+            follow_keyframe_optimum(T, s.agent.poses, s.agent.keyframes, lambda kf: optimum.get(self.key(a, kf.id)))
         return stamps, T
 
     def refine_maps(self, cfg, mapping, exposure=None) -> dict:
