@@ -35,7 +35,9 @@ def _play(store, seq, port: int, frames: range, stop: threading.Event) -> None:
     _, conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
     robot = zenoh.open(conf)
     keys = {"info": "camera/color/camera_info", "color": "camera/color/image_raw", "depth": "camera/depth/image_raw"}
-    pubs = {kind: robot.declare_publisher(key) for kind, key in keys.items()}
+    # blocking like a reliable ROS 2 publisher: the default (drop) loses an image when the link is busy
+    block = zenoh.CongestionControl.BLOCK
+    pubs = {kind: robot.declare_publisher(key, congestion_control=block) for kind, key in keys.items()}
     try:
         t_end = time.time() + 120  # a put before the agent's subscription is known goes nowhere: wait for it
         while time.time() < t_end and not stop.is_set() and not all(p.matching_status.matching for p in pubs.values()):
