@@ -96,7 +96,7 @@ CASES = [  # (argv with placeholders, a fragment the error line must contain)
     ("graph solve G2O --out NEW --distributed", "needs robot keys"),
     ("graph solve G2O --out NEW --processes", "add --distributed"),
     ("graph solve G2O --out NEW --gnc-steps 5", "add --distributed --solver gnc"),
-    ("graph solve G2O --out NEW --distributed --solver gnc --gnc-steps 0", "--gnc-steps and --gnc-rounds"),
+    ("graph solve G2O --out NEW --distributed --solver gnc --gnc-steps 0", "--gnc-steps, --gnc-rounds and --gnc-ls-rounds"),
     ("pairs MONO --out DIR", "is a folder"),
     ("pairs MONO --out FILE/p.csv", "is a file"),
     ("pairs FILE --out NEW", "not a folder"),

@@ -28,10 +28,10 @@ from swarmsplat.kernels.errors import InputError
 
 @dataclass
 class GncPlan:
-    ls_rounds: int = 30
+    ls_rounds: int = 10
     relay_rounds: int = 8
     steps: int = 25
-    step_rounds: int = 10
+    step_rounds: int = 4
     final_rounds: int = 30
     mu_step: float = 1.4
     barc: float = 0.0  # GNC's inlier threshold (half the chi-square quantile of the residual's dimension)

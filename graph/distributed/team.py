@@ -9,9 +9,9 @@ figures only: the robots never see it.
 
 Faults (`Faults`): each message lost with probability `drop`, sent twice with `duplicate`, delivered in a shuffled
 order (`reorder`), a robot leaving at a round (its part then stays at its last estimate) and returning at a later
-one. GNC: the robots first solve with all weights 1; each proposes GNC's initial mu from its own loops and the
-team takes the smallest; then each GNC step updates the owned loops' weights and runs rounds until still (at most
-`gnc_rounds`), mu growing by `mu_step`, until every robot's weights are binary.
+one. GNC: the robots first run `ls_rounds` rounds with all weights 1; each proposes GNC's initial mu from its own loops
+and the team takes the smallest; then each GNC step updates the owned loops' weights and runs rounds until still
+(at most `gnc_rounds`), mu growing by `mu_step`, until every robot's weights are binary.
 """
 
 from __future__ import annotations
@@ -225,12 +225,18 @@ def problem_error(problem: Problem, poses, scales, weights) -> float:
 
 def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver: str = "lm", *,
                       initial_poses=None, gt_scales=None, max_rounds: int = 300, faults: Faults | None = None,
-                      probability: float = 0.99, mu_step: float = 1.4, gnc_rounds: int = 10,
-                      max_gnc: int = 100, on_round=None, stop_when_still: bool = True) -> DistributedResult:
+                      probability: float = 0.99, mu_step: float = 1.4, gnc_rounds: int = 4,
+                      max_gnc: int = 100, ls_rounds: int = 10, on_round=None,
+                      stop_when_still: bool = True) -> DistributedResult:
     """Solve `graph` with simulated robots (module docstring); `solver` 'lm' (least squares) or 'gnc'.
     `stop_when_still=False` runs `max_rounds` rounds whatever (the fixed schedule of the robot processes). With
     `settings.gnc_plan` (solver 'gnc') the team runs the plan's rounds and the robots do GNC themselves
-    (graph.distributed.gnc_plan); `max_rounds`, `mu_step`, `gnc_rounds` and `max_gnc` then do not apply."""
+    (graph.distributed.gnc_plan); `max_rounds`, `mu_step`, `gnc_rounds`, `ls_rounds` and `max_gnc` then do not
+    apply. GNC without a plan: `ls_rounds` rounds of least squares (all weights 1) before GNC's initial mu is taken
+    from the residuals (they only need to tell the wrong loops' large residuals from the rest; solving the
+    outliers' least squares to the end cost half the bytes on the outdoor 6-robot graph), then at most
+    `gnc_rounds` rounds per step of mu, then the final weights' least squares to convergence (at most
+    `max_rounds`)."""
     if solver not in ("lm", "gnc"):
         raise InputError(f"solver must be 'lm' or 'gnc', got {solver!r}")
     t0 = time.perf_counter()
@@ -241,7 +247,8 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
     team = Team(graph, settings, initial_poses=initial_poses, gt_scales=gt_scales, faults=faults)
     team.start()
     converged = False
-    for _ in range(plan.total if plan is not None else max_rounds):  # a plan: every decision the robots' own
+    first = ls_rounds if solver == "gnc" else max_rounds
+    for _ in range(plan.total if plan is not None else first):  # a plan: every decision the robots' own
         converged = team.run_round()
         if on_round:
             on_round(team)

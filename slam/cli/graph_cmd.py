@@ -55,12 +55,15 @@ def register(sub) -> None:
                         "(--max-rounds; with --solver gnc, GNC on a fixed plan: --gnc-steps)")
     s.add_argument("--gnc-steps", type=int, default=None, metavar="S",
                    help="--distributed --solver gnc: GNC on a fixed plan the robots follow themselves (what "
-                        "--processes runs; default there 25): --max-rounds rounds of least squares, the initial mu "
+                        "--processes runs; default there 25): --gnc-ls-rounds rounds of least squares, the initial mu "
                         "relayed for as many rounds as there are robots, S steps of mu of --gnc-rounds rounds each, "
                         "--max-rounds rounds with the final weights. Without it the simulated team stops each phase "
                         "when it is still")
-    s.add_argument("--gnc-rounds", type=int, default=10, metavar="R",
-                   help="--distributed --solver gnc: rounds per GNC step at most (default 10)")
+    s.add_argument("--gnc-rounds", type=int, default=4, metavar="R",
+                   help="--distributed --solver gnc: rounds per GNC step at most (default 4)")
+    s.add_argument("--gnc-ls-rounds", type=int, default=10, metavar="L",
+                   help="--distributed --solver gnc: rounds of least squares (every weight 1) before GNC's initial "
+                        "mu is taken from the residuals (default 10)")
     s.add_argument("--port-base", type=int, default=17600,
                    help="--processes: robot K listens on TCP port PORT_BASE + K (default 17600)")
     s.add_argument("--relax", type=float, default=0.0,
@@ -101,8 +104,8 @@ def run(args) -> int:
         raise InputError("--processes runs the distributed solver: add --distributed")
     if args.gnc_steps is not None and not (args.distributed and args.solver == "gnc"):
         raise InputError("--gnc-steps plans the distributed GNC: add --distributed --solver gnc")
-    if (args.gnc_steps is not None and args.gnc_steps < 1) or args.gnc_rounds < 1:
-        raise InputError("--gnc-steps and --gnc-rounds must be >= 1")
+    if (args.gnc_steps is not None and args.gnc_steps < 1) or min(args.gnc_rounds, args.gnc_ls_rounds) < 1:
+        raise InputError("--gnc-steps, --gnc-rounds and --gnc-ls-rounds must be >= 1")
     t_start = time.perf_counter()
     graph = read_team(args.inputs, information=args.information)
     fixed = repaired_edges(graph)
@@ -130,7 +133,7 @@ def run(args) -> int:
         else:
             res = dist = solve_distributed(graph, settings, args.solver, initial_poses=poses,
                                            max_rounds=args.max_rounds, probability=args.gnc_probability,
-                                           gnc_rounds=args.gnc_rounds)
+                                           gnc_rounds=args.gnc_rounds, ls_rounds=args.gnc_ls_rounds)
     elif args.solver == "gnc":
         res = gnc(problem, probability=args.gnc_probability, lm_max_iterations=args.max_iterations)
     else:
@@ -223,7 +226,7 @@ def _gnc_plan(args, graph):
     from swarmsplat.graph.distributed.partition import partition
     from swarmsplat.graph.solvers import inlier_threshold
 
-    return GncPlan(ls_rounds=args.max_rounds, relay_rounds=len(partition(graph)), steps=args.gnc_steps or 25,
+    return GncPlan(ls_rounds=args.gnc_ls_rounds, relay_rounds=len(partition(graph)), steps=args.gnc_steps or 25,
                    step_rounds=args.gnc_rounds, final_rounds=args.max_rounds,
                    barc=inlier_threshold(args.gnc_probability, graph.is_2d))
 
