@@ -313,6 +313,18 @@ def loop_costs(problem: Problem, values: gtsam.Values) -> dict[int, float]:
     return out
 
 
+def tls_objective(problem: Problem, values: gtsam.Values, barc: float) -> float:
+    """The objective GNC minimises (truncated least squares): the known inliers' cost plus every loop's
+    0.5 ||r||²_Omega capped at `barc`. Unlike the cost with GNC's final weights, it compares solutions that keep
+    different loops (a rejected loop costs `barc`, not 0)."""
+    costs = loop_costs(problem, values)
+    zero = {n: 0.0 for n in costs}
+    known = problem.builtin_graph(zero).error(values)
+    if problem.scale_loops is not None:
+        known += _ScaleTerm(problem, zero).error(values)
+    return float(known + sum(min(c, barc) for c in costs.values()))
+
+
 def _single(problem: Problem, lf):
     return between_factor(lf.key_i, lf.key_j, lf.measured, lf.info, problem.is_2d, problem.objective)
 

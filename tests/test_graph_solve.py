@@ -154,6 +154,30 @@ def test_wrong_rotation_loop_is_rejected_by_gnc(small_team):
         assert len(res.rejected) <= 2
 
 
+def test_the_tls_objective_caps_each_loop_at_gncs_threshold(small_team):
+    """tls_objective: with every loop below the threshold it is the plain least-squares error; a loop above it
+    counts the threshold, not its cost."""
+    from swarmsplat.graph.solvers import loop_costs, tls_objective
+
+    team = copy.deepcopy(small_team)
+    g = team.graph
+    for f in ("base", "is"):
+        problem = build_problem(g, f, "gt", gt_scales=team.gt_scales)
+        values = levenberg_marquardt(problem).values
+        costs = loop_costs(problem, values)
+        barc = 2 * max(costs.values()) + 1.0
+        plain = problem.builtin_graph().error(values)
+        if problem.scale_loops is not None:
+            from swarmsplat.graph.solvers import _ScaleTerm
+
+            plain += _ScaleTerm(problem, None).error(values)
+        assert tls_objective(problem, values, barc) == pytest.approx(plain, rel=1e-12)
+        worst = max(costs, key=costs.get)
+        cut = costs[worst] / 2  # below the worst loop's cost (and maybe others')
+        assert tls_objective(problem, values, cut) == pytest.approx(
+            plain - sum(c - cut for c in costs.values() if c > cut), rel=1e-12)
+
+
 def test_eq8_scales_shrink_with_loop_noise_and_network_residual_removes_it():
     """Why IS scales settle below the truth with inlier loops only: eq. 8 multiplies the measurement noise by s
     (regression dilution) and lets the solver pull trajectories together. Comparing in the network's unit

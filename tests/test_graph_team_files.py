@@ -150,6 +150,8 @@ def test_graph_solve_distributed_on_a_measurements_folder(tmp_path):
     assert set(d["distributed"]) >= {"robots", "iterations", "bytes_total", "bytes_per_separator_iteration",
                                      "gather_bytes"}
     assert d["distributed"]["robots"] == 2 and d["rejected_loops"] == central["rejected_loops"] == []
+    # nothing rejected, every weight 1: the truncated objective is the plain error (no loop above the threshold)
+    assert central["tls_objective"] == pytest.approx(central["final_error"], rel=1e-9)
     assert d["final_error"] <= central["final_error"] * 1.01 + 1e-9
     assert d["distributed"]["sparse_tol"] == 1e-3
     assert main(["graph", "solve", str(folder), "--out", str(tmp_path / "e.g2o"), "--solver", "gnc",

@@ -26,7 +26,7 @@ from swarmsplat.kernels.errors import InputError
 
 from ..formulations import Problem, build_problem, initial_scales
 from ..pose_graph import PoseGraph
-from ..solvers import _ScaleTerm, inlier_threshold
+from ..solvers import _ScaleTerm, inlier_threshold, tls_objective
 from .messages import POSE_BYTES, Estimate
 from .partition import partition, robot_of
 from .robot import RobotSolver, Settings
@@ -64,6 +64,7 @@ class DistributedResult:
     converged: bool
     time_s: float
     gnc_iterations: int = 0
+    tls_error: float | None = None  # GNC: the truncated-least-squares objective (graph.solvers.tls_objective)
 
     @property
     def bytes_per_separator_iteration(self) -> float:
@@ -209,6 +210,16 @@ class Team:
 
 
 def problem_error(problem: Problem, poses, scales, weights) -> float:
+    """The centralised problem's error at the team's estimate, with GNC weights `weights`."""
+    values = problem_values(problem, poses, scales)
+    err = problem.builtin_graph(weights).error(values)
+    if problem.scale_loops is not None:
+        err += _ScaleTerm(problem, weights).error(values)
+    return float(err)
+
+
+def problem_values(problem: Problem, poses, scales) -> gtsam.Values:
+    """The team's estimate as the centralised problem's values."""
     values = gtsam.Values()
     for k in problem.graph.keys():
         values.insert(k, gtsam.Pose3(poses[k]))
@@ -217,10 +228,7 @@ def problem_error(problem: Problem, poses, scales, weights) -> float:
         for n, k in zip(sl.edge, sl.key_s):
             if not values.exists(int(k)):
                 values.insert(int(k), float(scales[int(n)]))
-    err = problem.builtin_graph(weights).error(values)
-    if sl is not None:
-        err += _ScaleTerm(problem, weights).error(values)
-    return float(err)
+    return values
 
 
 def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver: str = "lm", *,
@@ -277,9 +285,13 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
     poses, scales, weights = team.estimate()
     groups = [sorted({robot_of(x) for x in c}) for c in graph.components()]
     rejected = sorted(n for n, w in weights.items() if w < 0.5) if solver == "gnc" else []
+    tls = None
+    if solver == "gnc":
+        barc = plan.barc if plan is not None else inlier_threshold(probability, graph.is_2d)
+        tls = tls_objective(team.problem, problem_values(team.problem, poses, scales), barc)
     return DistributedResult(poses, scales, weights if solver == "gnc" else {}, rejected, team.round,
                              team.history, team.bytes_history, team.history[0], team.history[-1], team.bytes_total,
                              team.pose_sends, gather_bytes(graph), len(team.robots), groups, converged,
-                             time.perf_counter() - t0, k)
+                             time.perf_counter() - t0, k, tls)
 
 

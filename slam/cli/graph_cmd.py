@@ -166,7 +166,14 @@ def run(args) -> int:
         print(f"warning: LM stopped at --max-iterations {args.max_iterations} before meeting its tolerances",
               file=sys.stderr)
     rejected = [_loop_ids(graph.edges[n], key_robot, key_index) for n in res.rejected]
-    if args.solver == "gnc":
+    tls = None
+    if args.solver == "gnc":  # what GNC minimises: comparable between solutions that reject different loops
+        from swarmsplat.graph.formulations import pose_values
+        from swarmsplat.graph.solvers import inlier_threshold, tls_objective
+
+        tls = tls_objective(problem, pose_values(res.poses, graph.is_2d),
+                            inlier_threshold(args.gnc_probability, graph.is_2d))
+        print(f"truncated-least-squares objective {tls:.9g}")
         names = ", ".join(f"{a}.{i}-{b}.{j}" for a, i, b, j in rejected)
         print(f"rejected loops {len(rejected)}" + (f": {names}" if names else ""))
     undecided = sum(1 for w in (dist.weights.values() if dist is not None else []) if 1e-4 < w < 1 - 1e-4)
@@ -200,6 +207,7 @@ def run(args) -> int:
 
             summary["distributed"]["gnc_plan"] = asdict(settings.gnc_plan)
     if args.solver == "gnc":
+        summary["tls_objective"] = tls
         summary["rejected_loops"] = rejected
     js = Path(args.json) if args.json else Path(out).with_suffix(".json")
     if js.resolve() == Path(out).resolve():
