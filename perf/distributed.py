@@ -18,6 +18,7 @@ stand-in for a real team's place recognition. Shared graphs that are absent are 
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -30,7 +31,9 @@ COLUMNS = ["case", "robots", "poses", "loops", "solver", "relax", "central_error
 
 
 def _data(*parts: str) -> Path | None:
-    for root in (DATA, Path("/work/shared/data")):
+    """$SWARMSPLAT_SHARED_DATA/PARTS, else ../shared/data/PARTS; None when absent (the case is skipped)."""
+    roots = [Path(os.environ["SWARMSPLAT_SHARED_DATA"])] if os.environ.get("SWARMSPLAT_SHARED_DATA") else []
+    for root in (*roots, DATA):
         if root.joinpath(*parts).exists():
             return root.joinpath(*parts)
     return None

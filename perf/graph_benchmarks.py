@@ -32,10 +32,10 @@ BENCHMARKS = [
 
 
 def _data_root() -> Path:
-    for root in (DATA, Path("/work/shared/data")):
-        if root.is_dir():
-            return root
-    return DATA
+    """$SWARMSPLAT_SHARED_DATA when set, else ../shared/data."""
+    import os
+
+    return Path(os.environ["SWARMSPLAT_SHARED_DATA"]) if os.environ.get("SWARMSPLAT_SHARED_DATA") else DATA
 
 
 def gtsam_pipeline(path: Path, graph):

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 DESCRIPTION = "real pairs: solved % (rot < 5 deg, dir < 15 deg) of Redwood pairs 5-60 deg apart per pair backend"
-DATA = Path(os.environ.get("SWARMSPLAT_REDWOOD211", "/work/shared/data/redwood_livingroom1_211"))
+DATA = Path(os.environ.get("SWARMSPLAT_REDWOOD211") or Path(os.environ.get(
+    "SWARMSPLAT_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "redwood_livingroom1_211")
 
 # (row label, make_registrar name, options): the peer first; rows past the second only without --quick
 BACKENDS = (("classical", "classical", {}), ("xfeat", "xfeat", {}), ("xfeat top_k=512", "xfeat", {"top_k": 512}),
