@@ -241,8 +241,8 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
     `settings.gnc_plan` (solver 'gnc') the team runs the plan's rounds and the robots do GNC themselves
     (graph.distributed.gnc_plan); `max_rounds`, `mu_step`, `gnc_rounds`, `ls_rounds` and `max_gnc` then do not
     apply. GNC without a plan: `ls_rounds` rounds of least squares (all weights 1) before GNC's initial mu is taken
-    from the residuals (they only need to tell the wrong loops' large residuals from the rest; solving the
-    outliers' least squares to the end cost half the bytes on the outdoor 6-robot graph), then at most
+    from the residuals (they only need to tell the wrong loops' large residuals from the rest; on the outdoor
+    6-robot graph 60 rounds of it sent 140 kB, half of what gathering the graph would, and still moved), then at most
     `gnc_rounds` rounds per step of mu, then the final weights' least squares to convergence (at most
     `max_rounds`)."""
     if solver not in ("lm", "gnc"):
