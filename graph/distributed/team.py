@@ -24,7 +24,7 @@ import numpy as np
 
 from swarmsplat.kernels.errors import InputError
 
-from ..formulations import Problem, build_problem, initial_scales
+from ..formulations import Problem, build_problem, initial_scales, pose_values
 from ..pose_graph import PoseGraph
 from ..solvers import _ScaleTerm, inlier_threshold, tls_objective
 from .messages import POSE_BYTES, Estimate
@@ -220,9 +220,7 @@ def problem_error(problem: Problem, poses, scales, weights) -> float:
 
 def problem_values(problem: Problem, poses, scales) -> gtsam.Values:
     """The team's estimate as the centralised problem's values."""
-    values = gtsam.Values()
-    for k in problem.graph.keys():
-        values.insert(k, gtsam.Pose3(poses[k]))
+    values = pose_values({k: poses[k] for k in problem.graph.keys()}, problem.is_2d)
     sl = problem.scale_loops
     if sl is not None:
         for n, k in zip(sl.edge, sl.key_s):

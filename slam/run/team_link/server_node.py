@@ -114,6 +114,7 @@ class ServerNode:
         self.say = say or (lambda *a: print(*a, file=sys.stderr, flush=True))
         self._stamp = 0  # optimisations whose corrections were sent
         self.feed = None  # what the team's state is published to (slam.run.ros2.team_feed), if anything
+        self._ticking = (False, None, 0.0)  # `run`'s (progress, timeout, last status line) for `_tick`
         self.replayed = 0
         self._journal = None
         if journal is not None:
@@ -334,7 +335,7 @@ class ServerNode:
         """Between keyframes, also inside a backlog: the feed's update, a status line every 10 s, the deadline."""
         if self.feed is not None:
             self.feed.step(self)
-        progress, timeout, last = self.__dict__.get("_ticking", (False, None, 0.0))
+        progress, timeout, last = self._ticking
         now = time.monotonic()
         if progress and now - last > 10:
             self._ticking = (progress, timeout, now)
