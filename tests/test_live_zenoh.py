@@ -171,6 +171,11 @@ def test_the_agent_command_refuses_what_it_cannot_read_live(tmp_path, capsys):
     assert "give a SOURCE" in capsys.readouterr().err
 
 
+def _logged(out) -> list[int]:
+    """The indices of the whole frames in out's frame log (a kill mid-write leaves a temporary .<name>.npz too)."""
+    return sorted(int(p.stem) for p in (out / "progress" / "frames").glob("*.npz") if p.stem.isdigit())
+
+
 def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
     """`swarmsplat agent zenoh/ --out DIR` killed (SIGKILL) after a checkpoint, then started again with --resume: it
     tracks again the frames it logged since the checkpoint (progress/frames/), then the frames that arrive now; its
@@ -231,7 +236,7 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
             if (out / "progress" / "checkpoint.pkl").is_file():
                 with open(out / "progress" / "checkpoint.pkl", "rb") as f:
                     kept = pickle.load(f)["next_frame"]
-                if any(int(p.stem) > kept for p in (out / "progress" / "frames").glob("*.npz")):
+                if any(k > kept for k in _logged(out)):
                     break
             time.sleep(0.05)
         assert (out / "progress" / "checkpoint.pkl").is_file(), "no checkpoint was written"
@@ -245,7 +250,7 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
     with open(out / "progress" / "checkpoint.pkl", "rb") as f:
         kept = pickle.load(f)["next_frame"]
     assert not (out / "metrics.json").is_file() or "complete" not in (out / "metrics.json").read_text()
-    logged = sorted(int(p.stem) for p in (out / "progress" / "frames").glob("*.npz"))
+    logged = _logged(out)
     assert not logged or logged == list(range(kept, logged[-1] + 1)), (kept, logged)  # none before the checkpoint
     read = logged[-1] + 1 if logged else kept  # the frames the killed process read
     assert read > kept + 1, "killed before it read a frame after its checkpoint"

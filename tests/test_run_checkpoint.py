@@ -258,3 +258,26 @@ def test_a_checkpoint_write_cut_short_by_a_kill_leaves_nothing_in_the_way(tmp_pa
     assert not stale.exists() and other.exists()
     assert sorted(p.name for p in progress.iterdir()) == sorted([Path(CHECKPOINT).name, other.name])
     assert load_checkpoint(tmp_path, {"run": 1}).next_frame == 3
+
+
+def test_the_frame_log_reads_whole_frames_only_and_removes_what_a_kill_left():
+    """A kill during a logged frame's write leaves its temporary file beside the frames (found by CI, where a test
+    listing the log read it as a frame). The log never replays it, and removes it when opened."""
+    import tempfile
+    from types import SimpleNamespace as NS
+
+    from swarmsplat.slam.run.checkpoint.frame_log import FRAMES, FrameLog
+
+    with tempfile.TemporaryDirectory() as out:
+        log = FrameLog(out)
+        for k in (3, 4):
+            log.append(NS(index=k, timestamp=0.1 * k, color=np.full((2, 3, 3), k, np.uint8),
+                          depth=np.full((2, 3), k, np.float32)))
+        folder = Path(out) / FRAMES
+        stale = folder / ".000000005.npz.a18uydih.npz"  # atomic_path's temporary name for frame 5
+        stale.write_bytes(b"PK\x03\x04half a frame")
+        assert [f.index for f in log.replay(0)] == [3, 4]
+        log = FrameLog(out)  # a resumed process opens it again
+        assert not stale.exists()
+        assert sorted(p.name for p in folder.iterdir()) == ["000000003.npz", "000000004.npz"]
+        assert [int(f.color[0, 0, 0]) for f in log.replay(4)] == [4]

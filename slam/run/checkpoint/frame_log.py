@@ -33,6 +33,10 @@ class FrameLog:
 
     def __init__(self, out: str | os.PathLike):
         self.dir = output_dir(Path(out) / FRAMES, "--out frame log")
+        # A kill during `append` leaves its temporary file (.<index>.npz.<random>.npz, never a frame: it is not
+        # read). One process owns `out` (its lock), so whatever such file is here now is a leftover.
+        for stale in self.dir.glob(".*.npz"):
+            stale.unlink(missing_ok=True)
 
     def _files(self) -> list[tuple[int, Path]]:
         found = []
