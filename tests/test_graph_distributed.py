@@ -45,6 +45,9 @@ def test_distributed_lm_reaches_the_centralised_optimum(tiny, formulation):
     ref = solve(build_problem(g, formulation, initial_poses=P0), "lm")
     res = solve_distributed(g, Settings(formulation=formulation), initial_poses=P0, max_rounds=60)
     assert res.final_error <= ref.final_error * 1.001
+    # still, and says so: robot b meets no other robot and its part has zero error (a relative stillness test
+    # never held there), and it solves its whole group (over-relaxing that made it oscillate)
+    assert res.converged and res.rounds < 60
     assert len(res.groups) == 2  # solved per connected group
     assert res.bytes_per_separator_iteration <= 64
     plain = solve_distributed(g, Settings(formulation=formulation, relax=1.0), initial_poses=P0, max_rounds=60)
@@ -72,6 +75,22 @@ def test_distributed_gnc_rejects_what_the_centralised_gnc_rejects(tiny):
     assert sorted(res.rejected) == sorted(ref.rejected)
     assert outliers <= set(res.rejected)
     assert res.final_error <= ref.final_error * 1.01
+
+
+def test_gnc_reports_whether_its_final_least_squares_converged():
+    """`converged` of a distributed GNC is its last phase's, the final weights' least squares: DGS's two-robot
+    blocks_world gets still there (it used to report the 10 rounds of least squares before GNC, never still)."""
+    from swarmsplat.graph.init import initialize
+    from swarmsplat.graph.team_files import read_team
+
+    g = read_team([shared_data("dgs_multirobot", "blocks_world", "2robots")])
+    P0, _ = initialize(g, "best")
+    ref = solve(build_problem(g, "base", initial_poses=P0), "gnc")
+    res = solve_distributed(g, Settings(), "gnc", initial_poses=P0, max_rounds=60)
+    assert res.converged and res.rounds < 10 + 60
+    assert res.final_error <= ref.final_error * 1.001 and res.rejected == ref.rejected
+    cut = solve_distributed(g, Settings(), "gnc", initial_poses=P0, max_rounds=2)
+    assert not cut.converged  # two rounds of the final least squares: not still
 
 
 def test_lost_duplicated_and_reordered_messages_are_harmless(tiny):

@@ -277,8 +277,9 @@ def solve_distributed(graph: PoseGraph, settings: Settings | None = None, solver
                     break
                 mu = {r: m * mu_step for r, m in mu.items()}
         team.still_rounds = 0
+        converged = False  # what it reports is the final weights' least squares, not the one before GNC
         for _ in range(max_rounds):  # the final weights' least squares, to convergence
-            if team.run_round():
+            if converged := team.run_round():
                 break
     poses, scales, weights = team.estimate()
     groups = [sorted({robot_of(x) for x in c}) for c in graph.components()]
