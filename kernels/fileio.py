@@ -81,6 +81,13 @@ def _check_writable_file(path: Path) -> None:
         raise refused_write(path, e) from None
 
 
+def remove_leftovers(folder: str | os.PathLike, name: str = "*", suffix: str = "") -> None:
+    """Remove the temporary files that `atomic_path` writes of `folder`/`name``suffix` (`name` may be a glob) and
+    that a kill left behind (SIGKILL leaves no time to remove them). Only for a folder one process owns."""
+    for stale in Path(folder).glob(f".{name}.*{suffix or '.tmp'}"):
+        stale.unlink(missing_ok=True)
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -159,14 +159,14 @@ class RobotSolver:
         # Gauss-Seidel on one block, exact but for LM's own iterations, and over-relaxing it only overshoots (the
         # step lengths still shrink at LM's rate, which _adapt takes for a slow chain: an isolated robot of a
         # 3-robot team then oscillated around its optimum for 300 rounds and was never still).
-        w = self.settings.relax if self.settings.relax > 0 else self.omega if self._expect else 1.0
+        w = self.settings.relax if self.settings.relax > 0 else self.omega if self.part.neighbours else 1.0
         keys = self.part.keys
         old = np.stack([self.poses[k] for k in keys])
         xi = lie.log(lie.between(old, np.stack([res.poses[k] for k in keys])))
         new = old @ lie.exp(w * xi)
         for k, T in zip(keys, new):
             self.poses[k] = T
-        if self.settings.relax <= 0 and self._expect:
+        if self.settings.relax <= 0 and self.part.neighbours:
             self._adapt(w * float(np.linalg.norm(xi)), res.initial_error)
         for m, v in res.scales.items():
             if self.settings.formulation != "shared":

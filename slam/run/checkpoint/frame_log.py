@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.fileio import atomic_path, output_dir
+from swarmsplat.kernels.fileio import atomic_path, output_dir, remove_leftovers
 
 FRAMES = Path("progress") / "frames"
 
@@ -33,10 +33,9 @@ class FrameLog:
 
     def __init__(self, out: str | os.PathLike):
         self.dir = output_dir(Path(out) / FRAMES, "--out frame log")
-        # A kill during `append` leaves its temporary file (.<index>.npz.<random>.npz, never a frame: it is not
-        # read). One process owns `out` (its lock), so whatever such file is here now is a leftover.
-        for stale in self.dir.glob(".*.npz"):
-            stale.unlink(missing_ok=True)
+        # A kill during `append` leaves its temporary file (never a frame: it is not read). One process owns `out`
+        # (its lock), so whatever such file is here now is a leftover.
+        remove_leftovers(self.dir, "*", ".npz")
 
     def _files(self) -> list[tuple[int, Path]]:
         found = []

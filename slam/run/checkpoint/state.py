@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from swarmsplat.kernels.errors import InputError
-from swarmsplat.kernels.fileio import atomic_path
+from swarmsplat.kernels.fileio import atomic_path, remove_leftovers
 
 FORMAT = 1
 CHECKPOINT = Path("progress") / "checkpoint.pkl"
@@ -77,8 +77,7 @@ def save_checkpoint(out: Path, identity: dict, agent, *, next_frame: int, journa
     # The temporary file of a write that a kill cut short (SIGKILL leaves no time to remove it) is never a
     # checkpoint, and beside a checkpoint of hundreds of MB it can take the space the next one needs: found by a
     # soak, where such a leftover filled the agent's disk at its next checkpoint. One process owns `out` (its lock).
-    for stale in path.parent.glob(f".{path.name}.*{path.suffix}"):
-        stale.unlink(missing_ok=True)
+    remove_leftovers(path.parent, path.name, path.suffix)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             pickle.dump(header, f, protocol=pickle.HIGHEST_PROTOCOL)
