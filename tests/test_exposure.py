@@ -243,3 +243,71 @@ def test_fits_against_several_submaps_combine_by_their_pixels():
     c = exposure.combine([a, b])
     assert np.allclose(c.exposure[:3], 0.1) and c.pixels == 400
     assert exposure.combine([]) is None and exposure.combine([b]).exposure[0] == pytest.approx(0.4)
+
+
+def _walk(cfg, darker_from: int | None, n: int = 5):
+    """An agent over the analytic scene, one keyframe per frame; frames from `darker_from` on are seen by a darker,
+    bluer camera (E)."""
+    from swarmsplat.slam.dense.agent import Agent
+
+    cam = slam_scene.camera(64, 48)
+    ag = Agent(cam, cfg)
+    for i in range(n):
+        T = se3.exp(np.array([0.0, 0.01 * i, 0.0, 0.02 * i, 0.0, 0.0]))
+        color, depth = slam_scene.render(T, cam)
+        if darker_from is not None and i >= darker_from:
+            color = (np.clip(color / 255.0 * np.exp(E[:3]), 0, 1) * 255).round().astype(np.uint8)
+        ag.step(i, 0.1 * i, color, depth)
+    return ag
+
+
+def _walk_cfg(enabled):
+    return SlamConfig().override({"image": {"max_width": 64}, "keyframes": {"every": 1}, "exposure": {"enabled": enabled},
+                                  "loop_closure": {"enabled": False}, "map_refine": {"single_agent": False}})
+
+
+def test_auto_leaves_a_camera_of_constant_exposure_exactly_as_without_the_model(warp_cpu):
+    auto, off = _walk(_walk_cfg("auto"), None), _walk(_walk_cfg(False), None)
+    assert not auto.exposure_active and auto.exposure_from is None
+    assert all(k.exposure is None for k in auto.keyframes)
+    np.testing.assert_array_equal(auto.trajectory()[1], off.trajectory()[1])
+    for a, b in zip(auto.gmap.merged().tensors(), off.gmap.merged().tensors()):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    assert exposure.display_gain(auto.keyframes) is None
+    assert torch.equal(auto.display_map().colors, auto.gmap.merged().colors.clamp(0, 1))  # map.ply: the map as rendered
+
+
+def test_auto_switches_the_model_on_when_the_camera_darkens(warp_cpu):
+    ag = _walk(_walk_cfg("auto"), darker_from=2)
+    assert ag.exposure_active and ag.exposure_from == 2
+    for k in ag.keyframes[:2]:  # before the change: anchored at the identity (the map's colours are theirs)
+        np.testing.assert_array_equal(k.exposure_prior, exposure.identity())
+        assert np.abs(k.exposure).max() < 0.02, k.exposure  # mapping has optimised them a little since
+    for k in ag.keyframes[2:]:  # the darker camera is recognised from the keyframe that saw it first
+        assert np.allclose(np.exp(k.exposure[:3]), np.exp(E[:3]), atol=0.08), k.exposure
+    # a camera that only ever saw the scene darker than the map by less than the threshold keeps the model off
+    cfg = _walk_cfg("auto").override({"exposure": {"auto_threshold": 1.0}})
+    assert not _walk(cfg, darker_from=2).exposure_active
+
+
+def test_the_written_map_holds_the_colours_a_typical_keyframe_saw(tmp_path):
+    from types import SimpleNamespace
+
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams
+    from swarmsplat.slam.dense.ply import load_ply, save_ply
+
+    colors = torch.tensor([[0.2, 0.5, 0.9], [1.3, -0.1, 0.5]])  # the second: outside [0, 1], clamped as rendered
+    params = GaussianParams.from_points(torch.zeros(2, 3), colors, torch.full((2,), 0.01), 0.5)
+    e = lambda g, outlier=False: SimpleNamespace(exposure=np.array([*np.log(g), 0, 0, 0]),  # noqa: E731
+                                                 exposure_outlier=outlier)
+    kfs = [e([1.0, 1.0, 1.0]), e([1.5, 1.2, 0.8]), e([2.0, 1.4, 0.9]), e([9.0, 9.0, 9.0], True)]
+    gain = exposure.display_gain(kfs)
+    np.testing.assert_allclose(gain, [1.5, 1.2, 0.9])  # the median of the three that are not outliers
+    shown = exposure.for_display(params, kfs)
+    want = colors.clamp(0, 1) * torch.tensor([1.5, 1.2, 0.9])
+    torch.testing.assert_close(shown.colors, want)
+    torch.testing.assert_close(params.colors, colors)  # the map itself is left as it was
+    save_ply(tmp_path / "map.ply", shown, max_color=None)
+    torch.testing.assert_close(load_ply(tmp_path / "map.ply").colors, want)  # above 1 survives the file
+    save_ply(tmp_path / "raw.ply", shown)  # by default as the rasteriser clamps each Gaussian
+    torch.testing.assert_close(load_ply(tmp_path / "raw.ply").colors, want.clamp(0, 1))

@@ -140,9 +140,14 @@ class ExposureConfig(_Section):
     keyframe (gain and offset per channel), fitted at each new keyframe against the map and optimised with it in
     mapping and in the final map refinement."""
 
-    enabled: bool = Field(False, description="model each keyframe's exposure and white balance (off by default: "
-                          "its colour gauge still drifts over a long walk, darkening the map's own colours; "
-                          "docs/decisions/0011); false fits the map's colours to every image as it is")
+    enabled: bool | Literal["auto"] = Field(
+        "auto", description="model each keyframe's exposure and white balance. auto: watch the camera and switch the "
+        "model on at the first keyframe whose fitted gain departs from the map's colours by more than "
+        "auto_threshold (a real camera's auto exposure; rendered data never does, and runs as with false); true: "
+        "from the first keyframe; false: fit the map's colours to every image as it is (docs/decisions/0011)")
+    auto_threshold: float = Field(0.05, gt=0, description="auto: the |log gain| in any channel (0.05 = 5 %) at "
+                                  "which a keyframe's fit switches the model on; fits on rendered data stay "
+                                  "within 0.015 (Redwood), a HoloLens 2 passes 0.1 at its second keyframe")
     lr: float = Field(5e-3, gt=0, description="Adam step on a keyframe's log gains and offsets")
     regulariser: float = Field(1.0, ge=0, description="weight of the squared distance of a keyframe's exposure "
                                "from its value fitted when it was made (per step, beside eq. 3's loss)")
@@ -157,11 +162,12 @@ class ExposureConfig(_Section):
                             "by more than this factor in a channel (or whose image is black or white) is an "
                             "outlier: it keeps the previous exposure and its colour is left out of the loss")
     map_gauge: Literal["first", "median"] = Field(
-        "first", description="the gauge of the map's own colours (map.ply, the viewer) after the final map "
-        "refinement. first: the first keyframe's, which drifts over a long walk, so the map's own colours can end "
-        "darker or brighter than any image. median: the keyframes' median exposure per channel, exp(m) on every "
-        "colour and -m on every log gain, which leaves each exposed render as it was except where a colour passes "
-        "1 and the rasteriser clips it (the trade-off on a real camera: docs/decisions/0011)")
+        "first", description="the gauge of the map's own colours after the final map refinement (map.ply and the "
+        "viewer show them at the keyframes' median exposure either way: slam.dense.mapping.exposure.for_display). "
+        "first: the first keyframe's, which drifts over a long walk. median: the keyframes' median exposure per "
+        "channel, exp(m) on every colour and -m on every log gain, which leaves each exposed render as it was "
+        "except where a colour passes 1 and the rasteriser clips it (the trade-off on a real camera: "
+        "docs/decisions/0011)")
 
 
 class MapRefineConfig(_Section):

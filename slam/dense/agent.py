@@ -53,7 +53,11 @@ class Agent:
         self.gmap = GaussianMap()
         use_storage(self.gmap, self.cfg.submaps.storage)  # in memory; a driver with a run folder may offload
         self.tracker = Tracker(self.cfg.tracking, max_depth=self.cfg.image.max_depth)
-        self.mapper = Mapper(self.cfg.mapping, self.cfg.exposure if self.cfg.exposure.enabled else None)
+        # the camera's exposure model (slam.dense.mapping.exposure) is on from the start with exposure.enabled true;
+        # with "auto" it is switched on by the first keyframe whose fit shows the camera's exposure change
+        self.exposure_active = self.cfg.exposure.enabled is True
+        self.exposure_from: int | None = 0 if self.exposure_active else None  # the keyframe that switched it on
+        self.mapper = Mapper(self.cfg.mapping, self.cfg.exposure if self.exposure_active else None)
         self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
         self._chain = OdometryChain(self.loops.model)  # tracking covariance since the last keyframe
         self.keyframes: list[Keyframe] = []
@@ -72,6 +76,8 @@ class Agent:
 
     def __setstate__(self, state: dict) -> None:  # checkpoints of agents from before the keyframe store
         state.setdefault("frame_store", None)
+        state.setdefault("exposure_active", state["cfg"].exposure.enabled is True)
+        state.setdefault("exposure_from", 0 if state["exposure_active"] else None)
         self.__dict__.update(state)
 
     # ---- the algorithm ----------------------------------------------------------------------------------------
@@ -165,29 +171,40 @@ class Agent:
         s = self.gmap.active
         kf = Keyframe(len(self.keyframes), index, timestamp, s.id, T_local_cam.copy(),
                       frame.resized(self.cfg.mapping.max_width), frame.resized(self.cfg.submaps.keep_keyframe_width))
-        if self.cfg.exposure.enabled:
+        if self.exposure_active:
             self._fit_exposure(kf, first_of_submap=not s.keyframe_ids)
+        elif self.cfg.exposure.enabled == "auto" and self.keyframes:
+            self._watch_exposure(kf, first_of_submap=not s.keyframe_ids)
         self.keyframes.append(kf)
         s.keyframe_ids.append(kf.id)
         self._last_kf_pose = T_local_cam.copy()
         return kf
 
-    def _fit_exposure(self, kf: Keyframe, *, first_of_submap: bool) -> None:
-        """Set kf's exposure (slam.dense.mapping.exposure) from the map already there: the render of the active
-        submap at its pose, or for a submap's first keyframe, of the previous submap. The agent's first keyframe
-        holds the gauge (identity); too little agreement keeps the previous keyframe's; an implausible step from
-        it (a black frame, an auto-exposure reset) marks kf an outlier."""
-        cfg = self.cfg.exposure
-        if not self.keyframes:
-            kf.exposure, kf.exposure_prior = exposure.identity(), exposure.identity()
+    def _watch_exposure(self, kf: Keyframe, *, first_of_submap: bool) -> None:
+        """exposure.enabled "auto": fit kf's exposure against the map and switch the model on when its gain departs
+        from the map's colours by more than exposure.auto_threshold in any channel (a fit from a black or white
+        frame does not count). The keyframes before it keep the identity: their fits stayed within the threshold,
+        so the map's colours are theirs."""
+        fitted = self._exposure_fit(kf, first_of_submap)
+        if fitted is None or exposure.is_outlier(fitted.exposure, exposure.identity(), self.cfg.exposure.max_gain):
             return
-        prev = self.keyframes[-1].exposure
-        prev = exposure.identity() if prev is None else prev
+        if np.abs(fitted.exposure[:3]).max() <= self.cfg.exposure.auto_threshold:
+            return
+        self.exposure_active, self.exposure_from = True, kf.id
+        self.mapper.exposure = self.cfg.exposure
+        for k in self.keyframes:
+            k.exposure, k.exposure_prior = exposure.identity(), exposure.identity()
+        self._fit_exposure(kf, first_of_submap=first_of_submap, fitted=fitted)
+
+    def _exposure_fit(self, kf: Keyframe, first_of_submap: bool) -> "exposure.Fit | None":
+        """kf's exposure fitted to the render of the map already there: the active submap at its pose, or for a
+        submap's first keyframe, the previous submap and every earlier one whose origin lies within
+        exposure.revisit_radius (a revisit ties the new submap's colours to the ones that saw the place first, as
+        a loop closes a chain of poses). None: too few pixels agree."""
+        cfg = self.cfg.exposure
         s = self.gmap.active
         f = kf.map_rgbd
         if first_of_submap:
-            # the previous submap, and every earlier one whose first keyframe was near: a revisit ties the new
-            # submap's colours to the ones that saw the place first, as a loop closes a chain of poses
             T_world = s.T_world_local @ kf.T_local_cam
             others = [m for m in self.gmap.submaps if m.id != s.id and len(m)]
             near = [m for m in others[:-1] if np.linalg.norm(m.T_world_local[:3, 3] - T_world[:3, 3])
@@ -205,7 +222,22 @@ class Agent:
                              f.color.astype(np.float32) / 255.0, f.depth, min_pixels=cfg.min_pixels)
             if r is not None:
                 fits.append(r)
-        fitted = exposure.combine(fits)
+        return exposure.combine(fits)
+
+    def _fit_exposure(self, kf: Keyframe, *, first_of_submap: bool, fitted: "exposure.Fit | None" = None) -> None:
+        """Set kf's exposure (slam.dense.mapping.exposure) from the map already there (`_exposure_fit`, or
+        `fitted` when the caller has it). The agent's first keyframe holds the gauge (identity); too little
+        agreement keeps the previous keyframe's; an implausible step from it (a black frame, an auto-exposure
+        reset) marks kf an outlier."""
+        cfg = self.cfg.exposure
+        if not self.keyframes:
+            kf.exposure, kf.exposure_prior = exposure.identity(), exposure.identity()
+            return
+        prev = self.keyframes[-1].exposure
+        prev = exposure.identity() if prev is None else prev
+        f = kf.map_rgbd
+        if fitted is None:
+            fitted = self._exposure_fit(kf, first_of_submap)
         mean = float(f.color.mean()) / 255.0
         if fitted is None:
             kf.exposure_outlier = not 0.03 < mean < 0.97
@@ -266,6 +298,11 @@ class Agent:
 
     def keyframe_world_poses(self) -> np.ndarray:
         return np.stack([world_pose(self.gmap, k) for k in self.keyframes]) if self.keyframes else np.zeros((0, 4, 4))
+
+    def display_map(self):
+        """The merged map (world frame) with its colours as a typical keyframe saw them: what map.ply holds
+        (slam.dense.mapping.exposure.for_display; the map's own colours when the exposure model is off)."""
+        return exposure.for_display(self.gmap.merged(), self.keyframes)
 
     def render_keyframe(self, kf: Keyframe, camera: PinholeCamera) -> tuple[torch.Tensor, torch.Tensor]:
         """Render `kf`'s own submap at its pose: (color [H, W, 3], depth [H, W]) — the training-view render."""

@@ -38,14 +38,17 @@ def sh_dc_to_rgb(f_dc: np.ndarray) -> np.ndarray:
     return f_dc * SH_C0 + 0.5
 
 
-def save_ply(path: str | Path, params: GaussianParams) -> Path:
-    """Write `params` (any frame; usually the merged world map) as a 3DGS PLY, atomically."""
+def save_ply(path: str | Path, params: GaussianParams, *, max_color: float | None = 1.0) -> Path:
+    """Write `params` (any frame; usually the merged world map) as a 3DGS PLY, atomically. Colours are clamped to
+    [0, max_color]: 1 as the rasteriser clamps each Gaussian's colour; None keeps colours above 1 (a map brought
+    to a keyframe's exposure for display, slam.dense.mapping.exposure.for_display: a 3DGS viewer clamps the
+    composited pixel)."""
     n = len(params)
     with torch.no_grad():
         cols = [
             params.means.double(),
             torch.zeros(n, 3, dtype=torch.float64),
-            torch.as_tensor(rgb_to_sh_dc(params.colors.detach().double().clamp(0, 1).cpu().numpy())),
+            torch.as_tensor(rgb_to_sh_dc(params.colors.detach().double().clamp(0, max_color).cpu().numpy())),
             params.logit_opacities.detach().double()[:, None],
             params.log_scales.detach().double(),
             params.quats.detach().double(),

@@ -50,12 +50,14 @@ def resolutions(camera: PinholeCamera, cfg: SlamConfig) -> dict:
     return {"render_resolution": [w, h], "input_resolution": [w, h]}
 
 
-def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD, exposure: np.ndarray | None = None
-                ) -> tuple[dict, torch.Tensor]:
+def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD, exposure: np.ndarray | None = None,
+                display: np.ndarray | None = None) -> tuple[dict, torch.Tensor]:
     """Render `params` at T_local_cam [4, 4] (camera-to-local) with ref's camera, as a camera of `exposure` sees
     it (slam.dense.mapping.exposure; None: the map's colours as they are), and score it against `ref`.
-    Returns ({psnr, ssim, depth_l1, psnr_valid_depth} (None where undefined), plus psnr_raw (the map's colours
-    without the exposure) when an exposure is given; rendered colour [H, W, 3])."""
+    Returns ({psnr, ssim, depth_l1, psnr_valid_depth} (None where undefined), plus psnr_raw when an exposure is
+    given: the map's colours as map.ply holds them, without the keyframe's own exposure (the map's colours times
+    `display` [3], the keyframes' median gain, slam.dense.mapping.exposure.for_display; None: as they are);
+    rendered colour [H, W, 3])."""
     from swarmsplat.slam.dense.mapping.exposure import apply
     from swarmsplat.slam.metrics import depth_l1, psnr, ssim
 
@@ -66,7 +68,8 @@ def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD, expo
     valid = ref.depth > 0
     s = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "depth_l1": None, "psnr_valid_depth": None}
     if exposure is not None:
-        s["psnr_raw"] = psnr(o.color.clamp(0, 1).permute(2, 0, 1), gt)
+        shown = o.color if display is None else o.color * torch.as_tensor(display, dtype=o.color.dtype)
+        s["psnr_raw"] = psnr(shown.clamp(0, 1).permute(2, 0, 1), gt)
     if valid.any():
         s["depth_l1"] = depth_l1(o.depth_normalised, torch.as_tensor(ref.depth))
         s["psnr_valid_depth"] = psnr(pred, gt, mask=torch.as_tensor(valid))
@@ -75,15 +78,15 @@ def score_frame(params: GaussianParams, T_local_cam: np.ndarray, ref: RGBD, expo
 
 def score_view(params: GaussianParams, T_local_cam: np.ndarray, color: np.ndarray, depth: np.ndarray,
                camera: PinholeCamera, cfg: SlamConfig, *, input_resolution: bool = True,
-               exposure: np.ndarray | None = None) -> tuple[dict, RGBD, torch.Tensor]:
+               exposure: np.ndarray | None = None, display: np.ndarray | None = None) -> tuple[dict, RGBD, torch.Tensor]:
     """One view at both resolutions. color [H, W, 3] uint8 and depth [H, W] metres are the input frame of
-    `camera`; `exposure` as in score_frame. Returns (scores keyed as in the module docstring, working reference
+    `camera`; `exposure` and `display` as in score_frame. Returns (scores keyed as in the module docstring, working reference
     frame, working render)."""
     work, full = reference_frames(color, depth, camera, cfg)
-    s, rendered = score_frame(params, T_local_cam, work, exposure)
+    s, rendered = score_frame(params, T_local_cam, work, exposure, display)
     if input_resolution:
         same = work.camera.width == full.camera.width and work.camera.height == full.camera.height
-        s_in = s if same else score_frame(params, T_local_cam, full, exposure)[0]
+        s_in = s if same else score_frame(params, T_local_cam, full, exposure, display)[0]
         s.update({k + INPUT: s_in[k] for k in METRICS})
     return s, work, rendered
 
@@ -109,16 +112,19 @@ def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True, held_
     render_views and both resolutions. With merged, also up to `held_out` tracked frames that are not keyframes
     (evenly spread; no mapping or refinement step saw them), from the merged map at their trajectory pose with the
     exposure of the keyframes around them: psnr_novel, ssim_novel (and _input_resolution), novel_views."""
+    from swarmsplat.slam.dense.mapping.exposure import display_gain
+
     scores, merged_scores, novel_scores = [], [], []
     merged_map = agent.gmap.merged() if merged else None
+    display = display_gain(agent.keyframes)
     for kf, T_world in zip(agent.keyframes, agent.keyframe_world_poses()):
         f = seq[kf.frame_index]
         if own:
             scores.append(score_view(agent.gmap.submaps[kf.submap_id].params, kf.T_local, f.color, f.depth,
-                                     seq.camera, agent.cfg, exposure=kf.exposure)[0])
+                                     seq.camera, agent.cfg, exposure=kf.exposure, display=display)[0])
         if merged:
             merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg,
-                                            exposure=kf.exposure)[0])
+                                            exposure=kf.exposure, display=display)[0])
     if merged and held_out > 0 and agent.poses:
         kf_frames = {kf.frame_index for kf in agent.keyframes}
         _, T_all = agent.trajectory()
@@ -128,7 +134,8 @@ def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True, held_
         for index, T in held:
             f = seq[index]
             novel_scores.append(score_view(merged_map, T, f.color, f.depth, seq.camera, agent.cfg,
-                                           exposure=held_out_exposure(agent.keyframes, index))[0])
+                                           exposure=held_out_exposure(agent.keyframes, index),
+                                           display=display)[0])
     out = {"render_views": len(agent.keyframes), **resolutions(seq.camera, agent.cfg)}
     if own:
         means = mean_scores(scores)
@@ -165,9 +172,15 @@ def exposure_record(keyframes) -> dict:
     above were scored against them."""
     from swarmsplat.slam.dense.mapping.exposure import summary
 
+    from swarmsplat.slam.dense.mapping.exposure import display_gain
+
     rec = summary([k.exposure for k in keyframes], sum(1 for k in keyframes if k.exposure_outlier))
     if rec["keyframes"]:
+        gain = display_gain(keyframes)
+        if gain is not None:
+            rec["display_gain"] = [float(g) for g in gain]
         rec["evaluation"] = ("keyframes rendered with their own exposure; held-out frames with the exposure "
                              "interpolated from the keyframes around them; psnr_raw / psnr_merged_raw: the map's "
-                             "colours without any exposure")
+                             "colours as map.ply holds them (times display_gain, the keyframes' median gain), "
+                             "without each view's own exposure")
     return rec

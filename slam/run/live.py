@@ -163,7 +163,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     if agent.keyframes:
         write_tum(out / "keyframes.txt", np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
     if agent.gmap.submaps:
-        save_ply(out / "map.ply", agent.gmap.merged())
+        save_ply(out / "map.ply", agent.display_map(), max_color=None)
     _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
     st = source.stats
     t = agent.time

@@ -44,7 +44,7 @@ def write_partial_agent(agent, out: Path, *, status: str, reason: str, n_frames:
     if len(stamps):
         _attempt(done, errors, "trajectory.txt", lambda: write_tum(out / "trajectory.txt", stamps, T))
     if agent.gmap.submaps:
-        _attempt(done, errors, "map.ply", lambda: save_ply(out / "map.ply", agent.gmap.merged()))
+        _attempt(done, errors, "map.ply", lambda: save_ply(out / "map.ply", agent.display_map(), max_color=None))
     _attempt(done, errors, "loops.csv", lambda: _write_loops_csv(out / "loops.csv", agent.loops.log_rows()))
     t = agent.time
     counts = agent_counts(agent)
@@ -91,7 +91,7 @@ def write_partial_team(team, ds, out: Path, *, status: str, reason: str, wall_s:
         if not any(team.agents[m].gmap.submaps for m in members):
             continue
         fname = "map.ply" if root == 0 else f"map_{names[root]}.ply"
-        _attempt(done, errors, fname, lambda root=root, fname=fname: save_ply(out / fname, srv.merged_map(root)))
+        _attempt(done, errors, fname, lambda root=root, fname=fname: save_ply(out / fname, srv.display_map(root), max_color=None))
         maps[fname] = [names[m] for m in members]
     _attempt(done, errors, "loops.csv", lambda: write_loops_csv(out / "loops.csv", srv.records))
     summary = summarise(srv.records)

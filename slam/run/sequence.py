@@ -149,7 +149,7 @@ def finish_agent_run(agent: Agent, seq, out: Path, cfg: SlamConfig, *, n_frames:
 
         before = agent.trajectory(per_keyframe=True)[1] if rc.refine_poses else None
         with reporting(progress):
-            refined = refine_agent(agent, rc, cfg.mapping, cfg.exposure if cfg.exposure.enabled else None)
+            refined = refine_agent(agent, rc, cfg.mapping, cfg.exposure if agent.exposure_active else None)
     wall = time.perf_counter() - t0 - t_eval
     return write_results(agent, seq, out, wall_s=wall, n_frames=n_frames, map_refine=refined, own_scores=own,
                          trajectory_before_refine=before, extra=extra)
@@ -173,7 +173,7 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
         write_tum(out / "trajectory_no_lc.txt", stamps, T_no_lc)
     if agent.keyframes:  # keyframe poses in id order (loops.csv's query_kf / match_kf index them)
         write_tum(out / "keyframes.txt", np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
-    save_ply(out / "map.ply", agent.gmap.merged())
+    save_ply(out / "map.ply", agent.display_map(), max_color=None)
     _write_loops_csv(out / "loops.csv", agent.loops.log_rows())
     t = agent.time
     metrics = {
@@ -200,7 +200,8 @@ def write_results(agent: Agent, seq, out: Path, *, wall_s: float, n_frames: int,
                    "map_refine": map_refine["seconds"] if map_refine else 0.0},
         "map_refine": map_refine,
         # the keyframes' exposure and white balance (slam.dense.mapping.exposure) and how renders are scored
-        "exposure": exposure_record(agent.keyframes),
+        "exposure": {**exposure_record(agent.keyframes), "enabled": agent.cfg.exposure.enabled,
+                     "model_from_keyframe": agent.exposure_from},
         "kernels": kernels_record(agent.cfg.kernels),
     }
     metrics.update(guard_warnings([agent]))

@@ -67,7 +67,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
     map_files = {}
     for root, members in comps.items():
         fname = "map.ply" if root == 0 else f"map_{names[root]}.ply"
-        save_ply(out / fname, srv.merged_map(root))
+        save_ply(out / fname, srv.display_map(root), max_color=None)
         map_files[fname] = [names[m] for m in members]
 
     write_loops_csv(out / "loops.csv", srv.records)
@@ -99,7 +99,7 @@ def write_team_results(team, ds, out: Path, *, wall_s: float, cpu_s: float, rend
             # own submaps as mapping left them: the refinement's overlap cull leaves each submap its owned
             # surfaces only, so they are scored before it when it runs
             "psnr_submaps": (before or render)["agents"][a].get("psnr_submaps"),
-            "exposure": exposure_record(ag.keyframes),
+            "exposure": {**exposure_record(ag.keyframes), "model_from_keyframe": getattr(ag, "exposure_from", None)},
             "time_s": {"tracking": t.tracking, "mapping": t.mapping},
         })
     summary = summarise(srv.records)
@@ -242,17 +242,23 @@ def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
     (grid: rows for renders.png)."""
     from swarmsplat.slam.metrics.views import INPUT, held_out_exposure, mean_scores, resolutions, score_view
 
+    from swarmsplat.slam.dense.mapping.exposure import display_gain
+
     srv, cfg = team.server, team.cfg
-    maps = {root: srv.merged_map(root) for root in srv.components()}
+    comps = srv.components()
+    maps = {root: srv.merged_map(root) for root in comps}
+    shown = {root: display_gain([kf for a in members for kf in srv.slots[a].agent.keyframes])
+             for root, members in comps.items()}
     per, grid, res = [], [], {}
     acc = {"kf": [], "novel": []}
 
     def score(params, T, seq, index, exposure):
         f = seq[index]
-        return score_view(params, T, f.color, f.depth, seq.camera, cfg, exposure=exposure)
+        return score_view(params, T, f.color, f.depth, seq.camera, cfg, exposure=exposure, display=display)
 
     for a, (ag, seq) in enumerate(zip(team.agents, ds.agents)):
         params = maps[srv.slots[a].component]
+        display = shown[srv.slots[a].component]
         kfs, novel_s = [], []
         for kf in _spread(ag.keyframes, views):
             s, ref, color = score(params, srv.global_pose(a, kf), seq, kf.frame_index, kf.exposure)

@@ -23,7 +23,7 @@ def scene_from_team(team, title: str = "swarmsplat: live") -> Scene:
     scene = Scene(title=title)
     frame = [GLOBAL if s.component == 0 else names[s.component] for s in srv.slots]  # per agent
     for root in sorted(srv.components()):
-        params = srv.merged_map(root)
+        params = srv.display_map(root)
         if len(params):
             name = "map" if root == 0 else f"map_{names[root]}"
             scene.splats.append(splats_from_params(name, params))
@@ -66,7 +66,7 @@ def scene_from_team(team, title: str = "swarmsplat: live") -> Scene:
 
 def scene_from_agent(agent, title: str = "swarmsplat: live") -> Scene:
     scene = Scene(title=title)
-    params = agent.gmap.merged()
+    params = agent.display_map()
     if len(params):
         scene.splats.append(splats_from_params("map", params))
     c = agent_color(0)

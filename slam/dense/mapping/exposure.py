@@ -30,6 +30,7 @@ scaled by alpha so an empty pixel stays black, as without the model.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -125,6 +126,31 @@ def is_outlier(e: np.ndarray, previous: np.ndarray, max_gain: float) -> bool:
     keyframes, a broken or black frame does."""
     e, previous = np.asarray(e), np.asarray(previous)
     return bool((np.abs(e[:3] - previous[:3]) > np.log(max_gain)).any() or (np.abs(e[3:] - previous[3:]) > 0.33).any())
+
+
+def display_gain(keyframes) -> np.ndarray | None:
+    """[3] exp(m), m the per-channel median log gain of `keyframes` (objects with `exposure` and `exposure_outlier`;
+    outliers and those without an exposure left out): the colour a typical keyframe saw, relative to the map's own
+    gauge. None when no keyframe has an exposure (the model was off: the map's colours are the images')."""
+    es = [k.exposure for k in keyframes if k.exposure is not None and not k.exposure_outlier]
+    if not es:
+        return None
+    return np.exp(np.median(np.stack(es)[:, :3], axis=0))
+
+
+def for_display(params, keyframes):
+    """`params` (GaussianParams) with its colours as a typical keyframe saw them, for map.ply and the viewer:
+    clamp(colour, 0, 1) x display_gain(keyframes) per channel. The map's own colours hold the first keyframe's
+    gauge, which drifts over a long walk of a real camera (docs/decisions/0011); these do not. A colour may pass 1:
+    a 3DGS viewer clamps the composited pixel, not each splat, so every render of the written map equals the map
+    seen with the median exposure. `params` itself is not changed; without exposures (the model off) the colours
+    are only clamped to [0, 1], as rendered."""
+    gain = display_gain(keyframes)
+    with torch.no_grad():
+        colors = params.colors.detach().clamp(0.0, 1.0)
+        if gain is not None:
+            colors = colors * torch.as_tensor(gain, dtype=colors.dtype)
+    return dataclasses.replace(params.detached(), colors=colors)
 
 
 def median_gauge(colors: torch.Tensor, keyframes, clip_fraction: float = 1.0) -> np.ndarray | None:

@@ -409,6 +409,14 @@ class Server(JoinRules, CloudRoute, TeamGraph):
         self.time["refine"] = self.time.get("refine", 0.0) + time.perf_counter() - t0
         return out
 
+    def display_map(self, component: int = 0) -> GaussianParams:
+        """merged_map(component) with its colours as a typical keyframe of its agents saw them (what map.ply holds:
+        slam.dense.mapping.exposure.for_display)."""
+        from swarmsplat.slam.dense.mapping.exposure import for_display
+
+        kfs = [kf for s in self.slots if s.component == component for kf in s.agent.keyframes]
+        return for_display(self.merged_map(component), kfs)
+
     def merged_map(self, component: int = 0) -> GaussianParams:
         """All Gaussians of the agents in `component`, in that component's frame (eq. 15 per submap)."""
         parts = []

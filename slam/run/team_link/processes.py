@@ -182,9 +182,10 @@ def _write_estimates(team, out: Path, wall: float, cpu0: float, run_info: dict) 
     if g.poses:
         write_g2o(g, out / "pose_graph_optimized.g2o", srv.last_graph[1] if srv.last_graph else g.poses)
     for root in srv.components():
-        params = srv.merged_map(root)
+        params = srv.display_map(root)
         if len(params):
-            save_ply(out / ("map.ply" if root == 0 else f"map_{team.agents[root].name}.ply"), params)
+            save_ply(out / ("map.ply" if root == 0 else f"map_{team.agents[root].name}.ply"), params,
+                     max_color=None)
     write_loops_csv(out / "loops.csv", srv.records)
     summary = summarise(srv.records)
     metrics = {"status": "complete", "agents": agents, "loops": summary,
