@@ -311,3 +311,19 @@ def test_the_written_map_holds_the_colours_a_typical_keyframe_saw(tmp_path):
     torch.testing.assert_close(load_ply(tmp_path / "map.ply").colors, want)  # above 1 survives the file
     save_ply(tmp_path / "raw.ply", shown)  # by default as the rasteriser clamps each Gaussian
     torch.testing.assert_close(load_ply(tmp_path / "raw.ply").colors, want.clamp(0, 1))
+
+
+def test_the_ros2_map_points_show_the_colours_map_ply_holds():
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams
+    from swarmsplat.slam.run.ros2.feed import PointCache
+
+    params = GaussianParams.from_points(torch.zeros(2, 3), torch.tensor([[0.2, 0.5, 0.9], [0.8, 0.1, 0.5]]),
+                                        torch.full((2,), 0.01), 0.5)
+    submap = type("S", (), {"params": params, "__len__": lambda self: 2})()
+    cache = PointCache()
+    _, raw = cache.world([(0, submap, np.eye(4), True)], 10)
+    gain = np.array([1.5, 1.2, 0.9])
+    _, shown = cache.world([(0, submap, np.eye(4), True)], 10, gain)
+    np.testing.assert_array_equal(raw, np.rint(params.colors.numpy() * 255).astype(np.uint8))
+    np.testing.assert_array_equal(shown, np.clip(np.rint(raw * gain.astype(np.float32)), 0, 255).astype(np.uint8))
+    assert shown[1, 0] == 255 and shown[0, 2] < raw[0, 2]  # brighter red clips at white, bluer channel darkens

@@ -2,7 +2,8 @@
 
 After each step: the frame's pose and TF (if it was tracked); the keyframe path when a keyframe was added, the pose
 graph was optimised or the caller says the map moved (a team server's correction); each submap that finished
-since, as a point cloud of its Gaussian centres with their colour (at most `submap_points`, every k-th); the
+since, as a point cloud of its Gaussian centres with their colour (at most `submap_points`, every k-th; with the
+camera's exposure model on, as map.ply shows them: at the keyframes' median exposure); the
 accepted loops when there are more; and every `map_period_s` seconds the whole map (at most `map_points`): the
 finished submaps' points as they were sent, moved to where their frames are now, and the active submap's. Only
 references and small copies are taken on the caller's thread; the clouds are read, decimated and sent by the
@@ -14,6 +15,8 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
+from swarmsplat.slam.dense.mapping.exposure import display_gain
 
 
 def local_points(submap, max_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -42,9 +45,11 @@ class PointCache:
             self._local[key] = pts
         return pts
 
-    def world(self, parts: list[tuple], max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    def world(self, parts: list[tuple], max_points: int, gain: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
         """(xyz [N, 3] float32 in the world, rgb [N, 3] uint8) of [(key, submap, T_world_local, finished)], every
-        k-th point of their union so that at most `max_points` remain."""
+        k-th point of their union so that at most `max_points` remain; colours times `gain` [3] (the keyframes'
+        median exposure, slam.dense.mapping.exposure.display_gain: as map.ply shows them; None: as they are)."""
         xyz, rgb = [], []
         for key, submap, T, finished in parts:
             if len(submap):
@@ -55,7 +60,10 @@ class PointCache:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         xyz, rgb = np.concatenate(xyz), np.concatenate(rgb)
         k = max(1, -(-len(xyz) // max(1, max_points)))
-        return xyz[::k], rgb[::k]
+        xyz, rgb = xyz[::k], rgb[::k]
+        if gain is not None:
+            rgb = np.clip(np.rint(rgb * np.asarray(gain, np.float32)), 0, 255).astype(np.uint8)
+        return xyz, rgb
 
 
 def accepted_loops(agent) -> list[tuple[np.ndarray, np.ndarray, str]]:
@@ -103,7 +111,9 @@ class AgentFeed:
         while self._submaps_sent < finished:
             s = agent.gmap.submaps[self._submaps_sent]
             part = [(s.id, s, s.T_world_local.copy(), True)]
-            self.topics.cloud("submap", t, lambda part=part: self.points.world(part, self.points.submap_points))
+            gain = display_gain(agent.keyframes)
+            self.topics.cloud("submap", t, lambda part=part, gain=gain: self.points.world(
+                part, self.points.submap_points, gain))
             self._submaps_sent += 1
         if not changed and self._loops >= 0:  # loops are accepted with a keyframe, moved by an optimisation
             return
@@ -117,7 +127,8 @@ class AgentFeed:
         self._map_at = self.clock()
         last = len(agent.gmap.submaps) - 1
         part = [(s.id, s, s.T_world_local.copy(), i < last) for i, s in enumerate(agent.gmap.submaps)]
-        self.topics.cloud("map", t, lambda: self.points.world(part, self.map_points))
+        gain = display_gain(agent.keyframes)
+        self.topics.cloud("map", t, lambda: self.points.world(part, self.map_points, gain))
 
     def finish(self, agent, t: float, timeout: float = 10.0) -> None:
         """At the end: the last path, submaps and loops, the whole map, and wait (up to `timeout` s) until sent."""

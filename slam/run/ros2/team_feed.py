@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from swarmsplat.slam.dense.mapping.exposure import display_gain
 from .feed import PointCache
 
 
@@ -94,7 +95,8 @@ class TeamFeed:
         state = tuple((key, T.tobytes()) for key, _, T, _ in part)
         if part and state != self._map_state:  # nothing new: nothing sent again
             self._map_state = state
-            self.topics.map(self._stamp(team), lambda: self.points.world(part, self.map_points))
+            gain = display_gain([kf for s in srv.slots for kf in s.agent.keyframes])  # as map.ply shows them
+            self.topics.map(self._stamp(team), lambda: self.points.world(part, self.map_points, gain))
 
     def finish(self, node, timeout: float = 10.0) -> None:
         """At the end: the last trajectories and loops, the merged map, and wait (up to `timeout` s) until sent."""
