@@ -170,9 +170,7 @@ def held_out_exposure(keyframes, frame_index: int) -> np.ndarray | None:
 def exposure_record(keyframes) -> dict:
     """metrics.json `exposure`: the keyframes' exposures (slam.dense.mapping.exposure.summary) and how the renders
     above were scored against them."""
-    from swarmsplat.slam.dense.mapping.exposure import summary
-
-    from swarmsplat.slam.dense.mapping.exposure import display_gain
+    from swarmsplat.slam.dense.mapping.exposure import display_gain, summary
 
     rec = summary([k.exposure for k in keyframes], sum(1 for k in keyframes if k.exposure_outlier))
     if rec["keyframes"]:

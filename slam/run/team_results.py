@@ -247,8 +247,7 @@ def render_metrics(team, ds, views: int, *, novel: bool = True) -> dict:
     srv, cfg = team.server, team.cfg
     comps = srv.components()
     maps = {root: srv.merged_map(root) for root in comps}
-    shown = {root: display_gain([kf for a in members for kf in srv.slots[a].agent.keyframes])
-             for root, members in comps.items()}
+    shown = {root: display_gain(srv.keyframes_of(root)) for root in comps}
     per, grid, res = [], [], {}
     acc = {"kf": [], "novel": []}
 

@@ -414,8 +414,11 @@ class Server(JoinRules, CloudRoute, TeamGraph):
         slam.dense.mapping.exposure.for_display)."""
         from swarmsplat.slam.dense.mapping.exposure import for_display
 
-        kfs = [kf for s in self.slots if s.component == component for kf in s.agent.keyframes]
-        return for_display(self.merged_map(component), kfs)
+        return for_display(self.merged_map(component), self.keyframes_of(component))
+
+    def keyframes_of(self, component: int = 0) -> list:
+        """Every keyframe of the agents in `component` (their exposures give its map's display colours)."""
+        return [kf for s in self.slots if s.component == component for kf in s.agent.keyframes]
 
     def merged_map(self, component: int = 0) -> GaussianParams:
         """All Gaussians of the agents in `component`, in that component's frame (eq. 15 per submap)."""
