@@ -18,6 +18,7 @@ import pytest
 
 from swarmsplat.slam.cli import main
 from swarmsplat.slam.config import SlamConfig
+from swarmsplat.slam.dense.mapping.refine_merged import iteration_budget
 
 from test_run_guard import QUICK, _config, _sequence, _spawn, _stamps, interrupt_after
 
@@ -267,6 +268,25 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
     report = (out / "report.md").read_text()
     assert "Pose latency" in report and f"{r['frames_tracked']} tracked" in report
     assert yaml_realtime(out)
+    # the kernels were loaded before the stream; the refinement took its own budget and what mapping was cut short of
+    assert r["warm_up_s"] > 0
+    planned = [cfg.mapping.first_iterations] + [cfg.mapping.iterations] * (m["keyframes"] - 1)
+    if m["submaps"] == 1:
+        assert r["refine_owed_iterations"] == sum(max(0, p - i) for p, i in zip(planned, its["per_keyframe"]))
+    assert m["map_refine"]["iterations"] == iteration_budget(cfg.map_refine, m["keyframes"]) + r["refine_owed_iterations"]
+
+
+def test_the_map_refinement_takes_the_mapping_iterations_real_time_cut_short():
+    from swarmsplat.slam.run.realtime.run import owed_iterations, with_owed_iterations
+
+    log = [{"planned": 100, "iterations": 7}, {"planned": 30, "iterations": 30}, {"planned": 30, "iterations": 5}]
+    assert owed_iterations(log) == 93 + 25
+    cfg = SlamConfig().override({"map_refine": {"iterations_per_keyframe": 16, "max_iterations": 1000}})
+    assert iteration_budget(with_owed_iterations(cfg, 3, 118).map_refine, 3) == 3 * 16 + 118
+    assert iteration_budget(with_owed_iterations(cfg, 100, 118).map_refine, 100) == 1000 + 118  # past the cap
+    assert with_owed_iterations(cfg, 3, 0) is cfg
+    off = cfg.override({"map_refine": {"iterations_per_keyframe": 0}})
+    assert with_owed_iterations(off, 3, 118) is off  # a refinement turned off stays off
 
 
 def test_realtime_run_offloads_finished_submaps_as_an_offline_run_does(seq, tmp_path):

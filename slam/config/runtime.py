@@ -31,6 +31,11 @@ class RuntimeConfig(_Section):
     max_mapping_iterations: int = Field(0, ge=0, description="real time: iterations a keyframe gets at most while "
                                         "no keyframe waits (0 = mapping.iterations, mapping.first_iterations for a "
                                         "submap's first keyframe)")
+    refine_owed: bool = Field(True, description="real time: after the stream, the final map refinement "
+                              "(map_refine) also runs the mapping iterations real time cut short "
+                              "(metrics.json realtime.refine_owed_iterations), so the map gets the optimisation "
+                              "an offline run gives it; the map is ready that much later, the poses are not "
+                              "affected")
     mapping_nice: int = Field(5, ge=0, le=19, description="real time: how much the mapping worker lowers its "
                               "threads' priority (nice value added; Linux), so tracking gets the cores first; "
                               "0 = the same priority")

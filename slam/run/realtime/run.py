@@ -27,6 +27,7 @@ from ..partial_results import write_partial_agent
 from .agent import RealtimeAgent
 from .feed import FrameFeed, arrival_offsets
 from .schedule import Scheduler
+from .warmup import FRAMES, warm_up
 from .summary import StreamLog, realtime_metrics, write_report
 
 
@@ -54,6 +55,7 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
+    warm_s = warm_up(seq.camera, cfg, ((f.color, f.depth) for f in (seq[i] for i in range(min(FRAMES, n)))))
     agent = RealtimeAgent(seq.camera, cfg, name=seq.name)
     offload(agent, out, cfg)  # finished submaps and their keyframes' images to the run folder (config submaps)
     agent.keep_keyframe_images = refines(cfg) and cfg.map_refine.views == "mapping"
@@ -110,9 +112,30 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     extra = {"realtime": realtime_metrics(log, feed, agent, n_frames=n, rate_hz=rate,
                                           rate_from="--rate" if rt.rate else "timestamps", budget_s=budget,
                                           ate_live=ate_live)}
-    metrics = finish_agent_run(agent, seq, out, cfg, n_frames=n, t0=t0, progress=progress, extra=extra)
+    owed = owed_iterations(agent.mapping_log) if rt.refine_owed else 0
+    extra["realtime"].update({"warm_up_s": warm_s, "refine_owed_iterations": owed})
+    metrics = finish_agent_run(agent, seq, out, with_owed_iterations(cfg, len(agent.keyframes), owed), n_frames=n,
+                               t0=t0, progress=progress, extra=extra)
     write_report(out, metrics)
     return metrics
+
+
+def owed_iterations(mapping_log: list[dict]) -> int:
+    """The mapping iterations real time cut short: each mapped keyframe's planned (what the offline run gives it)
+    less what it got."""
+    return int(sum(max(0, r["planned"] - r["iterations"]) for r in mapping_log))
+
+
+def with_owed_iterations(cfg: SlamConfig, keyframes: int, owed: int) -> SlamConfig:
+    """`cfg` whose map refinement (slam.dense.mapping.refine_merged.iteration_budget) runs `owed` steps more than
+    its own budget for `keyframes` keyframes: runtime.refine_owed. After the stream nothing waits for the map, so
+    what mapping could not do in time is done there, on the merged map, one keyframe view per step as a mapping
+    iteration is. Unchanged when owed is 0 or the refinement is off."""
+    rc = cfg.map_refine
+    if owed <= 0 or keyframes <= 0 or rc.iterations_per_keyframe <= 0 or rc.max_iterations <= 0:
+        return cfg
+    total = min(rc.max_iterations, rc.iterations_per_keyframe * keyframes) + owed
+    return cfg.override({"map_refine": {"iterations_per_keyframe": -(-total // keyframes), "max_iterations": total}})
 
 
 def summary(metrics: dict) -> dict:
