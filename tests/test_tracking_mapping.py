@@ -293,3 +293,41 @@ def test_refine_map_lowers_the_loss_and_keeps_order(mapped, optimizer):
     assert loss(refined) < 0.9 * loss(sm.params)
     # Same Gaussians, same order: each kept one moved by far less than the scene's size.
     assert float((refined.means - sm.params.means[keep]).norm(dim=1).max()) < 0.1
+
+
+def test_motion_prior_scales_the_last_step_to_the_frames_it_must_bridge(mapped):
+    """A frame 3 frames after the previous one (two dropped in real time) starts three steps along; the step after
+    it, one frame on, one step (a third of the step that spanned three frames); capped at MAX_GAP_RATIO."""
+    from swarmsplat.slam.dense.tracking.tracker import MAX_GAP_RATIO
+
+    cam, cfg, _, sm, _ = mapped
+    xi = np.array([0.0, 0.004, 0.0, 0.003, 0.0, 0.0])  # [omega, v] per frame
+    tr = Tracker(cfg.tracking.model_copy(update={"refine": True, "refine_max_width": 64}))
+    poses = {i: se3.exp(xi * i) for i in (0, 1, 4, 5)}
+    for i in (0, 1):
+        tr.track(_frame(poses[i], cam), sm.params)
+    assert tr.motion_prior(1) is tr._velocity  # the offline case: the last step as it is
+    np.testing.assert_allclose(tr.motion_prior(3), se3.exp(3 * se3.log(tr._velocity)), atol=1e-12)
+    np.testing.assert_allclose(se3.log(tr.motion_prior(100)), MAX_GAP_RATIO * se3.log(tr._velocity), atol=1e-12)
+    r = tr.track(_frame(poses[4], cam), sm.params, gap=3)
+    assert _pose_error(poses[4], r.T_local_cam)[0] < 0.01
+    np.testing.assert_allclose(se3.log(tr.motion_prior(1)), se3.log(tr._velocity) / 3, atol=1e-12)
+
+
+def test_the_agent_tells_the_tracker_how_many_frames_it_skipped():
+    from swarmsplat.slam.dense.agent import Agent
+
+    gaps = []
+
+    class Stub:
+        def track(self, frame, params, gap=1.0):
+            gaps.append(gap)
+            raise StopIteration
+
+    a = Agent(slam_scene.camera(64, 48), SlamConfig())
+    a.tracker = Stub()
+    for last, index in ((None, 7), (3, 4), (3, 6)):
+        a.poses = [] if last is None else [type("P", (), {"frame_index": last})()]
+        with pytest.raises(StopIteration):
+            a._track(None, index)
+    assert gaps == [1, 1, 3]

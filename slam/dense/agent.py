@@ -88,7 +88,7 @@ class Agent:
         if frame is None:
             return None
         t0 = time.perf_counter()
-        T_local_cam = self._track(frame)
+        T_local_cam = self._track(frame, index)
         t1 = time.perf_counter()
         if self._is_keyframe(T_local_cam):
             n_submaps = len(self.gmap.submaps)
@@ -135,8 +135,10 @@ class Agent:
         finished, while it works on the next)."""
         return self.gmap.active.params if self.gmap.submaps else GaussianParams.empty()
 
-    def _track(self, frame: RGBD) -> np.ndarray:
-        r = self.tracker.track(frame, self._tracking_params())
+    def _track(self, frame: RGBD, index: int | None = None) -> np.ndarray:
+        # frames since the previous tracked one (dropped in real time, or skipped): the tracker's motion prior
+        gap = index - self.poses[-1].frame_index if index is not None and self.poses else 1
+        r = self.tracker.track(frame, self._tracking_params(), gap=max(1, gap))
         if self.poses and self.poses[-1].submap_id == self.gmap.active.id:
             step = se3.inverse(self.poses[-1].T_local_cam) @ r.T_local_cam
             c = r.coarse

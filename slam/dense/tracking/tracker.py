@@ -235,10 +235,14 @@ def _refine_level(params: GaussianParams, f: RGBD, T0: np.ndarray, cfg: Tracking
     return T0 @ se3.inverse(se3.exp(best[1])), it, best[0]
 
 
+MAX_GAP_RATIO = 4.0  # motion_prior extrapolates the last step at most this many times its span
+
+
 class Tracker:
     """Keeps the previous frame for the coarse stage and a constant-velocity fallback."""
 
     exposure: np.ndarray | None = None  # (set per instance; the class default serves trackers pickled before it)
+    _gap = 1.0  # (likewise)
 
     def __init__(self, cfg: TrackingConfig, *, max_depth: float = 10.0):
         self.cfg = cfg
@@ -247,6 +251,7 @@ class Tracker:
         self._prev_pyramid = None  # its levels for the coarse stage (rgbd_registration.pyramid)
         self._prev_pose: np.ndarray | None = None  # T_local_cam of the previous frame (active submap frame)
         self._velocity = np.eye(4)  # T_prev_cur of the last step
+        self._gap = 1.0  # frames the last step spanned (frames dropped or skipped before it: more than 1)
         # (params it shows, T_local_view, view, its ModelTarget)
         self._view: tuple[GaussianParams, np.ndarray, RGBD, ModelTarget] | None = None
         self.view_biases: list[float | None] = []  # per rendered view: |translation| of its keyframe's self-check
@@ -271,8 +276,19 @@ class Tracker:
         self._view = None
         self._anchors = []  # a new submap: its first keyframe is added once it is mapped
 
-    def track(self, frame: RGBD, params: GaussianParams) -> TrackResult:
-        """Pose of `frame` in the active submap's local frame."""
+    def motion_prior(self, gap: float = 1.0) -> np.ndarray:
+        """T_prev_cur expected for a frame `gap` frames after the previous one: the last step's motion scaled by
+        `gap` over the frames that step spanned (constant velocity in time, on SE(3)), so a frame after dropped or
+        skipped ones starts as far along as the camera went meanwhile. The scale is capped at MAX_GAP_RATIO."""
+        ratio = min(float(gap) / self._gap, MAX_GAP_RATIO)
+        if ratio == 1.0:
+            return self._velocity
+        return se3.exp(se3.log(self._velocity) * ratio)
+
+    def track(self, frame: RGBD, params: GaussianParams, *, gap: float = 1.0) -> TrackResult:
+        """Pose of `frame` in the active submap's local frame. gap: how many frames it comes after the previous
+        tracked one (1 offline; more after frames dropped in real time or skipped): the constant-velocity start
+        is scaled to it (`motion_prior`)."""
         if self._prev is None:
             T = np.eye(4)
             self._remember(frame, T)
@@ -281,13 +297,14 @@ class Tracker:
             self._anchor_params = params
             self._anchors.append((self._prev, self._prev_pose.copy()))
         coarse_ok, r, recovered = False, None, ""
-        T_coarse = self._prev_pose @ self._velocity
+        prior = self.motion_prior(gap)
+        T_coarse = self._prev_pose @ prior
         src = frame.resized(self.cfg.coarse_max_width)
         src_pyramid = pyramid(src)  # levels computed on first use, kept for the next frame's coarse stage
         if self.cfg.coarse == "rgbd_odometry":
             tgt = self._prev.resized(self.cfg.coarse_max_width)
             levels = self._prev_pyramid if tgt is self._prev else pyramid(tgt)
-            r = coarse_odometry(src, tgt, self._velocity, max_depth=self.max_depth, pyramids=(src_pyramid, levels),
+            r = coarse_odometry(src, tgt, prior, max_depth=self.max_depth, pyramids=(src_pyramid, levels),
                                 eval_stride=max(1, src.camera.width // self.cfg.coarse_eval_max_width))
             coarse_ok = coarse_passes(r, self.cfg)
             if coarse_ok:
@@ -317,6 +334,7 @@ class Tracker:
                 T, it, loss = refine_pose_adam(params, frame, T_coarse, self.cfg)
             self._refine_s.append(time.monotonic() - t0)
         self._velocity = se3.inverse(self._prev_pose) @ T
+        self._gap = max(float(gap), 1.0)
         self._remember(frame, T, src, src_pyramid)
         return TrackResult(T, T_coarse, coarse_ok, it, loss, r, info, recovered)
 

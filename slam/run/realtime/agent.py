@@ -91,7 +91,7 @@ class RealtimeAgent(Agent):
         t0 = time.perf_counter()
         self.tracker.deadline = deadline if self.cfg.runtime.skip_late_refinement else None
         try:
-            T_local_cam = self._track(frame)
+            T_local_cam = self._track(frame, index)
         finally:
             self.tracker.deadline = None
         self.time.tracking += time.perf_counter() - t0
