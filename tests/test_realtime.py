@@ -409,3 +409,26 @@ def test_perf_realtime_reads_the_offline_rows_counts_from_the_run(monkeypatch, t
     row = perf_realtime.measure(tmp_path, None, None)
     assert row["mode"] == "offline" and row["tracked_pct"] == 80.0 and row["frames_tracked"] == 8
     assert row["dropped"] == 1
+
+
+def test_the_warm_up_runs_the_first_frames_and_never_stops_the_run(seq, tmp_path):
+    """The throwaway agent reads the first frames; a frame it cannot read ends it early without an error (the
+    run's own loop skips such a frame with its reason)."""
+    from swarmsplat.slam.run.realtime.warmup import FRAMES, warm_up
+    from swarmsplat.slam.run.sequence import open_sequence
+
+    cfg = SlamConfig.from_yaml(_config(tmp_path))
+    s, n = open_sequence(seq, cfg, None)
+    read = []
+
+    def frames(i):
+        read.append(i)
+        if i == 1:
+            raise ValueError("corrupt frame")
+        f = s[i]
+        return f.color, f.depth
+
+    assert warm_up(s.camera, cfg, frames, n) > 0 and read == [0, 1]
+    read.clear()
+    assert warm_up(s.camera, cfg, lambda i: read.append(i) or (s[i].color, s[i].depth), n) > 0
+    assert read == list(range(FRAMES))

@@ -27,7 +27,7 @@ from ..partial_results import write_partial_agent
 from .agent import RealtimeAgent
 from .feed import FrameFeed, arrival_offsets
 from .schedule import Scheduler
-from .warmup import FRAMES, warm_up
+from .warmup import warm_up
 from .summary import StreamLog, realtime_metrics, write_report
 
 
@@ -55,7 +55,11 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     out = output_dir(out_dir, "--out")
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
 
-    warm_s = warm_up(seq.camera, cfg, ((f.color, f.depth) for f in (seq[i] for i in range(min(FRAMES, n)))))
+    def read(i):
+        f = seq[i]
+        return f.color, f.depth
+
+    warm_s = warm_up(seq.camera, cfg, read, n)  # every kernel loaded before the clock starts
     agent = RealtimeAgent(seq.camera, cfg, name=seq.name)
     offload(agent, out, cfg)  # finished submaps and their keyframes' images to the run folder (config submaps)
     agent.keep_keyframe_images = refines(cfg) and cfg.map_refine.views == "mapping"
