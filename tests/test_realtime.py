@@ -432,23 +432,3 @@ def test_the_warm_up_runs_the_first_frames_and_never_stops_the_run(seq, tmp_path
     read.clear()
     assert warm_up(s.camera, cfg, lambda i: read.append(i) or (s[i].color, s[i].depth), n) > 0
     assert read == list(range(FRAMES))
-
-
-def test_a_live_camera_warms_up_on_a_textured_plane_it_tracks():
-    """Before a live camera's first frame: synthetic frames of the camera's size, the plane seen from 1 cm steps
-    to the side; an agent tracks them (so the warm-up runs tracking's kernels, not only its failure path)."""
-    from swarmsplat.kernels.camera import PinholeCamera
-    from swarmsplat.slam.dense.agent import Agent
-    from swarmsplat.slam.run.realtime.warmup import FRAMES, synthetic_read
-
-    cam = PinholeCamera(200.0, 200.0, 79.5, 59.5, 160, 120)
-    read = synthetic_read(cam)
-    cfg = SlamConfig().override({"mapping": {"iterations": 2, "first_iterations": 20}})
-    agent = Agent(cam, cfg)
-    for i in range(FRAMES):
-        color, depth = read(i)
-        assert color.shape == (120, 160, 3) and color.dtype == np.uint8 and color.std() > 10
-        assert depth.shape == (120, 160) and np.all(depth == 2.0)
-        rec = agent.step(i, float(i), color, depth)
-    assert np.array_equal(read(1)[0][:, :-1], read(0)[0][:, 1:])  # 200 px x 1 cm / 2 m = one pixel a step
-    assert abs(abs(rec.T_local_cam[0, 3]) - 0.01 * (FRAMES - 1)) < 0.005

@@ -28,7 +28,6 @@ from swarmsplat.slam.dense.agent import Agent
 from .checkpoint import PoseJournal
 from .guard import guarded, keep
 from .partial_results import agent_counts, write_partial_agent
-from .realtime.warmup import FRAMES, synthetic_read, warm_up
 from .ros2.feed import AgentFeed
 from .runtime import kernels_record
 
@@ -98,8 +97,6 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
     identity = live_identity(source.name, camera, cfg)
     resumed = find_resume(out, identity) if resume else None
     atomic_write_text(out / "config.yaml", cfg.to_yaml())
-    # every kernel loaded before the first frame arrives, not on it (slam.run.realtime.warmup)
-    warm_s = warm_up(camera, cfg, synthetic_read(camera), FRAMES)
     agent = resumed.agent if resumed else Agent(camera, cfg, name=source.name)
     first = resumed.next_frame if resumed else 0  # the index of the first frame read now
     log = FrameLog(out) if cfg.checkpoint.every_submaps else None
@@ -180,7 +177,7 @@ def run_live(source, out_dir: str | Path, config: SlamConfig | None = None, *, p
         "publish_ms": latency_ms(feed.publish_s) if feed is not None else latency_ms([]),
         "ros2": publisher.stats() if hasattr(publisher, "stats") else None,
         "live": {"samples": dict(st.samples), "frames": st.frames, "unpaired": st.unpaired, "dropped": st.dropped,
-                 "undecodable": st.undecodable, "warm_up_s": warm_s},
+                 "undecodable": st.undecodable},
         "fps": len(agent.poses) / wall if wall > 0 else float("nan"),
         "time_s": {"total": wall, "tracking": t.tracking, "mapping": t.mapping, "loop_closure": t.loop_closure},
         "kernels": kernels_record(cfg.kernels),

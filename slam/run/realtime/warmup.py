@@ -46,24 +46,3 @@ def warm_up(camera, cfg: SlamConfig, read, n: int) -> float:
             except Exception:  # noqa: BLE001 - the run's own loop reports what is wrong with its frames
                 break
     return time.perf_counter() - t0
-
-
-def synthetic_read(camera, *, depth_m: float = 2.0, step_m: float = 0.01, seed: int = 0):
-    """read(i) for `warm_up` where no frame has arrived yet (a live camera): a textured plane `depth_m` in front of
-    `camera`, seen from i * `step_m` to the side, so tracking, mapping and the place descriptor run as on real
-    frames. Deterministic."""
-    import cv2
-
-    w, h = camera.width, camera.height
-    shift = camera.fx * step_m / depth_m  # pixels per step
-    pad = int(np.ceil(shift * FRAMES)) + 1
-    rng = np.random.default_rng(seed)
-    coarse = rng.integers(0, 256, size=(max(2, h // 8), max(2, (w + pad) // 8), 3), dtype=np.uint8)
-    texture = cv2.resize(coarse, (w + pad, h), interpolation=cv2.INTER_LINEAR)
-    depth = np.full((h, w), depth_m, dtype=np.float32)
-
-    def read(i: int):
-        x0 = int(round(i * shift))
-        return np.ascontiguousarray(texture[:, x0:x0 + w]), depth
-
-    return read

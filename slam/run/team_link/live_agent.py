@@ -16,7 +16,6 @@ import time
 
 from swarmsplat.kernels.errors import InputError
 from swarmsplat.slam.config import SlamConfig
-from swarmsplat.slam.run.realtime.warmup import FRAMES, synthetic_read, warm_up
 from swarmsplat.slam.dense.team.held import held_bytes
 
 
@@ -54,7 +53,6 @@ def run_live_team_agent(source, index: int, config: SlamConfig | None = None, *,
     say = (lambda *a, **k: print(*a, **k)) if progress else (lambda *a, **k: None)
     camera = source.wait_camera(camera_timeout)
     check_device(cfg.kernels, [camera], cfg.image.max_width)
-    warm_up(camera, cfg, synthetic_read(camera), FRAMES)  # the kernels loaded before the first frame arrives
     ckpt = MemberCheckpoints(output_dir(out, "--out"), {**live_identity(name, camera, cfg), "team_index": int(index)},
                              cfg) if out is not None else None
     try:
