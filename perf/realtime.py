@@ -68,7 +68,9 @@ def measure(data: Path, rate: float | None, preset: str | None) -> dict:
                     "keyframes_deferred": r["keyframes_deferred"], "stream_s": r["stream_s"],
                     "refinements_skipped": r.get("refinements_skipped", 0),
                     "cpu_tracker_s": r["cpu_s"]["tracker_thread"], "cpu_mapping_s": r["cpu_s"]["mapping_thread"],
-                    "cpu_process_s": r["cpu_s"]["process"]})
+                    "cpu_process_s": r["cpu_s"]["process"], "warm_up_s": r.get("warm_up_s"),
+                    "refine_owed_iterations": r.get("refine_owed_iterations"),
+                    "map_refine_s": m.get("time_s", {}).get("map_refine")})
     else:
         # offline: every frame read is tracked unless skipped as unusable; none is dropped for time, but the run's
         # own counts say so rather than a constant
@@ -110,7 +112,7 @@ COLUMNS = ["mode", "rate_hz", "preset", "tracked_pct", "dropped", "latency_p50_m
            "psnr_vs_offline_db", "keyframes", "mapping_iterations_mean", "load_before", "load_after"]
 CPU_COLUMNS = ["mode", "rate_hz", "preset", "stream_s", "cpu_tracker_s", "cpu_mapping_s", "cpu_process_s",
                "cores_used", "tracker_cpu_ms_per_frame", "keyframes_deferred", "refinements_skipped",
-               "dropped_by_reason"]
+               "dropped_by_reason", "warm_up_s", "refine_owed_iterations", "map_refine_s"]
 
 
 def _cpu_row(r: dict) -> dict:
@@ -139,7 +141,10 @@ def markdown(res: dict) -> str:
              "of a step's cost (the process figure also holds the reader's decoding and Warp's launch pool, "
              "which runs half of either thread's larger kernels); step_p50_ms above it is waiting for a core "
              "or the GIL. Refinements skipped: frames posed from the coarse stage alone because the frame-to-model "
-             "refinement would have passed the latency budget (runtime.skip_late_refinement):", "",
+             "refinement would have passed the latency budget (runtime.skip_late_refinement). Warm-up: the "
+             "kernels loaded before the stream (slam.run.realtime.warmup); owed iterations: the mapping "
+             "iterations real time cut short, added to the final map refinement (runtime.refine_owed), whose "
+             "time after the stream is map_refine_s:", "",
              markdown_table([_cpu_row(r) for r in rt], CPU_COLUMNS), ""]
     for r in rt:
         if r.get("targets_met"):

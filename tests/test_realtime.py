@@ -432,3 +432,23 @@ def test_the_warm_up_runs_the_first_frames_and_never_stops_the_run(seq, tmp_path
     read.clear()
     assert warm_up(s.camera, cfg, lambda i: read.append(i) or (s[i].color, s[i].depth), n) > 0
     assert read == list(range(FRAMES))
+
+
+def test_perf_realtime_reports_the_warm_up_and_the_owed_refinement(monkeypatch, tmp_path):
+    from swarmsplat.perf import realtime as perf_realtime
+    from swarmsplat.slam.run.realtime import run as rt_run
+
+    r = {"tracked_fraction": 0.9, "frames_tracked": 9, "frames_dropped": 1, "dropped_by_reason": {"stale": 1},
+         "pose_latency_ms": {"p50": 1.0, "p95": 2.0, "max": 3.0}, "step_ms": {"p50": 1.0, "p95": 2.0},
+         "ate_rmse_live": 0.01, "mapping_iterations": {"mean": 5.0}, "keyframes_deferred": 2, "stream_s": 1.0,
+         "cpu_s": {"tracker_thread": 0.5, "mapping_thread": 0.5, "process": 1.5}, "warm_up_s": 1.25,
+         "refine_owed_iterations": 77}
+    run = {"frames": 10, "frames_tracked": 9, "ate_rmse": 0.01, "psnr_merged": 30.0, "keyframes": 3, "realtime": r,
+           "time_s": {"map_refine": 12.5}}
+    monkeypatch.setattr(rt_run, "run_realtime", lambda *a, **k: run)
+    row = perf_realtime.measure(tmp_path, 15.0, None)
+    assert (row["warm_up_s"], row["refine_owed_iterations"], row["map_refine_s"]) == (1.25, 77, 12.5)
+    table = perf_realtime.markdown({"data": str(tmp_path), "rows": [row]})
+    header = next(line for line in table.splitlines() if line.startswith("| mode") and "cpu_tracker_s" in line)
+    assert header.endswith("| warm_up_s | refine_owed_iterations | map_refine_s |")
+    assert "| 77 | 12.5 |" in table
