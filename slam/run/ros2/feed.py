@@ -108,10 +108,10 @@ class AgentFeed:
             self._state = state
             self.topics.path(np.array([k.timestamp for k in agent.keyframes]), agent.keyframe_world_poses())
         finished = len(agent.gmap.submaps) - 1  # all but the active one
+        gain = display_gain(agent.keyframes) if self._submaps_sent < finished else None  # once per step
         while self._submaps_sent < finished:
             s = agent.gmap.submaps[self._submaps_sent]
             part = [(s.id, s, s.T_world_local.copy(), True)]
-            gain = display_gain(agent.keyframes)
             self.topics.cloud("submap", t, lambda part=part, gain=gain: self.points.world(
                 part, self.points.submap_points, gain))
             self._submaps_sent += 1
