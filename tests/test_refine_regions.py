@@ -97,6 +97,26 @@ def test_one_region_is_refine_map_bit_for_bit():
         assert all(torch.equal(x, y) for x, y in zip(st_a.viewmats, st_b.viewmats))
 
 
+def test_a_map_within_the_bound_once_its_hidden_copies_are_gone_is_refined_whole():
+    """Regions are for what stays after the hidden-copy cull: a map above the bound only with its hidden copies is
+    one region, refine_map bit for bit (the copies dropped the same way, the same steps)."""
+    p, views = _scene()
+    cfg = MapRefineConfig(iterations_per_keyframe=3, min_contribution=0.2)
+    with use_reference():
+        kept = int(whole_map_keep(p, views, cfg.min_contribution, cfg.view_margin).sum())
+        assert kept < len(p)
+        cfg = cfg.model_copy(update={"region_gaussians": kept})
+        a, keep_a, st_a = refine_map(p, views, cfg, MappingConfig())
+        b, keep_b, st_b, info = refine_by_region(p, views, cfg, MappingConfig())
+        _, _, _, split = refine_by_region(p, views, cfg.model_copy(update={"region_gaussians": kept - 1}),
+                                          MappingConfig())
+    assert info == {"regions": 1, "region_gaussians_max": kept, "region_keyframes_max": len(views)}
+    assert split["regions"] == 2  # one Gaussian more than the bound: regions
+    assert torch.equal(keep_a, keep_b)
+    assert all(torch.equal(x, y) for x, y in zip(a.tensors(), b.tensors()))
+    assert (st_b.gaussians, st_b.iterations, st_b.loss_last) == (st_a.gaussians, st_a.iterations, st_a.loss_last)
+
+
 def test_the_hidden_copy_cull_a_view_at_a_time_is_the_whole_maps():
     p, views = _scene()
     with use_reference():
