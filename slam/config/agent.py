@@ -217,8 +217,9 @@ class MapRefineConfig(_Section):
                                  "steps (MB, float tensors, least recently used dropped first); the rest stay as "
                                  "stored (PNG) and are decoded at each step (0 = decode every time)")
     region_gaussians: int = Field(1048576, ge=0, description="refine a map of more Gaussians than this (after "
-                                  "the overlap cull and the hidden-copy cull) region by region: split in space into regions of at most this "
-                                  "many, each optimised over the keyframes that see it with the rest of the map "
+                                  "the overlap cull and the hidden-copy cull) region by region: split in space "
+                                  "into regions of at most this many, each optimised over the keyframes that see "
+                                  "it with the rest of the map "
                                   "drawn frozen, so the optimiser's memory is a region's "
                                   "(slam.dense.mapping.refine_regions); 0 = the whole map at once")
 

@@ -134,7 +134,8 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
         refined, _, st = refine_map(out, views, cfg.model_copy(update={"min_contribution": 0.0}), mapping,
                                     fixed_views=fixed_views, exposure=exposure, exposure_gauge=exposure_gauge)
         st.gaussians, st.seconds = len(params), time.perf_counter() - t0
-        return refined, keep, st, {"regions": 1, "region_gaussians_max": len(out), "region_keyframes_max": len(views)}
+        return refined, keep, st, {"regions": 1, "region_gaussians_max": len(out),
+                                   "region_keyframes_max": len(views)}
     tensors = out.tensors()
     regions = split_regions(out.means.detach().numpy(), cfg.region_gaussians)
     # which regions each view sees (with how many of their Gaussians), and each view's home region
