@@ -212,8 +212,11 @@ def test_a_killed_live_agent_resumes_from_its_last_checkpoint(tmp_path):
                     robot.liveliness().get("@ros2_lv/0/*/*/*/NN/%/%/swarmsplat_live", timeout=1.0)):
                 time.sleep(0.2)
             # a put before the agent's subscription has reached this session goes nowhere (a lost first frame
-            # failed this test about once in ten runs): wait until every key has a subscriber
-            pubs = {kind: robot.declare_publisher(key) for kind, key in (
+            # failed this test about once in ten runs): wait until every key has a subscriber. Zenoh's default
+            # congestion control drops a put whose queue is full, which a busy agent (replaying its logged frames)
+            # caused once in a CI run: these publishers block instead, as a reliable ROS 2 topic does
+            block = zenoh.CongestionControl.BLOCK
+            pubs = {kind: robot.declare_publisher(key, congestion_control=block) for kind, key in (
                 ("info", "camera/color/camera_info"), ("color", "camera/color/image_raw"),
                 ("depth", "camera/depth/image_raw"))}
             while time.time() < t_end and not stop.is_set() and not all(
