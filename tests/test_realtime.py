@@ -207,6 +207,44 @@ def test_tracking_does_not_wait_for_mapping_and_stop_ends_the_worker(seq):
     assert len(rt.poses) == 4
 
 
+def test_a_deferred_keyframe_is_kept_as_a_late_view_unless_its_keyframe_came_soon_after(seq):
+    """runtime.late_views: the first frame deferred since the last keyframe is held; a keyframe within half of
+    keyframes.every frames of it drops it (that keyframe sees nearly what it saw), a later one keeps it; a wait of
+    keyframes.every frames keeps it and holds the frame deferred then; the end of the stream keeps the one held.
+    Only when the refinement fits mapping-resolution views (keep_keyframe_images)."""
+    from swarmsplat.slam.dense.submaps import start_submap
+    from swarmsplat.slam.run.realtime.agent import RealtimeAgent
+
+    cfg = SlamConfig().override({**QUICK, "keyframes": {"every": 4}})
+    s, frames = _frames(seq, 1)
+    rt = RealtimeAgent(s.camera, cfg)
+    try:
+        rt.keep_keyframe_images = True
+        start_submap(rt.gmap, np.eye(4), rt.keyframes)
+        frame = rt.prepare(frames[0])
+        T = np.eye(4)
+
+        def defer(i):
+            rt._defer(i, 0.1 * i, frame, T)
+
+        defer(10)
+        rt._commit_late(11)  # the keyframe came 1 < 4 // 2 frames later: dropped
+        assert rt.late_views == [] and rt._late is None
+        defer(20)
+        defer(21)  # the same wait: the candidate stays the first deferred frame
+        rt._commit_late(23)  # 3 frames later: kept
+        defer(30)
+        defer(34)  # a wait of `every` frames: 30 kept, 34 held
+        rt.end_stream()
+        assert [lv.frame_index for lv in rt.late_views] == [20, 30, 34]
+        assert [lv.id for lv in rt.late_views] == [-1, -2, -3]  # never a keyframe's id
+        lv = rt.late_views[0]
+        assert lv.submap_id == rt.gmap.active.id and lv.map_rgbd is lv.small
+        assert lv.map_rgbd.camera.width <= max(cfg.mapping.max_width, 1) or cfg.mapping.max_width <= 0
+    finally:
+        rt.stop()
+
+
 def test_a_refinement_that_would_pass_the_deadline_is_left_out(seq):
     """A frame whose pose is already due is posed from the coarse stage alone (and counted), but never two frames
     in a row, so the refinement's time keeps being measured; without a deadline, or with
@@ -271,10 +309,39 @@ def test_realtime_run_writes_what_it_measured(seq, tmp_path):
     # the kernels were loaded before the stream; the refinement took its own budget and what mapping was cut short of
     assert r["warm_up_s"] > 0
     planned = [cfg.mapping.first_iterations] + [cfg.mapping.iterations] * (m["keyframes"] - 1)
+    late = r["late_views"]
     if m["submaps"] == 1:
-        assert r["refine_owed_iterations"] == sum(max(0, p - i) for p, i in zip(planned, its["per_keyframe"]))
-    assert m["map_refine"]["iterations"] == iteration_budget(cfg.map_refine, m["keyframes"]) + r["refine_owed_iterations"]
+        assert r["refine_owed_iterations"] == (sum(max(0, p - i) for p, i in zip(planned, its["per_keyframe"]))
+                                               + late * cfg.mapping.iterations)
+    views = m["keyframes"] + late  # the late views are fitted as keyframes are, and are not held out
+    assert m["map_refine"]["keyframes"] == views
+    assert m["map_refine"]["iterations"] == iteration_budget(cfg.map_refine, views) + r["refine_owed_iterations"]
+    assert late <= r["keyframes_deferred"] and m.get("late_views", 0) == late
+    assert (m.get("psnr_late_views") is not None) == (late > 0)
+    assert m["novel_views"] + m["keyframes"] + late <= m["frames_tracked"]
 
+
+
+def test_late_views_are_fitted_by_the_refinement_and_scored_apart(seq, tmp_path):
+    """A keyframe due at every frame and at least 20 mapping iterations each: at 30 Hz mapping cannot keep up, so
+    keyframes are deferred and some are kept as late views. The final refinement fits them with the keyframes (and
+    owes each the mapping iterations of a keyframe); metrics.json scores them apart (psnr_late_views) and never
+    as held-out frames."""
+    from swarmsplat.slam.run.realtime.run import run_realtime
+
+    out = tmp_path / "rt"
+    cfg = SlamConfig.from_yaml(_config(tmp_path)).override({"runtime": {"realtime": True, "rate": 30,
+                                                                        "min_mapping_iterations": 20},
+                                                            "keyframes": {"every": 1}})
+    m = run_realtime(seq, out, cfg, progress=False)
+    r = m["realtime"]
+    late = r["late_views"]
+    assert m["status"] == "complete" and 0 < late <= r["keyframes_deferred"], (late, r["keyframes_deferred"])
+    assert m["late_views"] == late and m["map_refine"]["keyframes"] == m["keyframes"] + late
+    assert r["refine_owed_iterations"] >= late * cfg.mapping.iterations
+    assert 20.0 < m["psnr_late_views"] < 60.0 and 0.0 <= m["ssim_late_views"] <= 1.0
+    tracked = m["frames_tracked"]
+    assert m["novel_views"] == tracked - m["keyframes"] - late  # every other tracked frame is held out (<= 64)
 
 
 def test_realtime_run_offloads_finished_submaps_as_an_offline_run_does(seq, tmp_path):

@@ -24,6 +24,7 @@ def test_the_map_refinement_takes_the_mapping_iterations_real_time_cut_short():
 
     log = [{"planned": 100, "iterations": 7}, {"planned": 30, "iterations": 30}, {"planned": 30, "iterations": 5}]
     assert owed_iterations(log) == 93 + 25
+    assert owed_iterations(log, 4, 30) == 93 + 25 + 4 * 30  # each late view: the iterations a keyframe is mapped with
     cfg = SlamConfig().override({"map_refine": {"iterations_per_keyframe": 16, "max_iterations": 1000}})
     assert iteration_budget(with_owed_iterations(cfg, 3, 118).map_refine, 3) == 3 * 16 + 118
     assert iteration_budget(with_owed_iterations(cfg, 100, 118).map_refine, 100) == 1000 + 118  # past the cap

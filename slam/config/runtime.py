@@ -36,6 +36,12 @@ class RuntimeConfig(_Section):
                               "(metrics.json realtime.refine_owed_iterations), so the map gets the optimisation "
                               "an offline run gives it; the map is ready that much later, the poses are not "
                               "affected")
+    late_views: bool = Field(True, description="real time: a frame due to be a keyframe while mapping was busy "
+                             "(deferred) is kept as a late view, at most one per keyframes.every frames, unless the "
+                             "keyframe it waited for came within half that; after the stream the final map "
+                             "refinement (map_refine, on mapping-resolution views) fits the merged map to these "
+                             "views too, as to keyframes, and owes each the mapping.iterations an offline run would "
+                             "have mapped it with (metrics.json realtime.late_views); they are not held-out views")
     mapping_nice: int = Field(5, ge=0, le=19, description="real time: how much the mapping worker lowers its "
                               "threads' priority (nice value added; Linux), so tracking gets the cores first; "
                               "0 = the same priority")

@@ -61,6 +61,9 @@ class Agent:
         self.loops = LoopCloser(self.cfg.loop_closure, max_depth=self.cfg.image.max_depth)
         self._chain = OdometryChain(self.loops.model)  # tracking covariance since the last keyframe
         self.keyframes: list[Keyframe] = []
+        # Frames the map refinement fits beside the keyframes but mapping never saw (a real-time run's deferred
+        # keyframes: slam.run.realtime.agent, config runtime.late_views); negative ids, in no submap's keyframe list.
+        self.late_views: list[Keyframe] = []
         self.poses: list[FramePose] = []
         self.time = Timings()
         self._last_kf_pose: np.ndarray | None = None  # T_local_cam of the last keyframe (active submap)
@@ -76,6 +79,7 @@ class Agent:
 
     def __setstate__(self, state: dict) -> None:  # checkpoints of agents from before the keyframe store
         state.setdefault("frame_store", None)
+        state.setdefault("late_views", [])
         state.setdefault("exposure_active", state["cfg"].exposure.enabled is True)
         state.setdefault("exposure_from", 0 if state["exposure_active"] else None)
         self.__dict__.update(state)

@@ -29,6 +29,7 @@ from swarmsplat.kernels.camera import PinholeCamera
 from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.frames import RGBD, make_rgbd
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
+from swarmsplat.slam.dense.submaps import world_pose
 from swarmsplat.slam.dense.render import render, viewmat_from_pose
 
 METRICS = ("psnr", "ssim", "depth_l1", "psnr_valid_depth")
@@ -125,8 +126,12 @@ def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True, held_
         if merged:
             merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg,
                                             exposure=kf.exposure, display=display)[0])
+    late = list(getattr(agent, "late_views", [])) if merged else []
+    late_scores = [score_view(merged_map, T_world, seq[lv.frame_index].color, seq[lv.frame_index].depth, seq.camera,
+                              agent.cfg, exposure=lv.exposure, display=display)[0]
+                   for lv, T_world in zip(late, [world_pose(agent.gmap, lv) for lv in late])]
     if merged and held_out > 0 and agent.poses:
-        kf_frames = {kf.frame_index for kf in agent.keyframes}
+        kf_frames = {kf.frame_index for kf in agent.keyframes + late}  # the refinement fitted late views too
         _, T_all = agent.trajectory()
         held = [(rec.frame_index, T_all[i]) for i, rec in enumerate(agent.poses) if rec.frame_index not in kf_frames]
         if len(held) > held_out:
@@ -150,21 +155,18 @@ def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True, held_
         nv = mean_scores(novel_scores)
         out.update(psnr_novel=nv.get("psnr"), ssim_novel=nv.get("ssim"), psnr_novel_input_resolution=nv.get("psnr" + INPUT),
                    ssim_novel_input_resolution=nv.get("ssim" + INPUT), novel_views=len(novel_scores))
+        if late:  # the frames the refinement fitted beside the keyframes (a real-time run's late views)
+            lm = mean_scores(late_scores)
+            out.update(psnr_late_views=lm.get("psnr"), ssim_late_views=lm.get("ssim"), late_views=len(late))
     return out
 
 
 def held_out_exposure(keyframes, frame_index: int) -> np.ndarray | None:
-    """The exposure of a frame that is not a keyframe: interpolated linearly (by frame index) between the
-    keyframes before and after it, the nearest one's beyond the ends (None when the keyframes have none). The
-    frame's own image is not used: a held-out score stays a prediction."""
-    kfs = [k for k in keyframes if k.exposure is not None]
-    if not kfs:
-        return None
-    idx = np.array([k.frame_index for k in kfs])
-    order = np.argsort(idx)
-    idx = idx[order]
-    es = np.stack([kfs[i].exposure for i in order])
-    return np.array([np.interp(frame_index, idx, es[:, c]) for c in range(es.shape[1])])
+    """The exposure of a frame that is not a keyframe (slam.dense.mapping.exposure.interpolated): from the
+    keyframes around it, never from the frame's own image, so a held-out score stays a prediction."""
+    from swarmsplat.slam.dense.mapping.exposure import interpolated
+
+    return interpolated(keyframes, frame_index)
 
 
 def exposure_record(keyframes) -> dict:

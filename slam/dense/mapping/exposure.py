@@ -193,3 +193,16 @@ def summary(exposures: list[np.ndarray | None], outliers: int) -> dict:
     return {"model": "affine per keyframe (gain and offset per channel)", "keyframes": len(es),
             "gain_min": float(gains.min()), "gain_median": float(np.median(gains)), "gain_max": float(gains.max()),
             "offset_abs_max": float(np.abs(es[:, 3:]).max()), "outlier_keyframes": int(outliers)}
+
+
+def interpolated(keyframes, frame_index: int) -> np.ndarray | None:
+    """The exposure of a frame that is not a keyframe: interpolated linearly (by frame index) between the
+    keyframes before and after it, the nearest one's beyond the ends (None when the keyframes have none)."""
+    kfs = [k for k in keyframes if k.exposure is not None]
+    if not kfs:
+        return None
+    idx = np.array([k.frame_index for k in kfs])
+    order = np.argsort(idx)
+    idx = idx[order]
+    es = np.stack([kfs[i].exposure for i in order])
+    return np.array([np.interp(frame_index, idx, es[:, c]) for c in range(es.shape[1])])

@@ -18,8 +18,9 @@ import torch
 from swarmsplat.kernels import se3
 
 from swarmsplat.slam.dense.gaussian_map import GaussianMap, GaussianParams, transform_params
+from swarmsplat.slam.dense.submaps import world_pose
 from swarmsplat.slam.dense.mapping.refine_merged import RefineView, ViewCache
-from .exposure import median_gauge
+from .exposure import interpolated, median_gauge
 from .refine_regions import refine_by_region
 from swarmsplat.slam.dense.packed import PackedRGBD
 from .mapper import fallback_depth
@@ -161,9 +162,14 @@ def refine_agent(agent, cfg, mapping, exposure=None) -> dict | None:
     ExposureConfig `exposure`); None when there is nothing to refine (refinement off, or no keyframe)."""
     if cfg.iterations_per_keyframe <= 0 or cfg.max_iterations <= 0 or not agent.keyframes:
         return None
-    poses = agent.keyframe_world_poses()
+    late = list(getattr(agent, "late_views", []))
+    if late and exposure is not None:  # as a held-out frame's, from the keyframes around it; refined from there
+        for lv in late:
+            lv.exposure = interpolated(agent.keyframes, lv.frame_index)
+            lv.exposure_prior = None if lv.exposure is None else lv.exposure.copy()
+    kfs = agent.keyframes + late
     cache = ViewCache(cfg.view_cache_mb * 1e6)
-    views = [_view(kf, T, cfg, cache) for kf, T in zip(agent.keyframes, poses)]
-    view_keyframes = [(agent.gmap.submaps[kf.submap_id], kf) for kf in agent.keyframes]
+    views = [_view(kf, world_pose(agent.gmap, kf), cfg, cache) for kf in kfs]
+    view_keyframes = [(agent.gmap.submaps[kf.submap_id], kf) for kf in kfs]
     return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping,
                          exposure=exposure)

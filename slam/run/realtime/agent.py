@@ -32,6 +32,7 @@ from swarmsplat.slam.config import SlamConfig
 from swarmsplat.slam.dense.agent import Agent, FramePose
 from swarmsplat.slam.dense.frames import RGBD
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
+from swarmsplat.slam.dense.packed import PackedRGBD, pack
 from swarmsplat.slam.dense.submaps import Keyframe, retire_keyframes
 from swarmsplat.kernels.memory import trim_heap
 
@@ -55,6 +56,7 @@ class RealtimeAgent(Agent):
         self._cv = threading.Condition()
         self.error: BaseException | None = None  # what ended the worker, raised on the tracker's thread
         self.keyframes_deferred = 0  # frames due to be keyframes while the worker was busy
+        self._late = None  # the first deferred frame since the last keyframe or late view: a late view to be
         self.mapping_log: list[dict] = []  # per keyframe: iterations, planned, seconds (mapping, loop closure)
         self.worker_cpu_s = 0.0  # CPU time of the worker thread
         self._thread = threading.Thread(target=self._work, name=f"{name}-mapping", daemon=True)
@@ -101,12 +103,39 @@ class RealtimeAgent(Agent):
             else:
                 self.keyframes_deferred += 1
                 self._pending.set()
+                if self.cfg.runtime.late_views and self.keep_keyframe_images:  # the refinement fits them
+                    self._defer(index, timestamp, frame, T_local_cam)
         self.time.frames += 1
         rec = FramePose(index, timestamp, self.gmap.active.id if self.gmap.submaps else -1, T_local_cam)
         self.poses.append(rec)
         if rec.submap_id < 0:  # the first frame: its pose is in the frame of the submap it starts
             self.hand_over_keyframe()
         return rec
+
+    def _defer(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> None:
+        """A frame due to be a keyframe while the worker is busy: the first such frame since the last keyframe is
+        held as a late view candidate (config runtime.late_views); one held keyframes.every frames ago, with the
+        keyframe still waiting, becomes a late view and this frame the next candidate."""
+        if self._late is not None and index - self._late.frame_index < self.cfg.keyframes.every:
+            return
+        self._commit_late()
+        m = frame.resized(self.cfg.mapping.max_width)
+        # the mapping-resolution images stand for the small ones too: a late view is never registered
+        self._late = Keyframe(-1 - len(self.late_views), index, timestamp, self.gmap.active.id, T_local_cam.copy(),
+                              m, m)
+
+    def _commit_late(self, next_keyframe: int | None = None) -> None:
+        """The held candidate becomes a late view unless the keyframe it waited for (frame `next_keyframe`) came
+        within half of keyframes.every frames of it: that keyframe then sees nearly what it saw."""
+        lv, self._late = self._late, None
+        if lv is None or (next_keyframe is not None
+                          and next_keyframe - lv.frame_index < max(1, self.cfg.keyframes.every // 2)):
+            return
+        self.late_views.append(lv)
+
+    def end_stream(self) -> None:
+        """After the last frame: the late view candidate still held becomes one."""
+        self._commit_late()
 
     def hand_over_keyframe(self) -> None:
         """When the frame `track` posed last is due to be a keyframe (and the worker was idle): start a submap if
@@ -115,6 +144,7 @@ class RealtimeAgent(Agent):
         if self._due is None:
             return
         (index, timestamp, frame), self._due = self._due, None
+        self._commit_late(index)
         rec = self.poses[-1]
         rec.T_local_cam = self._hand_over(index, timestamp, frame, rec.T_local_cam)
         rec.submap_id = self.gmap.active.id
@@ -241,6 +271,9 @@ class RealtimeAgent(Agent):
         has one, and move its Gaussians to the map's store. (start_submap has dropped the mapping-resolution
         images already where they are not kept.)"""
         retire_keyframes(keyframes, keep_images=True, compress=True, frame_store=self.frame_store)
+        for lv in list(self.late_views):  # the late views of finished submaps, packed as their keyframes are
+            if lv.submap_id != self.gmap.active.id and not isinstance(lv.map_rgbd, PackedRGBD):
+                lv.map_rgbd = lv.small = pack(lv.map_rgbd)
         self.gmap.retire(self.gmap.submaps[submap_id])
         if self.cfg.kernels.malloc_trim:
             trim_heap()

@@ -107,6 +107,7 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
                 sched.free(time.monotonic())
             log.end()
             agent.finish()  # the keyframe being mapped, then the worker stops
+            agent.end_stream()
     finally:
         feed.stop()
         agent.stop(1.0)
@@ -116,23 +117,25 @@ def run_realtime(dataset_path: str | Path, out_dir: str | Path, config: SlamConf
     extra = {"realtime": realtime_metrics(log, feed, agent, n_frames=n, rate_hz=rate,
                                           rate_from="--rate" if rt.rate else "timestamps", budget_s=budget,
                                           ate_live=ate_live)}
-    owed = owed_iterations(agent.mapping_log) if rt.refine_owed else 0
+    owed = owed_iterations(agent.mapping_log, len(agent.late_views), cfg.mapping.iterations) if rt.refine_owed else 0
     extra["realtime"].update({"warm_up_s": warm_s, "refine_owed_iterations": owed})
-    metrics = finish_agent_run(agent, seq, out, with_owed_iterations(cfg, len(agent.keyframes), owed), n_frames=n,
+    views = len(agent.keyframes) + len(agent.late_views)  # what the refinement fits: slam.dense.mapping.refine
+    metrics = finish_agent_run(agent, seq, out, with_owed_iterations(cfg, views, owed), n_frames=n,
                                t0=t0, progress=progress, extra=extra)
     write_report(out, metrics)
     return metrics
 
 
-def owed_iterations(mapping_log: list[dict]) -> int:
+def owed_iterations(mapping_log: list[dict], late_views: int = 0, iterations: int = 0) -> int:
     """The mapping iterations real time cut short: each mapped keyframe's planned (what the offline run gives it)
-    less what it got."""
-    return int(sum(max(0, r["planned"] - r["iterations"]) for r in mapping_log))
+    less what it got, and `iterations` (mapping.iterations) for each of the `late_views`, which an offline run
+    would have mapped as keyframes."""
+    return int(sum(max(0, r["planned"] - r["iterations"]) for r in mapping_log)) + late_views * iterations
 
 
 def with_owed_iterations(cfg: SlamConfig, keyframes: int, owed: int) -> SlamConfig:
     """`cfg` whose map refinement (slam.dense.mapping.refine_merged.iteration_budget) runs `owed` steps more than
-    its own budget for `keyframes` keyframes: runtime.refine_owed. After the stream nothing waits for the map, so
+    its own budget for `keyframes` views (keyframes and late views): runtime.refine_owed. After the stream nothing waits for the map, so
     what mapping could not do in time is done there, on the merged map, one keyframe view per step as a mapping
     iteration is. Unchanged when owed is 0 or the refinement is off."""
     rc = cfg.map_refine

@@ -74,6 +74,7 @@ def realtime_metrics(log: StreamLog, feed, agent, *, n_frames: int, rate_hz: flo
         "ate_rmse_live": ate_live,
         "keyframes": len(agent.keyframes), "keyframes_mapped": len(agent.mapping_log),
         "keyframes_deferred": agent.keyframes_deferred,
+        "late_views": len(agent.late_views),  # deferred keyframes the final refinement fits (runtime.late_views)
         "refinements_skipped": agent.tracker.refines_skipped,
         "mapping_iterations": {"mean": float(np.mean(its)) if its else None, "min": min(its, default=None),
                                "max": max(its, default=None),
@@ -114,7 +115,8 @@ def report_markdown(m: dict) -> str:
         L.append("")
     L += ["## Mapping beside tracking", "",
           f"{r['keyframes']} keyframes ({r['keyframes_deferred']} frames were due to be keyframes while mapping was "
-          f"still busy and waited for the next one); mapping iterations per keyframe: mean "
+          f"still busy and waited for the next one; {r.get('late_views', 0)} of them kept as late views, which "
+          f"the final map refinement fits as keyframes); mapping iterations per keyframe: mean "
           f"{_ms(its['mean'])}, min {its['min']}, max {its['max']}, {its['cut_short']} keyframes cut short by the "
           f"next one. Per keyframe: mapping {_ms(1e3 * (r['mapping_s_per_keyframe'] or 0))} ms, loop closure "
           f"{_ms(1e3 * (r['loop_closure_s_per_keyframe'] or 0))} ms.", "",
