@@ -235,6 +235,7 @@ def test_a_deferred_keyframe_is_kept_as_a_late_view_unless_its_keyframe_came_soo
         rt._commit_late(23)  # 3 frames later: kept
         defer(30)
         defer(34)  # a wait of `every` frames: 30 kept, 34 held
+        assert rt.late_views[0].map_rgbd is frame  # as tracked: resized after the stream, or packed on the worker
         rt.end_stream()
         assert [lv.frame_index for lv in rt.late_views] == [20, 30, 34]
         assert [lv.id for lv in rt.late_views] == [-1, -2, -3]  # never a keyframe's id

@@ -119,10 +119,11 @@ class RealtimeAgent(Agent):
         if self._late is not None and index - self._late.frame_index < self.cfg.keyframes.every:
             return
         self._commit_late()
-        m = frame.resized(self.cfg.mapping.max_width)
-        # the mapping-resolution images stand for the small ones too: a late view is never registered
+        # The frame as tracked, not a copy: it is brought to the mapping resolution and packed on the worker, with
+        # its submap's keyframes, or at the end of the stream (_fit_late), not here on the tracker's time. Its
+        # images stand for the small ones too: a late view is never registered.
         self._late = Keyframe(-1 - len(self.late_views), index, timestamp, self.gmap.active.id, T_local_cam.copy(),
-                              m, m)
+                              frame, frame)
 
     def _commit_late(self, next_keyframe: int | None = None) -> None:
         """The held candidate becomes a late view unless the keyframe it waited for (frame `next_keyframe`) came
@@ -134,8 +135,18 @@ class RealtimeAgent(Agent):
         self.late_views.append(lv)
 
     def end_stream(self) -> None:
-        """After the last frame: the late view candidate still held becomes one."""
+        """After the last frame (the worker stopped): the late view candidate still held becomes one, and every
+        late view not packed yet is brought to the mapping resolution."""
         self._commit_late()
+        for lv in self.late_views:
+            self._fit_late(lv, pack_it=False)
+
+    def _fit_late(self, lv: Keyframe, *, pack_it: bool) -> None:
+        """A late view's images at the mapping resolution, as a keyframe's map_rgbd (packed with `pack_it`)."""
+        if isinstance(lv.map_rgbd, PackedRGBD):
+            return
+        m = lv.map_rgbd.resized(self.cfg.mapping.max_width)
+        lv.map_rgbd = lv.small = pack(m) if pack_it else m
 
     def hand_over_keyframe(self) -> None:
         """When the frame `track` posed last is due to be a keyframe (and the worker was idle): start a submap if
@@ -272,8 +283,8 @@ class RealtimeAgent(Agent):
         images already where they are not kept.)"""
         retire_keyframes(keyframes, keep_images=True, compress=True, frame_store=self.frame_store)
         for lv in list(self.late_views):  # the late views of finished submaps, packed as their keyframes are
-            if lv.submap_id != self.gmap.active.id and not isinstance(lv.map_rgbd, PackedRGBD):
-                lv.map_rgbd = lv.small = pack(lv.map_rgbd)
+            if lv.submap_id != self.gmap.active.id:
+                self._fit_late(lv, pack_it=True)
         self.gmap.retire(self.gmap.submaps[submap_id])
         if self.cfg.kernels.malloc_trim:
             trim_heap()
