@@ -129,18 +129,20 @@ def _frames(seq_path: Path, n: int):
     return s, [s[i] for i in range(n)]
 
 
-def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
+@pytest.mark.parametrize("exposure", ["auto", True])
+def test_worker_maps_like_the_offline_agent_when_given_the_time(seq, exposure):
     """Stepping the real-time agent and letting its worker finish each keyframe before the next frame gives the
     offline agent's trajectory and map: the split over two threads changes when mapping runs, not what it does
     (across submaps too: the worker packs a retired submap's keyframe images and stores its Gaussians where the
-    offline agent does both when it starts the next submap). Each pose goes out before its keyframe is handed
-    over, and a new submap started then leaves the emitted world pose as it was."""
+    offline agent does both when it starts the next submap; and the worker fits each keyframe's exposure, which
+    the offline agent does as it adds the keyframe). Each pose goes out before its keyframe is handed over, and a
+    new submap started then leaves the emitted world pose as it was."""
     from swarmsplat.slam.dense.agent import Agent
     from swarmsplat.slam.dense.packed import PackedRGBD
     from swarmsplat.slam.run.realtime.agent import RealtimeAgent
     from swarmsplat.slam.run.runtime import use_kernels
 
-    cfg = SlamConfig().override({**QUICK, "loop_closure": {"enabled": False},
+    cfg = SlamConfig().override({**QUICK, "loop_closure": {"enabled": False}, "exposure": {"enabled": exposure},
                                  "submaps": {**QUICK["submaps"], "max_keyframes": 2}})
     use_kernels(cfg.kernels)
     s, frames = _frames(seq, 10)
@@ -164,6 +166,12 @@ def test_worker_maps_like_the_offline_agent_when_given_the_time(seq):
     assert any(isinstance(k.small, PackedRGBD) for k in rt.keyframes)
     assert [r["iterations"] for r in rt.mapping_log] == [r["planned"] for r in rt.mapping_log]  # none cut short
     np.testing.assert_allclose(rt.trajectory()[1], off.trajectory()[1], atol=1e-9)
+    assert rt.exposure_active == off.exposure_active == (exposure is True or off.exposure_active)
+    for k, o in zip(rt.keyframes, off.keyframes):
+        assert (k.exposure is None) == (o.exposure is None) and k.exposure_outlier == o.exposure_outlier
+        if k.exposure is not None:
+            np.testing.assert_allclose(k.exposure, o.exposure, atol=1e-9)
+            np.testing.assert_allclose(k.exposure_prior, o.exposure_prior, atol=1e-9)
     a, b = rt.gmap.merged(), off.gmap.merged()
     assert len(a) == len(b) > 0
     np.testing.assert_allclose(a.means.numpy(), b.means.numpy(), atol=1e-6)

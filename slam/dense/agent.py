@@ -173,18 +173,28 @@ class Agent:
         self.tracker.reset_frame(se3.inverse(T_local_cam))
         return np.eye(4)
 
-    def _add_keyframe(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray) -> Keyframe:
+    def _add_keyframe(self, index: int, timestamp: float, frame: RGBD, T_local_cam: np.ndarray, *,
+                      exposure_now: bool = True) -> Keyframe:
+        """Add the keyframe to the active submap, with its exposure fitted (`_keyframe_exposure`) unless
+        `exposure_now` is False: the real-time agent fits it on its mapping worker, off the tracker's time."""
         s = self.gmap.active
         kf = Keyframe(len(self.keyframes), index, timestamp, s.id, T_local_cam.copy(),
                       frame.resized(self.cfg.mapping.max_width), frame.resized(self.cfg.submaps.keep_keyframe_width))
-        if self.exposure_active:
-            self._fit_exposure(kf, first_of_submap=not s.keyframe_ids)
-        elif self.cfg.exposure.enabled == "auto" and self.keyframes:
-            self._watch_exposure(kf, first_of_submap=not s.keyframe_ids)
         self.keyframes.append(kf)
         s.keyframe_ids.append(kf.id)
         self._last_kf_pose = T_local_cam.copy()
+        if exposure_now:
+            self._keyframe_exposure(kf)
         return kf
+
+    def _keyframe_exposure(self, kf: Keyframe) -> None:
+        """kf's exposure (slam.dense.mapping.exposure), from the map as it stands before kf is mapped: fitted when
+        the model is on; with exposure.enabled "auto", watched for the change that switches it on."""
+        first = self.gmap.submaps[kf.submap_id].keyframe_ids[0] == kf.id
+        if self.exposure_active:
+            self._fit_exposure(kf, first_of_submap=first)
+        elif self.cfg.exposure.enabled == "auto" and kf.id > 0:
+            self._watch_exposure(kf, first_of_submap=first)
 
     def _watch_exposure(self, kf: Keyframe, *, first_of_submap: bool) -> None:
         """exposure.enabled "auto": fit kf's exposure against the map and switch the model on when its gain departs
@@ -208,7 +218,7 @@ class Agent:
         exposure.revisit_radius (a revisit ties the new submap's colours to the ones that saw the place first, as
         a loop closes a chain of poses). None: too few pixels agree."""
         cfg = self.cfg.exposure
-        s = self.gmap.active
+        s = self.gmap.submaps[kf.submap_id]
         f = kf.map_rgbd
         if first_of_submap:
             T_world = s.T_world_local @ kf.T_local_cam
@@ -236,10 +246,10 @@ class Agent:
         agreement keeps the previous keyframe's; an implausible step from it (a black frame, an auto-exposure
         reset) marks kf an outlier."""
         cfg = self.cfg.exposure
-        if not self.keyframes:
+        if kf.id == 0:
             kf.exposure, kf.exposure_prior = exposure.identity(), exposure.identity()
             return
-        prev = self.keyframes[-1].exposure
+        prev = self.keyframes[kf.id - 1].exposure  # the keyframe before it
         prev = exposure.identity() if prev is None else prev
         f = kf.map_rgbd
         if fitted is None:

@@ -6,7 +6,8 @@ for the map. Then `hand_over_keyframe`, after the pose went out: when the frame 
 worker is idle, it starts a submap if needed, adds the keyframe and hands it over; when the worker is still busy,
 the keyframe is deferred (the next frame is asked again) and the worker is told to finish: it gives each keyframe
 `runtime.min_mapping_iterations` at least and otherwise stops as soon as the next keyframe waits (at most
-mapping.iterations, or runtime.max_mapping_iterations). `step` does both. After mapping, the worker renders the
+mapping.iterations, or runtime.max_mapping_iterations). `step` does both. The worker fits the keyframe's exposure
+against the map first (renders of one or more submaps, kept off the tracker's time). After mapping, the worker renders the
 tracker's model view of the new map (slam.dense.tracking.tracker build_view) and publishes both; the tracker takes
 them up at its next frame. Loop closure runs after that, on the worker.
 
@@ -189,7 +190,7 @@ class RealtimeAgent(Agent):
             self._published = self.gmap.active.params  # a new submap: nothing mapped in it yet
             if before is not None:
                 retired = (before, [k for k in self.keyframes if k.submap_id == before] if compress else [])
-        kf = self._add_keyframe(index, timestamp, frame, T_local_cam)
+        kf = self._add_keyframe(index, timestamp, frame, T_local_cam, exposure_now=False)  # fitted on the worker
         information = self._chain.information()
         self._chain.reset()
         self._idle.clear()
@@ -249,6 +250,9 @@ class RealtimeAgent(Agent):
         t0 = time.perf_counter()
         if retired is not None:
             self._retire(*retired)
+        # the keyframe's exposure, from the map as it stands (rendering one or more submaps: up to ~0.2 s, which on
+        # the tracker's thread made it drop the frames behind it)
+        self._keyframe_exposure(kf)
         first = len(self.gmap.submaps[kf.submap_id].keyframe_ids) == 1
         planned = rt.max_mapping_iterations or (self.cfg.mapping.first_iterations if first else
                                                 self.cfg.mapping.iterations)
