@@ -290,6 +290,29 @@ def test_auto_switches_the_model_on_when_the_camera_darkens(warp_cpu):
     assert not _walk(cfg, darker_from=2).exposure_active
 
 
+def test_auto_reads_a_change_against_the_maps_own_colour_error(warp_cpu, monkeypatch):
+    """A map that misses its keyframes' colours (here dimmed by 15 % after every mapping, as a real-time map mapped
+    for a few iterations renders them) reads as a gain on the next keyframe of a camera whose exposure never
+    changes. Auto measures that gain against the previous keyframe's fit to the same map: the model stays off, and
+    a real change of the camera still switches it on at the keyframe that saw it first."""
+    from swarmsplat.slam.dense.agent import Agent
+
+    mapped = Agent._map
+
+    def dimmed(self, kf, **kw):
+        stats = mapped(self, kf, **kw)
+        with torch.no_grad():
+            self.gmap.submaps[kf.submap_id].params.colors.mul_(0.85)
+        return stats
+
+    monkeypatch.setattr(Agent, "_map", dimmed)
+    assert not _walk(_walk_cfg("auto"), None).exposure_active
+    changed = _walk(_walk_cfg("auto"), darker_from=2)
+    assert changed.exposure_active and changed.exposure_from == 2
+    monkeypatch.setattr(Agent, "_map_colour_bias", lambda self, kf: None)  # the check this test is about, left out
+    assert _walk(_walk_cfg("auto"), None).exposure_active  # the dimmed map alone switches the model on
+
+
 def test_the_written_map_holds_the_colours_a_typical_keyframe_saw(tmp_path):
     from types import SimpleNamespace
 

@@ -143,8 +143,9 @@ class ExposureConfig(_Section):
     enabled: bool | Literal["auto"] = Field(
         "auto", description="model each keyframe's exposure and white balance. auto: watch the camera and switch the "
         "model on at the first keyframe whose fitted gain departs from the map's colours by more than "
-        "auto_threshold (a real camera's auto exposure; rendered data does not offline, and runs as with false, but "
-        "in real time a first map mapped for a few iterations can switch it on: docs/realtime.md); true: "
+        "auto_threshold beyond the previous keyframe's own fit to the map (a real camera's auto exposure; rendered "
+        "data never does, and runs as with false, in real time too, where a map mapped for a few iterations reads "
+        "as a gain on every keyframe); true: "
         "from the first keyframe; false: fit the map's colours to every image as it is (docs/decisions/0011)")
     auto_threshold: float = Field(0.05, gt=0, description="auto: the |log gain| in any channel (0.05 = 5 %) at "
                                   "which a keyframe's fit switches the model on; fits on rendered data stay "

@@ -204,13 +204,33 @@ class Agent:
         fitted = self._exposure_fit(kf, first_of_submap)
         if fitted is None or exposure.is_outlier(fitted.exposure, exposure.identity(), self.cfg.exposure.max_gain):
             return
-        if np.abs(fitted.exposure[:3]).max() <= self.cfg.exposure.auto_threshold:
+        # Against the map's own error: the previous keyframe fitted to the submap it was mapped into. Offline that
+        # map has its iterations and the fit is ~identity; a real-time map mapped for a few iterations renders
+        # colours that read as a gain on every keyframe (0.86-0.91 on rendered Redwood), which is not the camera's.
+        gain = fitted.exposure[:3]
+        bias = self._map_colour_bias(self.keyframes[kf.id - 1])
+        if bias is not None:
+            gain = gain - bias[:3]
+        if np.abs(gain).max() <= self.cfg.exposure.auto_threshold:
             return
         self.exposure_active, self.exposure_from = True, kf.id
         self.mapper.exposure = self.cfg.exposure
         for k in self.keyframes:
             k.exposure, k.exposure_prior = exposure.identity(), exposure.identity()
         self._fit_exposure(kf, first_of_submap=first_of_submap, fitted=fitted)
+
+    def _map_colour_bias(self, kf: Keyframe) -> np.ndarray | None:
+        """The exposure kf's image reads against the render of its own submap at its pose (slam.dense.mapping.
+        exposure.fit; None when too few pixels agree): what the map's colours miss of a keyframe it was fitted to."""
+        s = self.gmap.submaps[kf.submap_id]
+        f = kf.map_rgbd if kf.map_rgbd is not None else kf.small  # packed ones decode as they are read
+        if not len(s) or f is None:
+            return None
+        with torch.no_grad():
+            out = render(s.params, viewmat_from_pose(kf.T_local_cam), f.camera)
+        r = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
+                         f.color.astype(np.float32) / 255.0, f.depth, min_pixels=self.cfg.exposure.min_pixels)
+        return None if r is None else r.exposure
 
     def _exposure_fit(self, kf: Keyframe, first_of_submap: bool) -> "exposure.Fit | None":
         """kf's exposure fitted to the render of the map already there: the active submap at its pose, or for a
