@@ -226,11 +226,15 @@ class Agent:
         f = kf.map_rgbd if kf.map_rgbd is not None else kf.small  # packed ones decode as they are read
         if not len(s) or f is None:
             return None
-        with torch.no_grad():
-            out = render(s.params, viewmat_from_pose(kf.T_local_cam), f.camera)
-        r = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
-                         f.color.astype(np.float32) / 255.0, f.depth, min_pixels=self.cfg.exposure.min_pixels)
+        r = self._fit_to(s, kf.T_local_cam, f)
         return None if r is None else r.exposure
+
+    def _fit_to(self, submap, T_local_cam: np.ndarray, f) -> "exposure.Fit | None":
+        """The exposure frame `f` reads against `submap` rendered at T_local_cam (slam.dense.mapping.exposure.fit)."""
+        with torch.no_grad():
+            out = render(submap.params, viewmat_from_pose(T_local_cam), f.camera)
+        return exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
+                            f.color.astype(np.float32) / 255.0, f.depth, min_pixels=self.cfg.exposure.min_pixels)
 
     def _exposure_fit(self, kf: Keyframe, first_of_submap: bool) -> "exposure.Fit | None":
         """kf's exposure fitted to the render of the map already there: the active submap at its pose, or for a
@@ -248,17 +252,8 @@ class Agent:
             refs = [(m, se3.inverse(m.T_world_local) @ T_world) for m in near + others[-1:]]
         else:
             refs = [(s, kf.T_local_cam)]
-        fits = []
-        for ref, T in refs:
-            if not len(ref):
-                continue
-            with torch.no_grad():
-                out = render(ref.params, viewmat_from_pose(T), f.camera)
-            r = exposure.fit(out.color.clamp(0, 1).numpy(), out.alpha.numpy(), out.depth_normalised.numpy(),
-                             f.color.astype(np.float32) / 255.0, f.depth, min_pixels=cfg.min_pixels)
-            if r is not None:
-                fits.append(r)
-        return exposure.combine(fits)
+        fits = [self._fit_to(ref, T, f) for ref, T in refs if len(ref)]
+        return exposure.combine([r for r in fits if r is not None])
 
     def _fit_exposure(self, kf: Keyframe, *, first_of_submap: bool, fitted: "exposure.Fit | None" = None) -> None:
         """Set kf's exposure (slam.dense.mapping.exposure) from the map already there (`_exposure_fit`, or

@@ -126,7 +126,7 @@ def keyframe_metrics(agent, seq, *, own: bool = True, merged: bool = True, held_
         if merged:
             merged_scores.append(score_view(merged_map, T_world, f.color, f.depth, seq.camera, agent.cfg,
                                             exposure=kf.exposure, display=display)[0])
-    late = list(getattr(agent, "late_views", [])) if merged else []
+    late = list(agent.late_views) if merged else []
     late_scores = [score_view(merged_map, T_world, seq[lv.frame_index].color, seq[lv.frame_index].depth, seq.camera,
                               agent.cfg, exposure=lv.exposure, display=display)[0]
                    for lv, T_world in zip(late, [world_pose(agent.gmap, lv) for lv in late])]

@@ -162,7 +162,7 @@ def refine_agent(agent, cfg, mapping, exposure=None) -> dict | None:
     ExposureConfig `exposure`); None when there is nothing to refine (refinement off, or no keyframe)."""
     if cfg.iterations_per_keyframe <= 0 or cfg.max_iterations <= 0 or not agent.keyframes:
         return None
-    late = list(getattr(agent, "late_views", []))
+    late = list(agent.late_views)
     if late and exposure is not None:  # as a held-out frame's, from the keyframes around it; refined from there
         for lv in late:
             lv.exposure = interpolated(agent.keyframes, lv.frame_index)
