@@ -11,7 +11,7 @@ import torch
 
 from swarmsplat.kernels import use_reference
 from swarmsplat.kernels.camera import PinholeCamera
-from swarmsplat.slam.config import MappingConfig, MapRefineConfig
+from swarmsplat.slam.config import ExposureConfig, MappingConfig, MapRefineConfig
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
 from swarmsplat.slam.dense.mapping.refine_merged import RefineView, contributions, iteration_budget, refine_map
 from swarmsplat.slam.dense.mapping.refine_regions import refine_by_region, split_regions, whole_map_keep
@@ -179,3 +179,54 @@ def test_region_gaussians_is_validated():
 
     with pytest.raises((InputError, ValueError)):
         MapRefineConfig(region_gaussians=-1)
+
+
+def test_visibility_is_the_projection_of_each_centre_into_the_grown_image():
+    """Visibility.indices (half-spaces in the map frame) against projecting every centre: the same set, apart from
+    centres within float32 rounding of the image's grown edge or the near plane; a view's pose turned and moved."""
+    from swarmsplat.slam.dense.mapping.refine_merged import Visibility
+    from swarmsplat.slam.dense.render import NEAR
+
+    g = torch.Generator().manual_seed(3)
+    means = torch.rand(200_000, 3, generator=g) * 8.0 - 4.0
+    cam = PinholeCamera(fx=250.0, fy=240.0, cx=161.0, cy=104.0, width=320, height=213)
+    angle = 0.7
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]]
+    T[:3, 3] = [0.3, -0.2, -1.5]
+    view = RefineView(viewmat_from_pose(T), None, None, cam)
+    seen = Visibility(means)
+    for margin in (0.0, 0.15):
+        got = set(seen.indices(view, margin).tolist())
+        vm = view.viewmat.to(torch.float64)
+        pc = means.double() @ vm[:3, :3].T + vm[:3, 3]
+        z = pc[:, 2]
+        u = cam.fx * pc[:, 0] / z.clamp_min(NEAR) + cam.cx
+        v = cam.fy * pc[:, 1] / z.clamp_min(NEAR) + cam.cy
+        mu, mv = margin * cam.width, margin * cam.height
+        edge = torch.stack([u + mu, cam.width + mu - u, v + mv, cam.height + mv - v]).min(dim=0).values
+        want = set(torch.nonzero((z > NEAR) & (edge > 0)).squeeze(1).tolist())
+        near_edge = set(torch.nonzero(((edge.abs() < 1e-3) | ((z - NEAR).abs() < 1e-5))).squeeze(1).tolist())
+        assert 1000 < len(want) < len(means) // 2  # the view sees a part of the points, not none or all
+        assert (got ^ want) <= near_edge
+
+
+@pytest.mark.parametrize("with_exposure", [False, True])
+def test_auto_pose_refinement_follows_the_cameras_exposure_model(with_exposure):
+    """map_refine.refine_poses "auto" (the default): the keyframes' poses are refined where they carry an exposure
+    (the model on: a real camera), and stay where they are otherwise, whole map and by region alike."""
+    from swarmsplat.slam.dense.mapping.exposure import identity
+
+    p, views = _scene(hidden=False)
+    if with_exposure:
+        views = [v.at(exposure=identity()) for v in views]
+        for v in views:
+            v.exposure_prior = identity()
+    assert MapRefineConfig().refine_poses == "auto"
+    for k in (0, len(p) // 2):
+        cfg = MapRefineConfig(iterations_per_keyframe=2, region_gaussians=k, min_contribution=0.0)
+        with use_reference():
+            _, _, st, _ = refine_by_region(p, views, cfg, MappingConfig(), exposure=ExposureConfig())
+        assert (st.viewmats is not None) == with_exposure
+        if with_exposure:
+            assert (st.pose_moves[1:].sum(axis=1) > 0).all()

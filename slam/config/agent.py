@@ -204,10 +204,12 @@ class MapRefineConfig(_Section):
                                                "(submaps.keep_keyframe_width): faster, blurrier above that width")
     single_agent: bool = Field(True, description="`swarmsplat run` refines its one agent's merged map the same "
                                "way after the last frame (its submaps overlap as a team's do); false skips it")
-    refine_poses: bool = Field(False, description="also refine each keyframe's pose with the map (photometric "
-                               "bundle adjustment; each agent's first keyframe holds its gauge); the keyframes and "
-                               "the frames tracked after them then follow the refined poses "
-                               "(Keyframe.T_local_refined)")
+    refine_poses: bool | Literal["auto"] = Field(
+        "auto", description="also refine each keyframe's pose with the map (photometric bundle adjustment; each "
+        "agent's first keyframe holds its gauge); the keyframes and the frames tracked after them then follow the "
+        "refined poses (Keyframe.T_local_refined). auto: where the camera's exposure model is on (a keyframe of the "
+        "map has an exposure: a real camera, exposure.enabled), off elsewhere (on rendered and generated data it "
+        "raised the map and moved the trajectory away from its ground truth; docs/decisions/0021)")
     lr_pose_rotation: float = Field(1e-3, gt=0, description="Adam step on a keyframe's rotation (rad)")
     lr_pose_translation: float = Field(3e-4, gt=0, description="Adam step on a keyframe's translation (m)")
     optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "

@@ -145,9 +145,9 @@ def finish_agent_run(agent: Agent, seq, out: Path, cfg: SlamConfig, *, n_frames:
     before = None
     if refines(cfg):  # the merged map over all keyframes at their final poses (slam.dense.mapping.refine)
         from swarmsplat.slam.io.progress import reporting
-        from swarmsplat.slam.dense.mapping.refine import refine_agent
+        from swarmsplat.slam.dense.mapping.refine import refine_agent, refines_poses
 
-        before = agent.trajectory(per_keyframe=True)[1] if rc.refine_poses else None
+        before = agent.trajectory(per_keyframe=True)[1] if refines_poses(rc, agent.keyframes) else None
         with reporting(progress):
             refined = refine_agent(agent, rc, cfg.mapping, cfg.exposure if agent.exposure_active else None)
     wall = time.perf_counter() - t0 - t_eval

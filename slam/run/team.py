@@ -277,6 +277,7 @@ def finish_team(team: Team, ds, out: Path, *, wall_s: float, cpu0: float, render
     """After the last frame: the final optimisation, the merged map's refinement (config map_refine) and every
     output (slam.run.team_results). wall_s: seconds so far (the refinement's are added); cpu0: process time at
     the start. Returns the metrics written."""
+    from swarmsplat.slam.dense.mapping.refine import refines_poses
     from swarmsplat.slam.io.progress import reporting
     from .team_results import render_metrics, write_team_results
 
@@ -294,8 +295,8 @@ def finish_team(team: Team, ds, out: Path, *, wall_s: float, cpu0: float, render
             print(f"[team] refining the merged map over {n} keyframes (map_refine: "
                   f"{cfg.map_refine.iterations_per_keyframe} steps per keyframe, at most "
                   f"{cfg.map_refine.max_iterations} per component)", file=sys.stderr)
-        traj_before = ([team.trajectory(a) for a in range(len(team.agents))] if cfg.map_refine.refine_poses
-                       else None)
+        moved = refines_poses(cfg.map_refine, [kf for a in team.agents for kf in a.keyframes])
+        traj_before = [team.trajectory(a) for a in range(len(team.agents))] if moved else None
         t_ref = time.perf_counter()
         with reporting(progress):
             refined = team.refine_map()

@@ -46,7 +46,8 @@ import torch
 
 from swarmsplat.slam.config import ExposureConfig, MappingConfig, MapRefineConfig
 from swarmsplat.slam.dense.gaussian_map import GaussianParams
-from .refine_merged import RefineStats, RefineView, contributions, iteration_budget, refine_map, visible_indices
+from .refine_merged import (RefineStats, RefineView, Visibility, contributions, iteration_budget, refine_map,
+                            refines_poses, visible_indices)
 
 
 SWEEPS = 3  # passes over the regions, each with a third of the steps and of the learning-rate decay: a region
@@ -82,8 +83,9 @@ def whole_map_keep(params: GaussianParams, views: list[RefineView], min_contribu
     """keep [N]: the hidden-copy cull (refine_map's `contributions(params, views) >= min_contribution`) a view at
     a time over the Gaussians whose centre that view sees, so no step holds the whole map's render state."""
     best = torch.zeros(len(params), dtype=params.means.dtype)
+    seen = Visibility(params.means)
     for v in views:
-        idx = visible_indices(params.means.detach(), v, margin)
+        idx = seen.indices(v, margin)
         if len(idx):
             best[idx] = torch.maximum(best[idx], contributions(params.select(idx), [v]))
     return best >= min_contribution
@@ -120,6 +122,7 @@ def refine_by_region(params: GaussianParams, views: list[RefineView], cfg: MapRe
     """refine_map's result (kept Gaussians refined, in order; keep [N] over the input; statistics) with the work done
     region by region (module docstring), and {"regions": how many, "region_gaussians_max": the most Gaussians one
     optimised, "region_keyframes_max": the most keyframes one visited}."""
+    cfg = cfg.model_copy(update={"refine_poses": refines_poses(cfg, views)})  # one decision for every region
     n_it = iteration_budget(cfg, len(views))
     if cfg.region_gaussians <= 0 or len(params) <= cfg.region_gaussians or n_it <= 0 or not views:
         refined, keep, st = refine_map(params, views, cfg, mapping, fixed_views=fixed_views, exposure=exposure,
