@@ -33,7 +33,7 @@ def test_demo_tiny_end_to_end(tmp_path):
 
 
 def test_tiny_team_with_pose_refinement_reports_the_trajectory_before_and_after(tmp_path):
-    """map_refine.refine_poses (opt-in): the server refines the keyframe poses with the map; metrics.json reports the
+    """map_refine.refine_poses (true here; auto leaves generated data alone): the server refines the keyframe poses with the map; metrics.json reports the
     ATE at the refined poses and before them, and how far the poses moved (a few millimetres, not metres)."""
     from swarmsplat.slam.run import demo
 
