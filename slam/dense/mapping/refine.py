@@ -125,16 +125,12 @@ def _refine_parts(parts, views, view_keyframes, cfg, mapping, fixed_views=None, 
             **({} if gauge is None else {"exposure_gauge_gain": [float(g) for g in np.exp(gauge)]})}
 
 
-def _resolved(cfg, keyframes):
-    """cfg with `refine_poses` decided for these keyframes (refines_poses), so everything below reads a bool."""
-    return cfg.model_copy(update={"refine_poses": refines_poses(cfg, keyframes)})
-
-
-def _start_pose(server, a, kf, cfg):
+def _start_pose(server, a, kf, moved: bool):
     """Where a keyframe's view starts: with pose refinement, from its pose-graph optimum (the best estimate the
     trajectory reports; measured on the demo at 320 px it keeps the team ATE closer to the unrefined one than
-    starting from the submap-rigid pose); otherwise at the submap-rigid pose the map was placed with."""
-    if cfg.refine_poses and server.last_graph is not None and kf.T_local_refined is None:
+    starting from the submap-rigid pose); otherwise at the submap-rigid pose the map was placed with. moved:
+    whether the refinement refines the poses (refines_poses)."""
+    if moved and server.last_graph is not None and kf.T_local_refined is None:
         T = server.last_graph[1].get(server.key(a, kf.id))
         if T is not None:
             return T
@@ -149,15 +145,15 @@ def refine_components(server, cfg, mapping, exposure=None) -> dict:
     for root, members in server.components().items():
         parts, views, view_keyframes, fixed = [], [], [], set()
         cache = ViewCache(cfg.view_cache_mb * 1e6)
-        rc = _resolved(cfg, [kf for a in members for kf in server.slots[a].agent.keyframes])
+        moved = refines_poses(cfg, [kf for a in members for kf in server.slots[a].agent.keyframes])
         for a in members:
             s = server.slots[a]
             if s.agent.keyframes:  # each agent's first keyframe holds its gauge (its place in the team's frame)
                 fixed.add(len(views))
             parts += [(sm, s.T_global_world @ sm.T_world_local) for sm in s.agent.gmap.submaps]
-            views += [_view(kf, _start_pose(server, a, kf, rc), rc, cache) for kf in s.agent.keyframes]
+            views += [_view(kf, _start_pose(server, a, kf, moved), cfg, cache) for kf in s.agent.keyframes]
             view_keyframes += [(s.agent.gmap.submaps[kf.submap_id], kf) for kf in s.agent.keyframes]
-        out[server.slots[root].agent.name] = _refine_parts(parts, views, view_keyframes, rc, mapping,
+        out[server.slots[root].agent.name] = _refine_parts(parts, views, view_keyframes, cfg, mapping,
                                                            fixed or None, exposure,
                                                            {min(fixed)} if fixed else None)
     return out
@@ -177,5 +173,5 @@ def refine_agent(agent, cfg, mapping, exposure=None) -> dict | None:
     cache = ViewCache(cfg.view_cache_mb * 1e6)
     views = [_view(kf, world_pose(agent.gmap, kf), cfg, cache) for kf in kfs]
     view_keyframes = [(agent.gmap.submaps[kf.submap_id], kf) for kf in kfs]
-    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes,
-                         _resolved(cfg, agent.keyframes), mapping, exposure=exposure)
+    return _refine_parts([(sm, sm.T_world_local) for sm in agent.gmap.submaps], views, view_keyframes, cfg, mapping,
+                         exposure=exposure)
