@@ -1,14 +1,22 @@
 """perf subject "mapping": one GRAND-SLAM mapping iteration (render, eq.-3 loss with its masks, backward, Adam) at
-320x240 with 60k Gaussians, per backend, against a peer written the plain way in the same process.
+320x240 with 60k Gaussians, and on real frames, per backend, against a peer written the plain way in the same process.
 
-Scene: perf.raster.make_scene's Gaussians (spread through the frustum at 1.5-6 m, 1-3.5 px on screen at 640 px
-scaled to the width) render the target colour and depth of three keyframes (the camera shifted by a few cm);
-the map to optimise is the same Gaussians with noise on means, colours and opacities, in the mapper's
-parametrisation. "ours" is `slam.dense.mapping.mapper.Mapper.optimise`, the mapping loop the agent runs (iteration cost =
-the time difference between a long and a short run, divided by the extra iterations, so Adam's and the targets'
-set-up are not counted); the peer is the same step written with torch's default Adam and the eq.-3 loss from
-slam.dense.render.rgbd_loss, as the mapper did before. The split (render / loss / backward / Adam) is timed on ours.
-Rows: Warp, Warp's scalar kernels (the CUDA ones on the CPU, `warp-scalar`) and Taichi on the same scene.
+Real frames (rows with scene "hololens"): the first frames of ../shared/data/hololens_office_85_378 (a HoloLens 2
+walking an office) run through an agent with the defaults (loop closure off) until its active submap holds
+REAL_KEYFRAMES keyframes; the scene is that submap as mapping left it (its Gaussians seeded and optimised from the
+camera's own colour and depth) and its keyframes at the mapping resolution (320x213, the frames' 3:2 aspect at the
+working width), with the camera's exposure model as the agent had it. Without the shared data those rows are left
+out with a note.
+
+Generated scene (rows with scene "generated"): perf.raster.make_scene's Gaussians (spread through the frustum at
+1.5-6 m, 1-3.5 px on screen at 640 px scaled to the width) render the target colour and depth of three keyframes
+(the camera shifted by a few cm); the map to optimise is the same Gaussians with noise on means, colours and
+opacities, in the mapper's parametrisation. "ours" is `slam.dense.mapping.mapper.Mapper.optimise`, the mapping loop
+the agent runs (iteration cost = the time difference between a long and a short run, divided by the extra
+iterations, so Adam's and the targets' set-up are not counted); the peer is the same step written with torch's
+default Adam and the eq.-3 loss from slam.dense.render.rgbd_loss, as the mapper did before. The split (render /
+loss / backward / Adam) is timed on ours.
+Rows per scene: Warp, Warp's scalar kernels (the CUDA ones on the CPU, `warp-scalar`) and Taichi.
 
 Roofline row: the machine's vector arithmetic rate, measured in the same run (perf/roofline.py's `simd_gflops`:
 16-lane FMA chains on both cores, before and after the backends; the higher of the two), against the
@@ -35,9 +43,13 @@ import time
 import numpy as np
 import torch
 
-DESCRIPTION = "one mapping iteration (render + eq.-3 loss + backward + Adam) at 320x240 with 60k Gaussians"
+DESCRIPTION = ("one mapping iteration (render + eq.-3 loss + backward + Adam) at 320x240 with 60k Gaussians, and on real "
+               "frames (a HoloLens 2 submap)")
 
 WIDTH, HEIGHT, N = 320, 240, 60_000
+REAL_DATA = "hololens_office_85_378"
+REAL_KEYFRAMES = 4  # keyframes of the real submap (a submap of this walk holds 4-6 at the defaults)
+REAL_MAX_FRAMES = 150
 
 
 @contextlib.contextmanager
@@ -85,17 +97,49 @@ def _setup(n: int, width: int, height: int, seed: int = 0):
                            truth.quats.clone(), truth.logit_opacities + 0.5 * torch.randn(n, generator=g),
                            (truth.colors + 0.1 * torch.randn(n, 3, generator=g)).clamp(0, 1))
     submap = Submap(0, np.eye(4), noisy, [0, 1, 2])
-    return submap, keyframes, MappingConfig()
+    return submap, keyframes, MappingConfig(), None
 
 
-def _optimise_s(submap, keyframes, cfg, iterations: int) -> float:
+def _setup_real(path, keyframes: int = REAL_KEYFRAMES, max_frames: int = REAL_MAX_FRAMES):
+    """(submap, keyframes, mapping cfg, exposure cfg or None) from real frames: see the module docstring."""
+    from swarmsplat.slam.config import SlamConfig
+    from swarmsplat.slam.dense.agent import Agent
+    from swarmsplat.slam.dense.mapping.mapper import MapKeyframe
+    from swarmsplat.slam.io.datasets import load_sequence
+
+    seq = load_sequence(path)
+    cfg = SlamConfig()
+    cfg.loop_closure.enabled = False
+    agent = Agent(seq.camera, cfg, name="mapping-scene")
+    for i in range(min(len(seq), max_frames)):
+        f = seq[i]
+        agent.step(i, f.timestamp, f.color, f.depth)
+        if agent.gmap.active is not None and len(agent.gmap.active.keyframe_ids) >= keyframes:
+            break
+    else:
+        raise RuntimeError(f"{path}: no submap reached {keyframes} keyframes in its first {max_frames} frames")
+    submap = agent.gmap.active
+    kfs = [agent.keyframes[i] for i in submap.keyframe_ids]
+    mks = [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior,
+                       exposure_fixed=j == 0 or k.exposure_outlier, exposure_outlier=k.exposure_outlier)
+           for j, k in enumerate(kfs)]
+    return submap, mks, agent.mapper.cfg, agent.mapper.exposure
+
+
+def _optimise_s(submap, keyframes, cfg, iterations: int, exposure=None) -> float:
+    """Seconds of `iterations` steps of Mapper.optimise (with the camera's exposure model where the scene has one);
+    the submap's parameters and the keyframes' exposures are put back afterwards."""
     from swarmsplat.slam.dense.mapping.mapper import Mapper
 
     start = submap.params
+    exposures = [None if k.exposure is None else k.exposure.copy() for k in keyframes]
     t0 = time.perf_counter()
-    Mapper(cfg).optimise(submap, keyframes, iterations)
+    Mapper(cfg, exposure).optimise(submap, keyframes, iterations)
     dt = time.perf_counter() - t0
     submap.params = start
+    for k, e in zip(keyframes, exposures):
+        if e is not None:
+            k.exposure[:] = e
     return dt
 
 
@@ -171,7 +215,8 @@ def _pairs_per_render(submap, keyframes) -> float:
     with torch.no_grad():
         a = activate(p)
         pairs = [int(rasterize(p.means, p.quats, a.scales, a.opacities, a.colors, viewmat_from_pose(k.T_local_cam),
-                               torch.as_tensor(k.rgbd.camera.K, dtype=torch.float32), WIDTH, HEIGHT).n_touched.sum())
+                               torch.as_tensor(k.rgbd.camera.K, dtype=torch.float32), k.rgbd.camera.width,
+                               k.rgbd.camera.height).n_touched.sum())
                  for k in keyframes]
     return statistics.mean(pairs)
 
@@ -189,6 +234,26 @@ def run(*, backends: list[str], device: str, quick: bool) -> dict:
     return run_with_pipeline_threads(_run, backends=backends, device=device, quick=quick)
 
 
+def _scenes(n: int, notes: list) -> list:
+    """[(name, (submap, keyframes, cfg, exposure))]: the generated scene, and the real frames' where the shared data
+    is (a note says why not otherwise)."""
+    from .common import shared_data
+
+    scenes = [("generated", _setup(n, WIDTH, HEIGHT))]
+    try:
+        path = shared_data(REAL_DATA, "mapping")
+    except SystemExit as e:
+        notes.append(f"real-frames rows left out: {e}")
+        return scenes
+    scenes.append(("hololens", _setup_real(path)))
+    return scenes
+
+
+def _image(keyframes) -> str:
+    cam = keyframes[0].rgbd.camera
+    return f"{cam.width}x{cam.height}"
+
+
 def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     from .common import SCALAR_PEER, use_backend, with_scalar_peer
     from .raster import FLOPS_PER_PAIR_BWD, FLOPS_PER_PAIR_FWD
@@ -202,62 +267,73 @@ def _run(*, backends: list[str], device: str, quick: bool) -> dict:
     short, long_, repeat = (3, 8, 2) if quick else (5, 30, 3)
     rows = []
     notes = [f"load average at start (1 min, all users): {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"]
-    submap, keyframes, cfg = _setup(n, WIDTH, HEIGHT)
     backends = with_scalar_peer(backends, device)
     use_backend(backends[0], device)
-    pairs = _pairs_per_render(submap, keyframes)
-    gflop = pairs * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD) / 1e9
+    scenes = _scenes(n, notes)
     peak, scalar = _probe(backends, device, fma_gflops, simd_gflops)
-    for name in backends:
-        use_backend(name, device)
-        _optimise_s(submap, keyframes, cfg, 2)  # warm-up: compiles / loads the kernels
-        per_it = []
-        c0 = time.process_time()
-        for _ in range(repeat):
-            t_short = _optimise_s(submap, keyframes, cfg, short)
-            t_long = _optimise_s(submap, keyframes, cfg, long_)
-            per_it.append((t_long - t_short) / (long_ - short))
-        cpu_ms = 1e3 * (time.process_time() - c0) / (repeat * (short + long_))
-        ours = statistics.median(per_it)
-        peer = statistics.median(_peer_step_s(submap, keyframes, cfg, short) for _ in range(repeat))
-        row = {"backend": name, "image": f"{WIDTH}x{HEIGHT}", "N": n, "iteration_ms": 1e3 * ours,
-               "iteration_cpu_ms": cpu_ms, "peer_iteration_ms": 1e3 * peer, "speedup": peer / ours}
-        row.update(_split_ms(submap, keyframes, cfg, short + 1))
-        rows.append(row)
+    per_scene = {}
+    for scene, (submap, keyframes, cfg, exposure) in scenes:
         use_backend(backends[0], device)
-        print(f"[perf mapping] {name}: {1e3 * ours:.1f} ms per iteration (peer {1e3 * peer:.1f} ms)", flush=True)
+        pairs = _pairs_per_render(submap, keyframes)
+        per_scene[scene] = (pairs, pairs * (FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD) / 1e9, _image(keyframes),
+                            len(submap.params))
+        for name in backends:
+            use_backend(name, device)
+            _optimise_s(submap, keyframes, cfg, 2, exposure)  # warm-up: compiles / loads the kernels
+            per_it = []
+            c0 = time.process_time()
+            for _ in range(repeat):
+                t_short = _optimise_s(submap, keyframes, cfg, short, exposure)
+                t_long = _optimise_s(submap, keyframes, cfg, long_, exposure)
+                per_it.append((t_long - t_short) / (long_ - short))
+            cpu_ms = 1e3 * (time.process_time() - c0) / (repeat * (short + long_))
+            ours = statistics.median(per_it)
+            peer = statistics.median(_peer_step_s(submap, keyframes, cfg, short) for _ in range(repeat))
+            row = {"scene": scene, "backend": name, "image": _image(keyframes), "N": len(submap.params),
+                   "iteration_ms": 1e3 * ours, "iterations_per_s": 1.0 / ours, "iteration_cpu_ms": cpu_ms,
+                   "peer_iteration_ms": 1e3 * peer, "speedup": peer / ours}
+            row.update(_split_ms(submap, keyframes, cfg, short + 1))
+            rows.append(row)
+            use_backend(backends[0], device)
+            print(f"[perf mapping] {scene} {name}: {1e3 * ours:.1f} ms per iteration (peer {1e3 * peer:.1f} ms)",
+                  flush=True)
     notes += [
         f"load average at end: {os.getloadavg()[0]:.1f}; iteration_cpu_ms = process CPU time (all threads) per "
         "iteration including set-up, less sensitive to other users than wall time",
         f"iteration_ms: (time of Mapper.optimise with {long_} iterations - with {short}) / {long_ - short}, median "
-        f"of {repeat}; the split columns are medians of single steps of the same pieces (not additive to it exactly)",
+        f"of {repeat}, with the camera's exposure model where the scene's agent had it on (hololens); the split "
+        "columns are medians of single steps of the same pieces without it (not additive to it exactly)",
         "peer: the same step with torch.optim.Adam defaults and slam.dense.render.rgbd_loss, keyframes in turn, same "
-        "process and scene",
+        "process and scene, no exposure model",
     ]
     peak2, scalar2 = _probe(backends, device, fma_gflops, simd_gflops)
     peak = max(peak, peak2)
     for row in rows:
+        gflop = per_scene[row["scene"]][1]
         row["gflop_per_iteration"] = gflop
         row["achieved_gflops"] = gflop / (row["iteration_ms"] / 1e3)
         row["roofline_fraction"] = row["achieved_gflops"] / peak
-    rows.append({"backend": "roofline", "image": f"{WIDTH}x{HEIGHT}", "N": n, "iteration_ms": 1e3 * gflop / peak,
-                 "gflop_per_iteration": gflop, "achieved_gflops": peak, "roofline_fraction": 1.0})
+    for scene, (pairs, gflop, image, n_scene) in per_scene.items():
+        rows.append({"scene": scene, "backend": "roofline", "image": image, "N": n_scene,
+                     "iteration_ms": 1e3 * gflop / peak, "gflop_per_iteration": gflop, "achieved_gflops": peak,
+                     "roofline_fraction": 1.0})
+        notes.append(f"{scene}: counted arithmetic {pairs / 1e6:.2f} M composited pairs per render x "
+                     f"{FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD} flops = {gflop:.3f} GFLOP per iteration")
     notes.append(f"roofline: {peak:.1f} GFLOP/s measured on the CPU's vector units in this run (16-lane float32 FMA "
-                 f"chains, both cores; scalar FMA chains: {max(scalar, scalar2):.1f} GFLOP/s); counted arithmetic "
-                 f"{pairs / 1e6:.2f} M composited pairs per render x {FLOPS_PER_PAIR_FWD + FLOPS_PER_PAIR_BWD} flops "
-                 f"= {gflop:.3f} GFLOP per iteration (a lower bound: see the module docstring); its iteration_ms is "
-                 "that arithmetic at 100 % of the measured rate")
-    scalar = {r["N"]: r for r in rows if r["backend"] == SCALAR_PEER}
+                 f"chains, both cores; scalar FMA chains: {max(scalar, scalar2):.1f} GFLOP/s); the counted "
+                 "arithmetic is a lower bound (see the module docstring); a roofline row's iteration_ms is that "
+                 "arithmetic at 100 % of the measured rate")
+    scalar = {r["scene"]: r for r in rows if r["backend"] == SCALAR_PEER}
     for row in rows:
-        if row["backend"] == "warp" and row["N"] in scalar:
-            row["vs_scalar"] = scalar[row["N"]]["iteration_ms"] / row["iteration_ms"]
+        if row["backend"] == "warp" and row["scene"] in scalar:
+            row["vs_scalar"] = scalar[row["scene"]]["iteration_ms"] / row["iteration_ms"]
     if scalar:
         notes.append(f"{SCALAR_PEER}: Warp with its own compositing, projection, binning, activation and loss "
                      "kernels (the CUDA ones, scalar code on the CPU, the loss included); "
                      "vs_scalar = its iteration_ms / warp's, same run and scene")
-    columns = ["backend", "image", "N", "iteration_ms", "iteration_cpu_ms", "render_ms", "loss_ms", "backward_ms",
-               "adam_ms", "peer_iteration_ms", "speedup", "vs_scalar", "gflop_per_iteration", "achieved_gflops",
-               "roofline_fraction"]
+    columns = ["scene", "backend", "image", "N", "iteration_ms", "iterations_per_s", "iteration_cpu_ms", "render_ms",
+               "loss_ms", "backward_ms", "adam_ms", "peer_iteration_ms", "speedup", "vs_scalar",
+               "gflop_per_iteration", "achieved_gflops", "roofline_fraction"]
     return {"rows": rows, "columns": columns, "notes": notes}
 
 
