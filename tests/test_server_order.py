@@ -82,3 +82,58 @@ def test_a_backlog_still_reports_publishes_and_keeps_the_deadline(monkeypatch):
     node._ticking = (False, 1.0, 0.0)
     with pytest.raises(TimeoutError, match="gave up after 1 s"):
         node.process()
+
+
+def test_finished_submaps_reach_the_mirror_while_the_server_serves():
+    """Found by `perf team-link`: across processes the server put the agents' Gaussians into its mirrors only after the
+    run, so the cloud route's render check drew empty maps and refused every wide loop (0 of 32 on the demo against
+    11 of 12 in one process). A finished submap's Gaussians now reach the mirror when they arrive, or when the
+    keyframe that opens the submap does; the first copy is kept."""
+    import numpy as np
+    import torch
+
+    from swarmsplat.kernels.camera import PinholeCamera
+    from swarmsplat.slam.dense.gaussian_map import GaussianParams, Submap
+    from swarmsplat.slam.dense.team.mirror import AgentMirror
+    from swarmsplat.slam.run.team import Team
+    from swarmsplat.slam.run.team_link import messages as L
+    from swarmsplat.slam.run.team_link.agent_node import config_digest
+    from swarmsplat.slam.run.team_link.server_node import ServerNode
+
+    class Wire:
+        def send(self, dest, msg):
+            pass
+
+        def poll(self):
+            return []
+
+    cfg, cam = SlamConfig(), PinholeCamera(100.0, 100.0, 40.0, 30.0, 80, 60)
+    server = ServerNode(Team([cam], ["a"], cfg, agent_class=AgentMirror), Wire(), say=lambda *a: None,
+                        clock=lambda: 0.0)
+    server.handle(0, L.Join(mid=1, name="a", camera=[100.0, 100.0, 40.0, 30.0, 80, 60], config=config_digest(cfg),
+                            rounds=8))
+
+    def meta(kf, submap):
+        return L.KeyframeMeta(mid=10 + kf, id=kf, frame_index=kf, timestamp=0.1 * kf, round=kf, submap_id=submap,
+                              T_local_cam=np.eye(4)[None], odom_T=np.zeros((0, 4, 4)), odom_info=np.zeros((0, 6, 6)),
+                              submap_start=np.eye(4)[None] if submap else np.zeros((0, 4, 4)))
+
+    def submap(sid, n):
+        g = torch.Generator().manual_seed(sid)
+        params = GaussianParams.from_points(torch.rand(n, 3, generator=g), torch.rand(n, 3, generator=g),
+                                            torch.full((n,), 0.01), 0.5)
+        return L.SubmapData.pack(20 + sid, Submap(sid, np.eye(4), params, [sid]), "float32")
+
+    mirror = server.team.agents[0]
+    server._process(0, meta(0, 0))  # submap 0 opens (a keyframe without images: no loop search)
+    assert len(mirror.gmap.submaps[0].params) == 0
+    server.handle(0, submap(0, 5))  # finished: its Gaussians go in at once
+    assert len(mirror.gmap.submaps[0].params) == 5
+    server.handle(0, submap(1, 7))  # before the keyframe that opens submap 1 has been handled
+    assert len(mirror.gmap.submaps) == 1
+    server._process(0, meta(1, 1))
+    assert len(mirror.gmap.submaps[1].params) == 7
+    first = mirror.gmap.submaps[0].params
+    server.handle(0, submap(0, 3))  # a repeat (a resent message) changes nothing
+    server.collect_submaps()
+    assert mirror.gmap.submaps[0].params is first and len(mirror.gmap.submaps[1].params) == 7

@@ -63,6 +63,7 @@ class Peer:
     images: dict = field(default_factory=dict)  # keyframe id -> KeyframeImage
     dropped: set = field(default_factory=set)  # keyframe ids whose images the agent dropped
     submaps: dict = field(default_factory=dict)  # submap id -> SubmapData
+    installed: set = field(default_factory=set)  # submap ids whose Gaussians are in the agent's mirror
     claims: list = field(default_factory=list)  # (rounds done, keyframes made by then), from Frames
     rounds_done: int = 0  # rounds whose keyframes have all arrived
     open_ended: bool = False  # joined without a frame count (a live agent): the others never wait for it
@@ -184,6 +185,7 @@ class ServerNode:
         elif isinstance(msg, L.SubmapData):
             p.repeats += msg.id in p.submaps
             p.submaps.setdefault(msg.id, msg)
+            self.install_submaps(a)
         elif isinstance(msg, L.Frames):
             self._frames(a, msg)
         elif isinstance(msg, L.Done):
@@ -295,6 +297,7 @@ class ServerNode:
         p.processed += 1
         if len(ag.gmap.submaps) > n_sm:
             team._record_origin(a)
+            self.install_submaps(a)  # a submap whose Gaussians came before its first keyframe
         team.rounds = m.round
         team.frames_done[a] = len(ag.poses)
         if img is not None:
@@ -343,13 +346,21 @@ class ServerNode:
         if timeout is not None and now - self.t0 > timeout:
             raise TimeoutError(f"the team server gave up after {timeout:.0f} s: {self.status()}")
 
+    def install_submaps(self, a: int) -> None:
+        """Agent `a`'s finished submaps received so far into its mirror, each once, as soon as the mirror has the
+        submap: the server's checks that draw an agent's map while it serves (the cloud route's render check,
+        slam.dense.loops.render_check) see the Gaussians of its finished submaps, as the team in one process sees
+        them (there, also those of the submap being mapped). A submap's first copy is the one kept."""
+        p, ag = self.peers[a], self.team.agents[a]
+        for sid in sorted(set(p.submaps) - p.installed):
+            if sid < len(ag.gmap.submaps):
+                ag.set_submap(sid, p.submaps[sid].params())
+                p.installed.add(sid)
+
     def collect_submaps(self) -> None:
-        """Every finished submap's Gaussians into its mirror."""
-        for a, p in enumerate(self.peers):
-            ag = self.team.agents[a]
-            for sid, sd in sorted(p.submaps.items()):
-                if sid < len(ag.gmap.submaps):
-                    ag.set_submap(sid, sd.params())
+        """Every finished submap's Gaussians into its mirror (those not installed while serving)."""
+        for a in range(len(self.peers)):
+            self.install_submaps(a)
 
     def status(self) -> str:
         parts = []
