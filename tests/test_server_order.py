@@ -7,6 +7,16 @@ from __future__ import annotations
 from swarmsplat.slam.config import SlamConfig
 
 
+class Wire:
+    """A transport that sends nowhere and receives nothing: the tests hand the server its messages."""
+
+    def send(self, dest, msg):
+        pass
+
+    def poll(self):
+        return []
+
+
 def test_a_keyframe_whose_images_are_late_holds_back_the_later_ones():
     """Found by a server killed mid-run under load: agent 0's keyframe of round 0 had its meta journaled but its images
     lost with the server; after the restart agent 1's keyframe of round 1 arrived whole, and agent 0 had reported
@@ -20,13 +30,6 @@ def test_a_keyframe_whose_images_are_late_holds_back_the_later_ones():
     from swarmsplat.slam.run.team_link import messages as L
     from swarmsplat.slam.run.team_link.agent_node import config_digest
     from swarmsplat.slam.run.team_link.server_node import ServerNode
-
-    class Wire:
-        def send(self, dest, msg):
-            pass
-
-        def poll(self):
-            return []
 
     cfg, cam = SlamConfig(), PinholeCamera(100.0, 100.0, 40.0, 30.0, 80, 60)
     server = ServerNode(Team([cam, cam], ["a", "b"], cfg, agent_class=AgentMirror), Wire(), say=lambda *a: None,
@@ -99,13 +102,6 @@ def test_finished_submaps_reach_the_mirror_while_the_server_serves():
     from swarmsplat.slam.run.team_link import messages as L
     from swarmsplat.slam.run.team_link.agent_node import config_digest
     from swarmsplat.slam.run.team_link.server_node import ServerNode
-
-    class Wire:
-        def send(self, dest, msg):
-            pass
-
-        def poll(self):
-            return []
 
     cfg, cam = SlamConfig(), PinholeCamera(100.0, 100.0, 40.0, 30.0, 80, 60)
     server = ServerNode(Team([cam], ["a"], cfg, agent_class=AgentMirror), Wire(), say=lambda *a: None,
