@@ -104,7 +104,6 @@ def _setup_real(path, keyframes: int = REAL_KEYFRAMES, max_frames: int = REAL_MA
     """(submap, keyframes, mapping cfg, exposure cfg or None) from real frames: see the module docstring."""
     from swarmsplat.slam.config import SlamConfig
     from swarmsplat.slam.dense.agent import Agent
-    from swarmsplat.slam.dense.mapping.mapper import MapKeyframe
     from swarmsplat.slam.io.datasets import load_sequence
 
     seq = load_sequence(path)
@@ -119,11 +118,7 @@ def _setup_real(path, keyframes: int = REAL_KEYFRAMES, max_frames: int = REAL_MA
     else:
         raise RuntimeError(f"{path}: no submap reached {keyframes} keyframes in its first {max_frames} frames")
     submap = agent.gmap.active
-    kfs = [agent.keyframes[i] for i in submap.keyframe_ids]
-    mks = [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior,
-                       exposure_fixed=j == 0 or k.exposure_outlier, exposure_outlier=k.exposure_outlier)
-           for j, k in enumerate(kfs)]
-    return submap, mks, agent.mapper.cfg, agent.mapper.exposure
+    return submap, agent.map_keyframes(submap), agent.mapper.cfg, agent.mapper.exposure
 
 
 def _optimise_s(submap, keyframes, cfg, iterations: int, exposure=None) -> float:

@@ -282,14 +282,18 @@ class Agent:
         """Map keyframe `kf` into its submap: mapping.first_iterations for a submap's first keyframe, else
         mapping.iterations (or `iterations`); stop(i), if given, ends the optimisation after i iterations."""
         s = self.gmap.submaps[kf.submap_id]
-        kfs = [self.keyframes[i] for i in s.keyframe_ids]
+        mks = self.map_keyframes(s)
         if iterations is None:
-            iterations = self.cfg.mapping.first_iterations if len(kfs) == 1 else self.cfg.mapping.iterations
-        # a submap's first keyframe holds its colour gauge; an outlier keeps the exposure it inherited
-        mks = [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior,
-                           exposure_fixed=i == 0 or k.exposure_outlier, exposure_outlier=k.exposure_outlier)
-               for i, k in enumerate(kfs)]
+            iterations = self.cfg.mapping.first_iterations if len(mks) == 1 else self.cfg.mapping.iterations
         return self.mapper.map(self.gmap, s, mks, iterations, stop=stop)
+
+    def map_keyframes(self, submap) -> list[MapKeyframe]:
+        """The keyframes of `submap` as its mapping optimises them (their mapping-resolution images, exposures)."""
+        # a submap's first keyframe holds its colour gauge; an outlier keeps the exposure it inherited
+        kfs = [self.keyframes[i] for i in submap.keyframe_ids]
+        return [MapKeyframe(k.T_local_cam, k.map_rgbd, k.exposure, k.exposure_prior,
+                            exposure_fixed=i == 0 or k.exposure_outlier, exposure_outlier=k.exposure_outlier)
+                for i, k in enumerate(kfs)]
 
     def _detect_loops(self, kf: Keyframe, information: np.ndarray | None = None) -> None:
         """Add `kf` to the loop closer and look for loops; `information`: the odometry edge's information since
