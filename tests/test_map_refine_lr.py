@@ -90,3 +90,33 @@ def test_views_of_stored_keyframes_decode_through_a_bounded_cache():
     assert cache.decoded == 4 and cache.bytes <= 2 * one
     assert torch.equal(RefineView(viewmat_from_pose(np.eye(4)), None, None, cam, frame=frames[0]).depth,
                        frames[0].depth_tensor())  # no cache: decoded at each read
+
+
+def test_the_exposures_take_the_refinements_own_step_and_prior(monkeypatch):
+    """MapRefineConfig.exposure_lr / exposure_regulariser, not ExposureConfig's (mapping's), drive the keyframes'
+    exposures in the refinement: the optimiser gets the refinement's step at every step, and the prior's weight is
+    the refinement's."""
+    from swarmsplat.slam.config import ExposureConfig
+    from swarmsplat.slam.dense.mapping.mapper import ExposureSteps
+
+    seen: list[tuple[list[float], float]] = []
+    step = ExposureSteps.step
+
+    def spy(self):
+        seen.append(([g["lr"] for g in self.opt.param_groups], self.cfg.regulariser))
+        return step(self)
+
+    monkeypatch.setattr(ExposureSteps, "step", spy)
+    p, views = _scene()
+    e = np.array([-0.2, -0.1, -0.3, 0.0, 0.0, 0.0])
+    views = [views[0].at(exposure=np.zeros(6)), views[0].at(exposure=e)]  # the first holds the gauge
+    for v in views:
+        v.exposure_prior = v.exposure.copy()
+    cfg = MapRefineConfig(exposure_lr=0.03, exposure_regulariser=0.02, lr_final_scale=0.25, min_contribution=0.0,
+                          iterations_per_keyframe=3)
+    with use_reference():
+        _, _, st = refine_map(p, views, cfg, MappingConfig(), exposure=ExposureConfig(lr=1e-4, regulariser=5.0))
+    assert len(seen) == 6
+    assert all(lrs == [0.03] and reg == 0.02 for lrs, reg in seen)
+    assert np.array_equal(st.exposures[0], np.zeros(6))  # the gauge stays
+    assert np.abs(st.exposures[1] - e).max() > 1e-3  # moved at the refinement's step, not at mapping's 1e-4

@@ -176,10 +176,11 @@ class MapRefineConfig(_Section):
     """Server-side refinement of each component's merged map after the final pose-graph optimisation
     (slam.dense.mapping.refine_merged): the merged map optimised jointly over all keyframes."""
 
-    iterations_per_keyframe: int = Field(24, ge=0, description="optimisation steps per keyframe of the component "
+    iterations_per_keyframe: int = Field(32, ge=0, description="optimisation steps per keyframe of the component "
                                          "(one keyframe per step); 0 disables refinement")
-    max_iterations: int = Field(3000, ge=0, description="cap on the steps per component (bounds the time: 6-8 "
-                                "minutes for the 0.85 M Gaussians of a real office walk on 2 CPU cores)")
+    max_iterations: int = Field(4500, ge=0, description="cap on the steps per component (bounds the time: the "
+                                "4,320 steps of a real office walk's 135 keyframes and 0.85 M Gaussians take "
+                                "about 6.5 minutes on 2 CPU cores)")
     lr_scale: float = Field(2.0, gt=0, description="learning rates start at mapping's lr_* times this")
     lr_final_scale: float = Field(0.1, gt=0, le=1, description="the learning rates decay geometrically to this "
                                   "fraction of their start over the refinement's steps (1 = constant)")
@@ -212,6 +213,12 @@ class MapRefineConfig(_Section):
         "raised the map and moved the trajectory away from its ground truth; docs/decisions/0021)")
     lr_pose_rotation: float = Field(1e-3, gt=0, description="Adam step on a keyframe's rotation (rad)")
     lr_pose_translation: float = Field(3e-4, gt=0, description="Adam step on a keyframe's translation (m)")
+    exposure_regulariser: float = Field(0.01, ge=0, description="weight of each keyframe's exposure prior in "
+                                        "the refinement (exposure.regulariser is mapping's): the refinement, "
+                                        "which sees every keyframe, settles the exposures that mapping's "
+                                        "few views fitted (docs/decisions/0023)")
+    exposure_lr: float = Field(0.02, gt=0, description="Adam step on a keyframe's log gains and offsets in the "
+                                "refinement (exposure.lr is mapping's)")
     optimizer: Literal["selective", "adam"] = Field("adam", description="'selective': Adam on the "
                                                     "Gaussians of each step's view only, with per-Gaussian bias "
                                                     "correction (slam.dense.mapping.selective_adam); 'adam': torch's Adam over "

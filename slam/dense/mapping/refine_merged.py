@@ -287,8 +287,9 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
 
     With `exposure` (slam.dense.mapping.exposure) every view with an exposure has it optimised too, all but
     `exposure_gauge` (default: `fixed_views`; a team's first keyframe of one agent only, since all agents' colours
-    meet in one map), regularised toward its anchor; `stats.exposures` has them. An outlier view's colour takes
-    no part in the loss.
+    meet in one map), regularised toward its anchor with `cfg.exposure_regulariser` and stepped with
+    `cfg.exposure_lr` (the refinement's own, in place of `exposure`'s); `stats.exposures` has them. An outlier
+    view's colour takes no part in the loss.
 
     `context`: Gaussians rendered with `params` at every step (those in the step's view) but not optimised: the
     rest of the map when `params` is one region of it (slam.dense.mapping.refine_regions).
@@ -324,6 +325,8 @@ def refine_map(params: GaussianParams, views: list[RefineView], cfg: MapRefineCo
              if refines_poses(cfg, views) and len(views) > 1 else None)
     gauge = {0} if fixed_views is None else set(fixed_views)
     ex_gauge = gauge if exposure_gauge is None else set(exposure_gauge)
+    if exposure is not None:  # the refinement's own prior and step (MapRefineConfig.exposure_*)
+        exposure = exposure.model_copy(update={"regulariser": cfg.exposure_regulariser, "lr": cfg.exposure_lr})
     ex = ExposureSteps([v.exposure for v in views], [v.exposure_prior for v in views],
                        [j in ex_gauge for j in range(len(views))], exposure)
     order: list[int] = []
